@@ -1,0 +1,149 @@
+//! Bus key expressions — the one source of truth for DESIGN.md "The bus".
+//!
+//! All keys live under `mwb/<space>/…`. Identifiers used as key chunks (space, job id, node id,
+//! role) are restricted to `[A-Za-z0-9_.-]` so they can never contain a wildcard or separator.
+
+use thiserror::Error;
+
+/// An identifier that cannot be a key chunk.
+#[derive(Debug, Error, PartialEq, Eq)]
+#[error("{what} {value:?} is not a valid identifier: use 1-64 characters from [A-Za-z0-9_.-]")]
+pub struct BadIdentifier {
+    pub what: &'static str,
+    pub value: String,
+}
+
+/// Checks that `value` may be used as one key chunk.
+pub fn check_identifier(what: &'static str, value: &str) -> Result<(), BadIdentifier> {
+    let ok = !value.is_empty()
+        && value.len() <= 64
+        && value
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-' || b == b'.');
+    if ok {
+        Ok(())
+    } else {
+        Err(BadIdentifier {
+            what,
+            value: value.to_owned(),
+        })
+    }
+}
+
+/// Node roles, as they appear in `alive/<role>/<node>` and `stats/<role>/<node>`.
+pub mod role {
+    pub const SAMPLER: &str = "sampler";
+    pub const STORE: &str = "store";
+    pub const QUERY: &str = "query";
+    pub const REVERSE: &str = "reverse";
+    pub const CLIENT: &str = "client";
+}
+
+/// Key builder for one space.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Keys {
+    prefix: String,
+}
+
+impl Keys {
+    pub fn new(space: &str) -> Result<Self, BadIdentifier> {
+        check_identifier("space", space)?;
+        Ok(Self {
+            prefix: format!("mwb/{space}"),
+        })
+    }
+
+    /// `mwb/<space>`
+    pub fn prefix(&self) -> &str {
+        &self.prefix
+    }
+    /// Everything in the space (recorders).
+    pub fn all(&self) -> String {
+        format!("{}/**", self.prefix)
+    }
+    pub fn scene(&self, revision: u64) -> String {
+        format!("{}/scene/{revision}", self.prefix)
+    }
+    pub fn job(&self, job: &str) -> String {
+        format!("{}/job/{job}", self.prefix)
+    }
+    /// Every job announcement (not their states: `*` matches one chunk).
+    pub fn jobs(&self) -> String {
+        format!("{}/job/*", self.prefix)
+    }
+    pub fn job_state(&self, job: &str) -> String {
+        format!("{}/job/{job}/state", self.prefix)
+    }
+    pub fn job_states(&self) -> String {
+        format!("{}/job/*/state", self.prefix)
+    }
+    pub fn segment(&self, job: &str, node: &str, counter: u64, seq: u32) -> String {
+        format!("{}/seg/{job}/{node}/{counter}/{seq}", self.prefix)
+    }
+    pub fn segments(&self) -> String {
+        format!("{}/seg/**", self.prefix)
+    }
+    pub fn done(&self, job: &str, node: &str, counter: u64) -> String {
+        format!("{}/done/{job}/{node}/{counter}", self.prefix)
+    }
+    pub fn dones(&self) -> String {
+        format!("{}/done/**", self.prefix)
+    }
+    /// World fetch by dense store index.
+    pub fn world(&self, index: u32) -> String {
+        format!("{}/q/world/{index}", self.prefix)
+    }
+    pub fn worlds(&self) -> String {
+        format!("{}/q/world/*", self.prefix)
+    }
+    /// Store statistics query.
+    pub fn store_stats(&self) -> String {
+        format!("{}/q/stats", self.prefix)
+    }
+    pub fn alive(&self, role: &str, node: &str) -> String {
+        format!("{}/alive/{role}/{node}", self.prefix)
+    }
+    pub fn alive_all(&self) -> String {
+        format!("{}/alive/**", self.prefix)
+    }
+    pub fn alive_role(&self, role: &str) -> String {
+        format!("{}/alive/{role}/*", self.prefix)
+    }
+    pub fn stats(&self, role: &str, node: &str) -> String {
+        format!("{}/stats/{role}/{node}", self.prefix)
+    }
+    pub fn stats_all(&self) -> String {
+        format!("{}/stats/**", self.prefix)
+    }
+
+    /// The chunks after the prefix, if `key` belongs to this space.
+    pub fn split<'k>(&self, key: &'k str) -> Option<Vec<&'k str>> {
+        key.strip_prefix(self.prefix.as_str())?
+            .strip_prefix('/')
+            .map(|rest| rest.split('/').collect())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn identifiers() {
+        assert!(check_identifier("job", "tower-1.a_b").is_ok());
+        for bad in ["", "a/b", "a*", "$x", "a b", &"x".repeat(65)] {
+            assert!(check_identifier("job", bad).is_err(), "{bad}");
+        }
+        assert!(Keys::new("a/b").is_err());
+    }
+
+    #[test]
+    fn keys_split_back() {
+        let k = Keys::new("demo").unwrap_or_else(|e| panic!("{e}"));
+        let seg = k.segment("j1", "n1", 7, 2);
+        assert_eq!(seg, "mwb/demo/seg/j1/n1/7/2");
+        assert_eq!(k.split(&seg), Some(vec!["seg", "j1", "n1", "7", "2"]));
+        assert_eq!(k.split("mwb/other/seg/x"), None);
+        assert_eq!(k.job_state("j"), "mwb/demo/job/j/state");
+    }
+}

@@ -1,0 +1,241 @@
+//! The concrete scene: every distribution already sampled, every generator expanded, every
+//! reference resolved and validated. This is what a simulator consumes.
+//!
+//! Conventions: SI units (metres, seconds, kilograms, radians); right-handed, **y up** (gravity
+//! defaults to `[0, -9.81, 0]`); quaternions are stored `[x, y, z, w]` (the order glam and rapier
+//! use) and are unit length.
+
+/// A 3-vector in scene space.
+pub type Vec3 = [f64; 3];
+/// A unit quaternion `[x, y, z, w]`.
+pub type Quat = [f64; 4];
+
+/// Identity rotation.
+pub const IDENTITY: Quat = [0.0, 0.0, 0.0, 1.0];
+
+/// A fully instantiated scene (one world's initial conditions).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Scene {
+    pub name: String,
+    pub settings: Settings,
+    /// Indexed by [`Body::material`] / [`StaticBody::material`].
+    pub materials: Vec<Material>,
+    /// Immovable geometry: planes, boxes, triangle meshes, …
+    pub statics: Vec<StaticBody>,
+    /// Dynamic bodies, in a fixed order: the object index of every recorded frame.
+    pub bodies: Vec<Body>,
+    pub joints: Vec<Joint>,
+}
+
+/// Simulation and sampling settings (DESIGN.md "Forward sampling", §4.1).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Settings {
+    /// Fixed time step, seconds (default 1/120: §4.3 stores 120 frames per second).
+    pub dt: f64,
+    /// Simulated time after which a world stops even if not at rest, seconds.
+    pub end_time: f64,
+    /// Gravity, m/s².
+    pub gravity: Vec3,
+    /// A body rests when its speed stays below this (m/s) …
+    pub rest_linear: f64,
+    /// … and its angular speed below this (rad/s) …
+    pub rest_angular: f64,
+    /// … for this long (s). A world ends when every dynamic body rests.
+    pub rest_hold: f64,
+    /// Velocity solver iterations per step.
+    pub solver_iterations: u32,
+    /// §4.1.1 plausibility bound: a perturbation is at most α times the impact's velocity change.
+    pub alpha: f64,
+    /// Exponent n of the cosⁿ lobe the perturbation direction is drawn from (§4.1.2).
+    pub cos_exponent: f64,
+    /// Impact threshold on ‖Δv‖ (m/s², contact part only, gravity removed) (§4.1.2 C_v).
+    pub c_v: f64,
+    /// Impact threshold on ‖Δω‖ (rad/s²) (§4.1.2 C_ω).
+    pub c_omega: f64,
+    /// Motion is streamed in segments of about this many seconds.
+    pub segment_seconds: f64,
+    /// Linear damping applied to every dynamic body (1/s). Non-zero damping changes what the
+    /// motion codec may assume about free flight.
+    pub linear_damping: f64,
+    /// Angular damping applied to every dynamic body (1/s).
+    pub angular_damping: f64,
+}
+
+impl Default for Settings {
+    fn default() -> Self {
+        Self {
+            dt: 1.0 / 120.0,
+            end_time: 10.0,
+            gravity: [0.0, -9.81, 0.0],
+            rest_linear: 0.02,
+            rest_angular: 0.05,
+            rest_hold: 0.5,
+            solver_iterations: 4,
+            alpha: 0.1,
+            cos_exponent: 20.0,
+            // Resting contact removes g from Δv every step (‖Δv‖ = 9.81 m/s²), sliding friction
+            // μg; 30 m/s² (≈ 3 g, a 0.25 m/s change in one 1/120 s step) is clearly an impact.
+            c_v: 30.0,
+            c_omega: 60.0,
+            segment_seconds: 1.0,
+            linear_damping: 0.0,
+            angular_damping: 0.0,
+        }
+    }
+}
+
+/// A named surface/bulk material.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Material {
+    pub name: String,
+    /// Coulomb friction coefficient, ≥ 0.
+    pub friction: f64,
+    /// Coefficient of restitution in [0, 1].
+    pub restitution: f64,
+    /// Density, kg/m³, > 0 (mass and inertia follow from the shape).
+    pub density: f64,
+}
+
+/// Collision geometry. Dimensions are half-extents / radii in metres. Capsules and cylinders
+/// are aligned with their local y axis.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Shape {
+    Box {
+        half_extents: Vec3,
+    },
+    Sphere {
+        radius: f64,
+    },
+    Capsule {
+        half_height: f64,
+        radius: f64,
+    },
+    Cylinder {
+        half_height: f64,
+        radius: f64,
+    },
+    /// The convex hull of these local-space points (at least 4, not coplanar).
+    ConvexHull {
+        points: Vec<Vec3>,
+    },
+    /// Static only: the half-space below the plane through the body's position with this
+    /// outward unit normal (local space).
+    Plane {
+        normal: Vec3,
+    },
+    /// Static only: a triangle mesh in local space.
+    TriMesh {
+        vertices: Vec<Vec3>,
+        indices: Vec<[u32; 3]>,
+    },
+}
+
+impl Shape {
+    /// Whether a dynamic body may have this shape.
+    pub fn can_be_dynamic(&self) -> bool {
+        !matches!(self, Shape::Plane { .. } | Shape::TriMesh { .. })
+    }
+
+    /// Radius of the smallest ball about the local origin that contains the shape (used to
+    /// decide which bodies can tunnel and need CCD). Infinite for planes.
+    pub fn bounding_radius(&self) -> f64 {
+        match self {
+            Shape::Box { half_extents: h } => (h[0] * h[0] + h[1] * h[1] + h[2] * h[2]).sqrt(),
+            Shape::Sphere { radius } => *radius,
+            Shape::Capsule {
+                half_height,
+                radius,
+            } => half_height + radius,
+            Shape::Cylinder {
+                half_height,
+                radius,
+            } => (half_height * half_height + radius * radius).sqrt(),
+            Shape::ConvexHull { points }
+            | Shape::TriMesh {
+                vertices: points, ..
+            } => points
+                .iter()
+                .map(|p| (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt())
+                .fold(0.0, f64::max),
+            Shape::Plane { .. } => f64::INFINITY,
+        }
+    }
+
+    /// Half of the smallest extent across the shape (how thin it is: a body moving more than
+    /// this per step can tunnel through thin geometry).
+    pub fn min_half_thickness(&self) -> f64 {
+        match self {
+            Shape::Box { half_extents: h } => h[0].min(h[1]).min(h[2]),
+            Shape::Sphere { radius } => *radius,
+            Shape::Capsule { radius, .. } => *radius,
+            Shape::Cylinder {
+                half_height,
+                radius,
+            } => half_height.min(*radius),
+            Shape::ConvexHull { .. } => self.bounding_radius() * 0.25,
+            Shape::Plane { .. } => f64::INFINITY,
+            Shape::TriMesh { .. } => 0.0,
+        }
+    }
+}
+
+/// A dynamic rigid body.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Body {
+    pub name: String,
+    pub shape: Shape,
+    pub material: usize,
+    /// Centre of the shape's local frame in world space.
+    pub position: Vec3,
+    pub rotation: Quat,
+    pub linvel: Vec3,
+    pub angvel: Vec3,
+}
+
+/// Immovable geometry.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StaticBody {
+    pub name: String,
+    pub shape: Shape,
+    pub material: usize,
+    pub position: Vec3,
+    pub rotation: Quat,
+}
+
+/// One end of a joint.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BodyRef {
+    /// Fixed to the world frame.
+    World,
+    /// Index into [`Scene::bodies`].
+    Body(usize),
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum JointKind {
+    /// Hinge about `axis` (local to body 1 and body 2 alike).
+    Revolute { axis: Vec3 },
+    /// Ball and socket.
+    Spherical,
+    /// Rigid weld.
+    Fixed,
+}
+
+/// A joint between two bodies (or a body and the world). Anchors are in each body's local
+/// frame (for [`BodyRef::World`], in world space).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Joint {
+    pub name: String,
+    pub kind: JointKind,
+    pub body1: BodyRef,
+    pub body2: BodyRef,
+    pub anchor1: Vec3,
+    pub anchor2: Vec3,
+}
+
+impl Scene {
+    /// Index of the dynamic body with this name.
+    pub fn body_index(&self, name: &str) -> Option<usize> {
+        self.bodies.iter().position(|b| b.name == name)
+    }
+}

@@ -1,0 +1,207 @@
+//! `mwb-reverse`: the velocity-level LCP time-stepper of node-reverse (thesis ch. 3 and ch. 5).
+//!
+//! This part holds the pure numerical core, with no I/O and no async:
+//!
+//! * [`lcp`]: a pivoting solver for the bounded mixed LCP `w = A x + b` of §3.4–3.7, with
+//!   normal rows (`x ≥ 0`), equality rows (joints), constant bounds, and friction rows whose
+//!   bounds `±μ x_normal` follow their normal impulse *inside the same LCP* (the coupled model of
+//!   §3.6.1, not ODE's two-phase approximation). Per-row goal velocities (restitution, the
+//!   backward stepper's targets) go into `b`.
+//! * [`qr`]: the dense QR factorisation with Givens-rotation updates (§3.7.1) that the solver
+//!   keeps of its active-set matrix as rows enter and leave the clamped set.
+//!
+//! # Example: a box resting on the ground, with friction
+//!
+//! One contact point under the centre of a unit-mass box (to keep it short): a normal row and two
+//! friction rows. `A = Δt J M⁻¹ Jᵀ` and `b` is the contact velocity before contact impulses
+//! (3.34)–(3.35); here the box slides along x at 2 m/s and falls at 0.1 m/s.
+//!
+//! ```
+//! use mwb_reverse::lcp::{self, LcpOptions, LcpProblem, LcpStatus, RowKind};
+//! use nalgebra::{DMatrix, DVector};
+//!
+//! # fn main() -> Result<(), mwb_reverse::LcpError> {
+//! let mu = 0.4;
+//! let mut problem = LcpProblem::new(
+//!     DMatrix::identity(3, 3),                // J M⁻¹ Jᵀ for a point mass of 1 kg, impulses
+//!     DVector::from_vec(vec![-0.1, 2.0, 0.0]), // normal, tangent u, tangent w velocities
+//!     vec![
+//!         RowKind::Normal,
+//!         RowKind::Friction { normal: 0, mu },
+//!         RowKind::Friction { normal: 0, mu },
+//!     ],
+//! )?;
+//! // A goal velocity (restitution (3.20), or a backward-step target (5.5)) just shifts b (3.37):
+//! // ask for the contact to separate at 0.05 m/s after the step.
+//! problem.subtract_goal(&DVector::from_vec(vec![0.05, 0.0, 0.0]))?;
+//!
+//! let solution = lcp::solve(&problem, &LcpOptions::default())?;
+//! assert_eq!(solution.status, LcpStatus::Solved);
+//! let (normal, friction) = (solution.x[0], solution.x[1]);
+//! assert!((normal - 0.15).abs() < 1e-12);            // stops the fall, adds the goal speed
+//! assert!((friction + mu * normal).abs() < 1e-12);   // sliding: friction is maximal, opposing
+//! assert!(solution.w[1] > 0.0);                      // … and the box still slides afterwards
+//! assert!(solution.residual < 1e-12);
+//!
+//! // Conflicting goals (Figure 5.4) do not hang or panic: they come back flagged.
+//! let squeezed = LcpProblem::new(
+//!     DMatrix::from_row_slice(2, 2, &[1.0, -1.0, -1.0, 1.0]),
+//!     DVector::from_vec(vec![-1.0, -1.0]),
+//!     vec![RowKind::Normal; 2],
+//! )?;
+//! let flagged = lcp::solve(&squeezed, &LcpOptions::default())?;
+//! assert_eq!(flagged.status, LcpStatus::Infeasible);
+//! assert!(!flagged.status.is_solution());
+//! # Ok(())
+//! # }
+//! ```
+//!
+//! # Example: updating a QR factorisation
+//!
+//! ```
+//! use mwb_reverse::qr::Qr;
+//! use nalgebra::{DMatrix, DVector};
+//!
+//! # fn main() -> Result<(), mwb_reverse::QrError> {
+//! let a = DMatrix::from_row_slice(2, 2, &[4.0, 1.0, 1.0, 3.0]);
+//! let mut qr = Qr::new(&a)?;
+//! // Grow to 3 × 3 by a trailing column and row, O(n²) each (3.42).
+//! qr.push_column(&DVector::from_vec(vec![0.5, 0.0]))?;
+//! qr.push_row(&DVector::from_vec(vec![0.0, 0.5, 2.0]))?;
+//! let x = qr.solve(&DVector::from_vec(vec![1.0, 2.0, 3.0]))?;
+//! let grown = DMatrix::from_row_slice(3, 3, &[4.0, 1.0, 0.5, 1.0, 3.0, 0.0, 0.0, 0.5, 2.0]);
+//! assert!((&grown * &x - DVector::from_vec(vec![1.0, 2.0, 3.0])).amax() < 1e-12);
+//! // Remove a row/column pair from the middle (3.43) and replace a column (3.44).
+//! qr.remove_row(1)?;
+//! qr.remove_column(1)?;
+//! qr.replace_column(0, &DVector::from_vec(vec![1.0, 1.0]))?;
+//! assert!((qr.reconstruct() - DMatrix::from_row_slice(2, 2, &[1.0, 0.5, 1.0, 2.0])).amax() < 1e-12);
+//! // A singular matrix is reported, not divided by.
+//! qr.replace_column(1, &DVector::from_vec(vec![2.0, 2.0]))?;
+//! assert!(qr.solve(&DVector::from_vec(vec![1.0, 0.0])).is_err());
+//! # Ok(())
+//! # }
+//! ```
+
+pub mod lcp;
+pub mod qr;
+
+/// Errors of [`qr::Qr`].
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum QrError {
+    /// A vector had the wrong length for the update or solve.
+    #[error("{what} has {found} entries, expected {expected}")]
+    DimensionMismatch {
+        /// Which argument.
+        what: &'static str,
+        /// Length required by the factorisation.
+        expected: usize,
+        /// Length given.
+        found: usize,
+    },
+    /// A row or column index past the end.
+    #[error("index {index} is out of range (length {len})")]
+    IndexOutOfRange {
+        /// Index given.
+        index: usize,
+        /// Number of valid positions.
+        len: usize,
+    },
+    /// NaN or ±∞ in the input.
+    #[error("{what} entry {index} is not finite")]
+    NonFinite {
+        /// Which argument.
+        what: &'static str,
+        /// Position (column-major for matrices).
+        index: usize,
+    },
+    /// A diagonal entry of `R` too small to divide by: the matrix is (numerically) singular.
+    #[error(
+        "rank deficient: |R[{index},{index}]| = {pivot:e} is not above the tolerance {tolerance:e}"
+    )]
+    RankDeficient {
+        /// Diagonal position.
+        index: usize,
+        /// The entry found.
+        pivot: f64,
+        /// The tolerance it failed.
+        tolerance: f64,
+    },
+    /// A square matrix was required.
+    #[error("matrix is {rows}×{cols}, a square matrix is required")]
+    NotSquare {
+        /// Rows.
+        rows: usize,
+        /// Columns.
+        cols: usize,
+    },
+    /// Fewer rows than columns: `A x = b` has no unique solution.
+    #[error("matrix is {rows}×{cols}: fewer rows than columns, the solve is underdetermined")]
+    Underdetermined {
+        /// Rows.
+        rows: usize,
+        /// Columns.
+        cols: usize,
+    },
+}
+
+/// Errors of [`lcp::solve`] and [`lcp::LcpProblem`]: invalid input only; numerical trouble is a
+/// [`lcp::LcpStatus`].
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum LcpError {
+    /// `A` is not `n × n` for `n = b.len()`.
+    #[error("A is {rows}×{cols}, expected {n}×{n} to match b")]
+    Shape {
+        /// Rows of `A`.
+        rows: usize,
+        /// Columns of `A`.
+        cols: usize,
+        /// Length of `b`.
+        n: usize,
+    },
+    /// A vector or list had the wrong length.
+    #[error("{what} has {found} entries, expected {expected}")]
+    DimensionMismatch {
+        /// Which argument.
+        what: &'static str,
+        /// Required length.
+        expected: usize,
+        /// Given length.
+        found: usize,
+    },
+    /// NaN or ±∞ in `A`, `b` or a goal.
+    #[error("{what}[{row},{col}] = {value} is not finite")]
+    NonFinite {
+        /// Which argument.
+        what: &'static str,
+        /// Row.
+        row: usize,
+        /// Column (0 for vectors).
+        col: usize,
+        /// The value found.
+        value: f64,
+    },
+    /// A friction row with a bad `μ` or a coupling to a row that is not a normal row.
+    #[error("friction row {row} (coupled to row {normal}): {reason}")]
+    InvalidFriction {
+        /// The friction row.
+        row: usize,
+        /// The row it names as its normal.
+        normal: usize,
+        /// What is wrong.
+        reason: &'static str,
+    },
+    /// Constant bounds with `lo > hi`, NaN, or no finite room.
+    #[error("row {row} has invalid bounds [{lo}, {hi}]")]
+    InvalidBounds {
+        /// The row.
+        row: usize,
+        /// Lower bound given.
+        lo: f64,
+        /// Upper bound given.
+        hi: f64,
+    },
+    /// Tolerances must be finite and positive.
+    #[error("LcpOptions tolerances must be finite and > 0")]
+    InvalidOptions,
+}

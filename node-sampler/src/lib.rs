@@ -1,0 +1,11 @@
+//! Forward sampling node (§4.1, §4.2): rapier3d worlds with impact perturbations, streamed over
+//! the bus as they are computed.
+//!
+//! * [`world`] — pure computation: one `(scene, seed)` → motion segments + summary.
+//! * [`node`] — the bus node: picks open jobs, runs workers, publishes segments and `WorldDone`.
+
+pub mod node;
+pub mod world;
+
+pub use node::{SamplerConfig, SamplerHandle, run_sampler};
+pub use world::{RunOptions, Segment, WorldSummary, provenance, run_world};

@@ -1,0 +1,560 @@
+//! World assembly: motion segments and `WorldDone`s in, complete CRC-verified worlds out.
+//!
+//! Pure state machine (no bus, no clock of its own: callers pass `now_ms`), so every rule is
+//! unit-tested: CRC checks, completeness, duplicate seeds, the memory cap, job closure, and
+//! discarding the partial worlds of samplers that left.
+
+use mwb_proto::v1::{Job, JobState, Message, MotionSegment, WorldDone};
+use std::collections::{BTreeMap, HashMap, HashSet};
+use std::sync::Arc;
+
+/// A complete world held in memory.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StoredWorld {
+    /// Dense index (bitsets in the browsing layer are over these).
+    pub index: u32,
+    pub job_id: String,
+    pub done: WorldDone,
+    /// In order, `seq` 0..n.
+    pub segments: Vec<MotionSegment>,
+    /// Encoded size of the segments and the summary.
+    pub bytes: u64,
+}
+
+/// Why a world was refused.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Rejection {
+    CrcMismatch,
+    /// Segments missing or inconsistent with the `WorldDone`.
+    Incomplete,
+    DuplicateSeed,
+    MemoryCap,
+    UnknownJob,
+    /// The job already had its target (or was cancelled).
+    Late,
+}
+
+/// The result of feeding one message.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Outcome {
+    /// Waiting for more of this world.
+    Pending,
+    /// A world was stored; the job's new state.
+    Stored { index: u32, state: JobState },
+    /// A world was refused; the job's new state if it counts rejections.
+    Rejected {
+        reason: Rejection,
+        state: Option<JobState>,
+    },
+}
+
+/// Counters for `NodeStats`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Counters {
+    pub crc_failures: u64,
+    pub incomplete: u64,
+    pub duplicates: u64,
+    pub refused_memory: u64,
+    pub unknown_job: u64,
+    pub late: u64,
+    pub discarded_partial: u64,
+    pub malformed: u64,
+}
+
+type WorldKey = (String, String, u64);
+
+#[derive(Debug, Default)]
+struct Partial {
+    segments: BTreeMap<u32, MotionSegment>,
+    done: Option<WorldDone>,
+    crc_bad: bool,
+    bytes: u64,
+    last_ms: u64,
+    /// Set when the sampler's liveliness token went away.
+    orphaned_ms: Option<u64>,
+}
+
+#[derive(Debug)]
+struct JobRecord {
+    job: Job,
+    state: JobState,
+    seeds: HashSet<u64>,
+}
+
+/// The store's world table.
+#[derive(Debug)]
+pub struct Assembler {
+    jobs: BTreeMap<String, JobRecord>,
+    partial: HashMap<WorldKey, Partial>,
+    worlds: Vec<Arc<StoredWorld>>,
+    stored_bytes: u64,
+    partial_bytes: u64,
+    cap_bytes: u64,
+    pub counters: Counters,
+}
+
+impl Assembler {
+    /// `cap_bytes`: complete worlds past this total are refused.
+    pub fn new(cap_bytes: u64) -> Self {
+        Self {
+            jobs: BTreeMap::new(),
+            partial: HashMap::new(),
+            worlds: Vec::new(),
+            stored_bytes: 0,
+            partial_bytes: 0,
+            cap_bytes,
+            counters: Counters::default(),
+        }
+    }
+
+    pub fn world_count(&self) -> usize {
+        self.worlds.len()
+    }
+    pub fn world(&self, index: u32) -> Option<Arc<StoredWorld>> {
+        self.worlds.get(index as usize).cloned()
+    }
+    /// Bytes held: stored worlds plus partial worlds in flight.
+    pub fn memory_bytes(&self) -> u64 {
+        self.stored_bytes + self.partial_bytes
+    }
+    pub fn cap_bytes(&self) -> u64 {
+        self.cap_bytes
+    }
+    pub fn partial_count(&self) -> usize {
+        self.partial.len()
+    }
+    pub fn jobs(&self) -> impl Iterator<Item = (&Job, &JobState)> {
+        self.jobs.values().map(|r| (&r.job, &r.state))
+    }
+    pub fn job_state(&self, job: &str) -> Option<&JobState> {
+        self.jobs.get(job).map(|r| &r.state)
+    }
+
+    /// A job announcement (new, or a higher revision: e.g. cancelled). Returns the state to
+    /// publish when something changed.
+    pub fn submit_job(&mut self, job: Job) -> Option<JobState> {
+        match self.jobs.get_mut(&job.id) {
+            Some(rec) if rec.job.revision >= job.revision => None,
+            Some(rec) => {
+                let cancel = job.cancelled && !rec.state.closed;
+                rec.job = job;
+                if cancel {
+                    rec.state.closed = true;
+                    rec.state.cancelled = true;
+                }
+                rec.state.target_worlds = rec.job.target_worlds;
+                if rec.state.worlds_done >= rec.state.target_worlds {
+                    rec.state.closed = true;
+                }
+                rec.state.revision += 1;
+                Some(rec.state.clone())
+            }
+            None => {
+                let state = JobState {
+                    job_id: job.id.clone(),
+                    revision: 1,
+                    target_worlds: job.target_worlds,
+                    closed: job.cancelled || job.target_worlds == 0,
+                    cancelled: job.cancelled,
+                    ..Default::default()
+                };
+                self.jobs.insert(
+                    job.id.clone(),
+                    JobRecord {
+                        job,
+                        state: state.clone(),
+                        seeds: HashSet::new(),
+                    },
+                );
+                Some(state)
+            }
+        }
+    }
+
+    pub fn on_segment(&mut self, seg: MotionSegment, now_ms: u64) -> Outcome {
+        let key = (seg.job_id.clone(), seg.node_id.clone(), seg.world_counter);
+        let crc_ok = crc32fast::hash(&seg.payload) == seg.crc32;
+        let size = seg.encoded_len() as u64;
+        let p = self.partial.entry(key.clone()).or_default();
+        p.last_ms = now_ms;
+        if !crc_ok {
+            // §4.2: the checksum catches a corrupted segment; the whole world is refused.
+            self.counters.crc_failures += 1;
+            p.crc_bad = true;
+        }
+        if !p.segments.contains_key(&seg.seq) {
+            p.bytes += size;
+            self.partial_bytes += size;
+            p.segments.insert(seg.seq, seg);
+        }
+        // A single partial world larger than the whole cap can never be stored.
+        if p.bytes > self.cap_bytes {
+            self.drop_partial(&key);
+            self.counters.refused_memory += 1;
+            let state = self.count_rejection(&key.0);
+            return Outcome::Rejected {
+                reason: Rejection::MemoryCap,
+                state,
+            };
+        }
+        self.try_complete(key, now_ms)
+    }
+
+    pub fn on_done(&mut self, done: WorldDone, now_ms: u64) -> Outcome {
+        let key = (
+            done.job_id.clone(),
+            done.node_id.clone(),
+            done.world_counter,
+        );
+        let p = self.partial.entry(key.clone()).or_default();
+        p.last_ms = now_ms;
+        p.done = Some(done);
+        self.try_complete(key, now_ms)
+    }
+
+    fn drop_partial(&mut self, key: &WorldKey) -> Option<Partial> {
+        let p = self.partial.remove(key)?;
+        self.partial_bytes -= p.bytes;
+        Some(p)
+    }
+
+    fn count_rejection(&mut self, job: &str) -> Option<JobState> {
+        let rec = self.jobs.get_mut(job)?;
+        rec.state.worlds_rejected += 1;
+        rec.state.revision += 1;
+        Some(rec.state.clone())
+    }
+
+    fn reject(&mut self, key: &WorldKey, reason: Rejection) -> Outcome {
+        self.drop_partial(key);
+        let c = &mut self.counters;
+        match reason {
+            Rejection::CrcMismatch => {} // counted per segment on arrival
+            Rejection::Incomplete => c.incomplete += 1,
+            Rejection::DuplicateSeed => c.duplicates += 1,
+            Rejection::MemoryCap => c.refused_memory += 1,
+            Rejection::UnknownJob => c.unknown_job += 1,
+            Rejection::Late => c.late += 1,
+        }
+        let state = if reason == Rejection::Late {
+            self.jobs.get_mut(&key.0).map(|rec| {
+                rec.state.worlds_late += 1;
+                rec.state.revision += 1;
+                rec.state.clone()
+            })
+        } else {
+            self.count_rejection(&key.0)
+        };
+        Outcome::Rejected { reason, state }
+    }
+
+    fn try_complete(&mut self, key: WorldKey, now_ms: u64) -> Outcome {
+        let Some(p) = self.partial.get(&key) else {
+            return Outcome::Pending;
+        };
+        let Some(done) = &p.done else {
+            return Outcome::Pending;
+        };
+        if (p.segments.len() as u64) < u64::from(done.segment_count) {
+            return Outcome::Pending;
+        }
+        if p.crc_bad {
+            return self.reject(&key, Rejection::CrcMismatch);
+        }
+        // Complete: segments 0..n, contiguous frames adding up to the announced count.
+        let mut next_frame = 0u64;
+        let mut consistent = p.segments.len() as u64 == u64::from(done.segment_count);
+        let bodies = p.segments.values().next().map_or(0, |s| s.body_count);
+        for (i, (seq, s)) in p.segments.iter().enumerate() {
+            consistent &= *seq as usize == i
+                && u64::from(s.first_frame) == next_frame
+                && s.body_count == bodies
+                && s.seed == done.seed;
+            next_frame += u64::from(s.frame_count);
+        }
+        consistent &=
+            next_frame == u64::from(done.frame_count) && done.impacts.len() == bodies as usize;
+        if !consistent {
+            return self.reject(&key, Rejection::Incomplete);
+        }
+        let job_id = key.0.clone();
+        let Some(rec) = self.jobs.get(&job_id) else {
+            return self.reject(&key, Rejection::UnknownJob);
+        };
+        if rec.state.closed {
+            return self.reject(&key, Rejection::Late);
+        }
+        if rec.seeds.contains(&done.seed) {
+            return self.reject(&key, Rejection::DuplicateSeed);
+        }
+        let world_bytes = p.bytes + done.encoded_len() as u64;
+        if self.stored_bytes + world_bytes > self.cap_bytes {
+            return self.reject(&key, Rejection::MemoryCap);
+        }
+        let Some(p) = self.drop_partial(&key) else {
+            return Outcome::Pending;
+        };
+        let Some(done) = p.done else {
+            return Outcome::Pending;
+        };
+        let index = self.worlds.len() as u32;
+        self.stored_bytes += world_bytes;
+        let Some(rec) = self.jobs.get_mut(&job_id) else {
+            return Outcome::Pending;
+        };
+        rec.seeds.insert(done.seed);
+        let st = &mut rec.state;
+        st.worlds_done += 1;
+        st.bytes_stored += world_bytes;
+        if st.first_world_unix_ms == 0 {
+            st.first_world_unix_ms = now_ms;
+        }
+        st.last_world_unix_ms = now_ms;
+        if st.worlds_done >= st.target_worlds {
+            st.closed = true;
+        }
+        st.revision += 1;
+        let state = st.clone();
+        self.worlds.push(Arc::new(StoredWorld {
+            index,
+            job_id,
+            done,
+            segments: p.segments.into_values().collect(),
+            bytes: world_bytes,
+        }));
+        Outcome::Stored { index, state }
+    }
+
+    /// A sampler's liveliness token went away: its partial worlds will not complete. They are
+    /// discarded after `grace` (the last messages it sent may still be in our queues).
+    pub fn node_left(&mut self, node: &str, now_ms: u64) {
+        for ((_, n, _), p) in self.partial.iter_mut() {
+            if n == node {
+                p.orphaned_ms.get_or_insert(now_ms);
+            }
+        }
+    }
+
+    /// Discards partial worlds orphaned for longer than `grace_ms` or idle for `idle_ms`.
+    /// Returns how many were discarded.
+    pub fn expire(&mut self, now_ms: u64, grace_ms: u64, idle_ms: u64) -> usize {
+        let stale: Vec<WorldKey> = self
+            .partial
+            .iter()
+            .filter(|(_, p)| {
+                p.orphaned_ms
+                    .is_some_and(|t| now_ms.saturating_sub(t) >= grace_ms)
+                    || now_ms.saturating_sub(p.last_ms) >= idle_ms
+            })
+            .map(|(k, _)| k.clone())
+            .collect();
+        for k in &stale {
+            self.drop_partial(k);
+        }
+        self.counters.discarded_partial += stale.len() as u64;
+        stale.len()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn job(id: &str, target: u32) -> Job {
+        Job {
+            id: id.into(),
+            revision: 1,
+            target_worlds: target,
+            ..Default::default()
+        }
+    }
+
+    fn world(
+        job: &str,
+        node: &str,
+        counter: u64,
+        seed: u64,
+        segs: u32,
+    ) -> (Vec<MotionSegment>, WorldDone) {
+        let segments: Vec<MotionSegment> = (0..segs)
+            .map(|i| {
+                let payload = vec![i as u8; 10 + i as usize];
+                MotionSegment {
+                    job_id: job.into(),
+                    node_id: node.into(),
+                    world_counter: counter,
+                    seed,
+                    seq: i,
+                    first_frame: i * 5,
+                    frame_count: 5,
+                    body_count: 2,
+                    crc32: crc32fast::hash(&payload),
+                    payload,
+                    ..Default::default()
+                }
+            })
+            .collect();
+        let done = WorldDone {
+            job_id: job.into(),
+            node_id: node.into(),
+            world_counter: counter,
+            seed,
+            frame_count: segs * 5,
+            segment_count: segs,
+            impacts: vec![0, 1],
+            ..Default::default()
+        };
+        (segments, done)
+    }
+
+    fn feed(a: &mut Assembler, segs: Vec<MotionSegment>, done: WorldDone) -> Outcome {
+        let mut last = Outcome::Pending;
+        for s in segs {
+            last = a.on_segment(s, 1);
+        }
+        assert_eq!(last, Outcome::Pending);
+        a.on_done(done, 2)
+    }
+
+    #[test]
+    fn complete_worlds_get_dense_indices_and_close_the_job() {
+        let mut a = Assembler::new(1 << 20);
+        a.submit_job(job("j", 2));
+        let (s, d) = world("j", "n", 0, 11, 3);
+        assert!(matches!(
+            feed(&mut a, s, d),
+            Outcome::Stored { index: 0, .. }
+        ));
+        // done before segments also works
+        let (s, d) = world("j", "m", 0, 12, 2);
+        assert_eq!(a.on_done(d, 3), Outcome::Pending);
+        let mut out = Outcome::Pending;
+        for seg in s.into_iter().rev() {
+            out = a.on_segment(seg, 4);
+        }
+        let Outcome::Stored { index: 1, state } = out else {
+            panic!("{out:?}")
+        };
+        assert!(state.closed && state.worlds_done == 2);
+        assert_eq!(a.world_count(), 2);
+        assert_eq!(a.partial_count(), 0);
+        // a third is late
+        let (s, d) = world("j", "k", 0, 13, 1);
+        assert!(matches!(
+            feed(&mut a, s, d),
+            Outcome::Rejected {
+                reason: Rejection::Late,
+                ..
+            }
+        ));
+    }
+
+    #[test]
+    fn crc_mismatch_rejects_the_world() {
+        let mut a = Assembler::new(1 << 20);
+        a.submit_job(job("j", 5));
+        let (mut s, d) = world("j", "n", 0, 11, 3);
+        s[1].payload[0] ^= 0x40;
+        assert!(matches!(
+            feed(&mut a, s, d),
+            Outcome::Rejected {
+                reason: Rejection::CrcMismatch,
+                ..
+            }
+        ));
+        assert_eq!(a.counters.crc_failures, 1);
+        assert_eq!(a.world_count(), 0);
+        assert_eq!(a.memory_bytes(), 0);
+    }
+
+    #[test]
+    fn duplicate_seed_and_inconsistent_worlds_are_refused() {
+        let mut a = Assembler::new(1 << 20);
+        a.submit_job(job("j", 5));
+        let (s, d) = world("j", "n", 0, 11, 2);
+        assert!(matches!(feed(&mut a, s, d), Outcome::Stored { .. }));
+        let (s, d) = world("j", "m", 3, 11, 2);
+        assert!(matches!(
+            feed(&mut a, s, d),
+            Outcome::Rejected {
+                reason: Rejection::DuplicateSeed,
+                ..
+            }
+        ));
+        let (s, mut d) = world("j", "m", 4, 12, 2);
+        d.frame_count += 1;
+        assert!(matches!(
+            feed(&mut a, s, d),
+            Outcome::Rejected {
+                reason: Rejection::Incomplete,
+                ..
+            }
+        ));
+    }
+
+    #[test]
+    fn memory_cap_refuses_new_worlds() {
+        let (s, d) = world("j", "n", 0, 1, 2);
+        let one: u64 =
+            s.iter().map(|x| x.encoded_len() as u64).sum::<u64>() + d.encoded_len() as u64;
+        let mut a = Assembler::new(one * 2 + one / 2);
+        a.submit_job(job("j", 10));
+        for c in 0..3u64 {
+            let (s, d) = world("j", "n", c, 100 + c, 2);
+            let out = feed(&mut a, s, d);
+            if c < 2 {
+                assert!(matches!(out, Outcome::Stored { .. }), "{c}: {out:?}");
+            } else {
+                assert!(matches!(
+                    out,
+                    Outcome::Rejected {
+                        reason: Rejection::MemoryCap,
+                        ..
+                    }
+                ));
+            }
+        }
+        assert_eq!(a.counters.refused_memory, 1);
+        assert!(a.memory_bytes() <= a.cap_bytes());
+    }
+
+    #[test]
+    fn departed_samplers_lose_only_their_partial_worlds() {
+        let mut a = Assembler::new(1 << 20);
+        a.submit_job(job("j", 5));
+        let (s, _) = world("j", "dead", 0, 1, 3);
+        for seg in s.into_iter().take(2) {
+            a.on_segment(seg, 10);
+        }
+        let (s, _) = world("j", "alive", 0, 2, 3);
+        a.on_segment(s[0].clone(), 10);
+        a.node_left("dead", 20);
+        assert_eq!(a.expire(500, 1000, 60_000), 0, "grace not over");
+        assert_eq!(a.expire(1100, 1000, 60_000), 1);
+        assert_eq!(a.partial_count(), 1);
+        assert_eq!(a.counters.discarded_partial, 1);
+        assert_eq!(a.expire(100_000, 1000, 60_000), 1, "idle partial expires");
+        assert_eq!(a.memory_bytes(), 0);
+    }
+
+    #[test]
+    fn unknown_job_and_cancel() {
+        let mut a = Assembler::new(1 << 20);
+        let (s, d) = world("nope", "n", 0, 1, 1);
+        assert!(matches!(
+            feed(&mut a, s, d),
+            Outcome::Rejected {
+                reason: Rejection::UnknownJob,
+                ..
+            }
+        ));
+        a.submit_job(job("j", 5));
+        let mut cancel = job("j", 5);
+        cancel.revision = 2;
+        cancel.cancelled = true;
+        let st = a.submit_job(cancel).unwrap_or_default();
+        assert!(st.closed && st.cancelled);
+        // stale revisions are ignored
+        assert!(a.submit_job(job("j", 5)).is_none());
+    }
+}

@@ -1,0 +1,365 @@
+//! Client-side bus operations shared by the CLI, the demo and the benchmarks: submitting and
+//! following jobs, fetching worlds, reading node status. Every wait is bounded.
+
+use anyhow::{Context, Result, anyhow, bail};
+use mwb_core::keys::{Keys, role};
+use mwb_core::scene::SceneTemplate;
+use mwb_proto::v1::{Encoding, Job, JobKind, JobState, Message, NodeStats, Scene, World};
+use std::collections::BTreeMap;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use zenoh::Session;
+use zenoh::qos::CongestionControl;
+
+pub fn unix_ms() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}
+
+/// Reads a scene argument: a path to a TOML file, or the name of a shipped scene.
+pub fn load_scene(arg: &str) -> Result<(String, String)> {
+    let path = std::path::Path::new(arg);
+    if path.exists() {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("reading scene {}", path.display()))?;
+        return Ok((arg.to_owned(), text));
+    }
+    let name = arg.trim_end_matches(".toml");
+    let name = name.rsplit('/').next().unwrap_or(name);
+    match mwb_core::scene::builtin::get(name) {
+        Some(text) => Ok((format!("scenes/{name}.toml"), text.to_owned())),
+        None => bail!(
+            "scene {arg:?}: no such file, and not a shipped scene ({})",
+            mwb_core::scene::builtin::NAMES.join(", ")
+        ),
+    }
+}
+
+/// Builds a job for `target` worlds of the scene text, validating the scene first.
+pub fn make_job(
+    file: &str,
+    text: &str,
+    target: u32,
+    priority: i32,
+    id: Option<String>,
+) -> Result<Job> {
+    let template = SceneTemplate::parse(text, file)?;
+    let id = match id {
+        Some(id) => id,
+        None => {
+            let base: String = template
+                .name()
+                .chars()
+                .map(|c| if c.is_ascii_alphanumeric() { c } else { '-' })
+                .take(40)
+                .collect();
+            format!(
+                "{}-{:x}",
+                if base.is_empty() { "job" } else { &base },
+                unix_ms()
+            )
+        }
+    };
+    mwb_core::keys::check_identifier("job id", &id)?;
+    Ok(Job {
+        id,
+        revision: 1,
+        kind: JobKind::Sample as i32,
+        scene: Some(Scene {
+            revision: 1,
+            name: template.name().to_owned(),
+            toml: text.to_owned(),
+            content_hash: mwb_core::content_hash(text),
+        }),
+        target_worlds: target,
+        priority,
+        created_unix_ms: unix_ms(),
+        cancelled: false,
+        encoding: Encoding::QuantisedFramesV1 as i32,
+    })
+}
+
+/// Waits until at least one store is alive.
+pub async fn wait_for_store(session: &Session, keys: &Keys, timeout: Duration) -> Result<()> {
+    let deadline = Instant::now() + timeout;
+    loop {
+        let replies = session
+            .liveliness()
+            .get(keys.alive_role(role::STORE))
+            .timeout(Duration::from_millis(500))
+            .await
+            .map_err(|e| anyhow!("liveliness query: {e}"))?;
+        if let Ok(reply) = replies.recv_async().await
+            && reply.result().is_ok()
+        {
+            return Ok(());
+        }
+        if Instant::now() > deadline {
+            bail!("no store answered within {timeout:?} (is `mwb store` running and reachable?)");
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+/// Current state of a job from the stores, if any store knows it.
+pub async fn job_state(session: &Session, keys: &Keys, job: &str) -> Result<Option<JobState>> {
+    let replies = session
+        .get(keys.job_state(job))
+        .timeout(Duration::from_secs(2))
+        .await
+        .map_err(|e| anyhow!("job state query: {e}"))?;
+    let mut best: Option<JobState> = None;
+    while let Ok(reply) = replies.recv_async().await {
+        if let Ok(s) = reply.result()
+            && let Ok(st) = JobState::decode(s.payload().to_bytes().as_ref())
+            && best.as_ref().is_none_or(|b| st.revision > b.revision)
+        {
+            best = Some(st);
+        }
+    }
+    Ok(best)
+}
+
+/// Announces a job and waits until a store acknowledges it.
+pub async fn submit_job(session: &Session, keys: &Keys, job: &Job) -> Result<JobState> {
+    wait_for_store(session, keys, Duration::from_secs(15)).await?;
+    let deadline = Instant::now() + Duration::from_secs(15);
+    loop {
+        session
+            .put(keys.job(&job.id), job.encode_to_vec())
+            .congestion_control(CongestionControl::Block)
+            .await
+            .map_err(|e| anyhow!("announcing job: {e}"))?;
+        for _ in 0..10 {
+            if let Some(st) = job_state(session, keys, &job.id).await? {
+                return Ok(st);
+            }
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        if Instant::now() > deadline {
+            bail!("no store acknowledged job {}", job.id);
+        }
+    }
+}
+
+/// Follows a job until it closes (or `timeout`), calling `progress` on every new state.
+pub async fn wait_job(
+    session: &Session,
+    keys: &Keys,
+    job: &str,
+    timeout: Option<Duration>,
+    mut progress: impl FnMut(&JobState),
+) -> Result<JobState> {
+    let sub = session
+        .declare_subscriber(keys.job_state(job))
+        .await
+        .map_err(|e| anyhow!("subscribing to job state: {e}"))?;
+    let start = Instant::now();
+    let mut last: Option<JobState> = job_state(session, keys, job).await?;
+    if let Some(st) = &last {
+        progress(st);
+    }
+    loop {
+        if let Some(st) = &last
+            && st.closed
+        {
+            return Ok(st.clone());
+        }
+        if let Some(t) = timeout
+            && start.elapsed() > t
+        {
+            bail!("job {job} did not finish within {t:?}");
+        }
+        // Subscription for promptness, a periodic query in case an update was missed.
+        let next = match tokio::time::timeout(Duration::from_secs(1), sub.recv_async()).await {
+            Ok(Ok(s)) => JobState::decode(s.payload().to_bytes().as_ref()).ok(),
+            _ => job_state(session, keys, job).await?,
+        };
+        if let Some(st) = next
+            && last.as_ref().is_none_or(|l| st.revision > l.revision)
+        {
+            progress(&st);
+            last = Some(st);
+        }
+    }
+}
+
+/// Fetches a complete world by store index.
+pub async fn fetch_world(session: &Session, keys: &Keys, index: u32) -> Result<Option<World>> {
+    let replies = session
+        .get(keys.world(index))
+        .timeout(Duration::from_secs(10))
+        .await
+        .map_err(|e| anyhow!("world query: {e}"))?;
+    while let Ok(reply) = replies.recv_async().await {
+        if let Ok(s) = reply.result() {
+            let w = World::decode(s.payload().to_bytes().as_ref())
+                .with_context(|| format!("world {index}: malformed reply"))?;
+            return Ok(Some(w));
+        }
+    }
+    Ok(None)
+}
+
+/// All jobs the stores know, with their states.
+pub async fn list_jobs(session: &Session, keys: &Keys) -> Result<Vec<JobState>> {
+    let replies = session
+        .get(keys.job_states())
+        .timeout(Duration::from_secs(2))
+        .await
+        .map_err(|e| anyhow!("job list query: {e}"))?;
+    let mut by_id: BTreeMap<String, JobState> = BTreeMap::new();
+    while let Ok(reply) = replies.recv_async().await {
+        if let Ok(s) = reply.result()
+            && let Ok(st) = JobState::decode(s.payload().to_bytes().as_ref())
+        {
+            let keep = by_id
+                .get(&st.job_id)
+                .is_none_or(|b| st.revision > b.revision);
+            if keep {
+                by_id.insert(st.job_id.clone(), st);
+            }
+        }
+    }
+    Ok(by_id.into_values().collect())
+}
+
+/// Cancels a job: re-announces it with a higher revision and `cancelled` set.
+pub async fn cancel_job(session: &Session, keys: &Keys, job: &str) -> Result<JobState> {
+    let replies = session
+        .get(keys.job(job))
+        .timeout(Duration::from_secs(2))
+        .await
+        .map_err(|e| anyhow!("job query: {e}"))?;
+    let mut found: Option<Job> = None;
+    while let Ok(reply) = replies.recv_async().await {
+        if let Ok(s) = reply.result()
+            && let Ok(j) = Job::decode(s.payload().to_bytes().as_ref())
+        {
+            found = Some(j);
+        }
+    }
+    let Some(mut j) = found else {
+        bail!("job {job} is not open on any store");
+    };
+    j.revision += 1;
+    j.cancelled = true;
+    session
+        .put(keys.job(job), j.encode_to_vec())
+        .congestion_control(CongestionControl::Block)
+        .await
+        .map_err(|e| anyhow!("announcing cancel: {e}"))?;
+    wait_job(session, keys, job, Some(Duration::from_secs(10)), |_| {}).await
+}
+
+/// Live nodes (by liveliness token) and their latest statistics.
+#[derive(Debug, Default, serde::Serialize)]
+pub struct Status {
+    pub nodes: Vec<NodeStatus>,
+    pub jobs: Vec<JobStatus>,
+}
+
+#[derive(Debug, serde::Serialize)]
+pub struct NodeStatus {
+    pub role: String,
+    pub node: String,
+    pub worlds: u64,
+    pub worlds_per_s: f64,
+    pub memory_bytes: u64,
+    pub memory_cap_bytes: u64,
+    pub uptime_s: f64,
+    pub crc_failures: u64,
+    pub malformed: u64,
+    pub refused_memory: u64,
+    pub discarded_partial: u64,
+}
+
+#[derive(Debug, serde::Serialize)]
+pub struct JobStatus {
+    pub job: String,
+    pub done: u32,
+    pub target: u32,
+    pub closed: bool,
+    pub cancelled: bool,
+    pub rejected: u32,
+    pub worlds_per_s: f64,
+}
+
+/// Gathers status: liveliness, then stats publications for `listen` (nodes publish every 1 s).
+pub async fn status(session: &Session, keys: &Keys, listen: Duration) -> Result<Status> {
+    let stats_sub = session
+        .declare_subscriber(keys.stats_all())
+        .await
+        .map_err(|e| anyhow!("subscribing to stats: {e}"))?;
+    let replies = session
+        .liveliness()
+        .get(keys.alive_all())
+        .timeout(Duration::from_secs(2))
+        .await
+        .map_err(|e| anyhow!("liveliness query: {e}"))?;
+    let mut alive: BTreeMap<(String, String), Option<NodeStats>> = BTreeMap::new();
+    while let Ok(reply) = replies.recv_async().await {
+        if let Ok(s) = reply.result()
+            && let Some(parts) = keys.split(s.key_expr().as_str())
+            && let [_, role, node] = parts.as_slice()
+        {
+            alive.insert(((*role).to_owned(), (*node).to_owned()), None);
+        }
+    }
+    let deadline = Instant::now() + listen;
+    while let Some(left) = deadline.checked_duration_since(Instant::now()) {
+        match tokio::time::timeout(left, stats_sub.recv_async()).await {
+            Ok(Ok(s)) => {
+                if let Ok(st) = NodeStats::decode(s.payload().to_bytes().as_ref())
+                    && let Some(slot) = alive.get_mut(&(st.role.clone(), st.node_id.clone()))
+                {
+                    *slot = Some(st);
+                }
+            }
+            _ => break,
+        }
+    }
+    let nodes = alive
+        .into_iter()
+        .map(|((role, node), st)| {
+            let st = st.unwrap_or_default();
+            NodeStatus {
+                role,
+                node,
+                worlds: st.worlds,
+                worlds_per_s: st.worlds_per_s,
+                memory_bytes: st.memory_bytes,
+                memory_cap_bytes: st.memory_cap_bytes,
+                uptime_s: st.uptime_s,
+                crc_failures: st.crc_failures,
+                malformed: st.malformed,
+                refused_memory: st.refused_memory,
+                discarded_partial: st.discarded_partial,
+            }
+        })
+        .collect();
+    let jobs = list_jobs(session, keys)
+        .await?
+        .into_iter()
+        .map(|st| JobStatus {
+            worlds_per_s: job_rate(&st),
+            job: st.job_id,
+            done: st.worlds_done,
+            target: st.target_worlds,
+            closed: st.closed,
+            cancelled: st.cancelled,
+            rejected: st.worlds_rejected,
+        })
+        .collect();
+    Ok(Status { nodes, jobs })
+}
+
+/// Worlds per second over the job's life so far.
+pub fn job_rate(st: &JobState) -> f64 {
+    let span = st.last_world_unix_ms.saturating_sub(st.first_world_unix_ms) as f64 / 1000.0;
+    if st.worlds_done > 1 && span > 0.0 {
+        f64::from(st.worlds_done - 1) / span
+    } else {
+        0.0
+    }
+}

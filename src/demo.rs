@@ -1,0 +1,137 @@
+//! `mwb demo`: one process, one embedded zenoh session (peer, loopback, no multicast, no
+//! router), a store and N samplers as separate nodes that talk only over the bus; samples a
+//! shipped scene and prints what came back.
+
+use crate::bus::{BusArgs, Mode};
+use crate::check::verify_world;
+use crate::client;
+use anyhow::{Result, bail};
+use mwb_core::keys::Keys;
+use mwb_sampler::{SamplerConfig, run_sampler};
+use mwb_store::{StoreConfig, run_store};
+use std::time::Instant;
+
+#[derive(Debug, Clone)]
+pub struct DemoOptions {
+    pub scene: String,
+    pub worlds: u32,
+    pub samplers: usize,
+    pub memory_cap_bytes: u64,
+    pub show_progress: bool,
+}
+
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct DemoSummary {
+    pub scene: String,
+    pub job: String,
+    pub samplers: usize,
+    pub worlds: u32,
+    pub seconds: f64,
+    pub worlds_per_s: f64,
+    pub impacts_per_world: f64,
+    pub perturbations_per_world: f64,
+    pub frames_per_world: f64,
+    pub bytes_per_world: f64,
+    pub rested_fraction: f64,
+    pub crc_valid_worlds: u32,
+    pub bodies: u32,
+}
+
+pub async fn run_demo(bus: &BusArgs, opts: &DemoOptions) -> Result<DemoSummary> {
+    let keys = Keys::new(&bus.space)?;
+    let (file, text) = client::load_scene(&opts.scene)?;
+    let job = client::make_job(&file, &text, opts.worlds, 0, None)?;
+    let session = bus.open(Mode::Peer).await?;
+    let zid = session.zid().to_string();
+    let store = run_store(
+        session.clone(),
+        StoreConfig {
+            space: bus.space.clone(),
+            memory_cap_bytes: opts.memory_cap_bytes,
+            node_id: Some(format!("{zid}-store")),
+            ..Default::default()
+        },
+    )
+    .await?;
+    let mut samplers = Vec::new();
+    for i in 0..opts.samplers.max(1) {
+        samplers.push(
+            run_sampler(
+                session.clone(),
+                SamplerConfig {
+                    space: bus.space.clone(),
+                    workers: 1,
+                    node_id: Some(format!("{zid}-s{i}")),
+                    ..Default::default()
+                },
+            )
+            .await?,
+        );
+    }
+    let start = Instant::now();
+    client::submit_job(&session, &keys, &job).await?;
+    let bar = if opts.show_progress {
+        let b = indicatif::ProgressBar::new(u64::from(opts.worlds));
+        if let Ok(style) = indicatif::ProgressStyle::with_template(
+            "{spinner} {bar:40} {pos}/{len} worlds  {per_sec}  eta {eta}",
+        ) {
+            b.set_style(style);
+        }
+        Some(b)
+    } else {
+        None
+    };
+    let state = client::wait_job(&session, &keys, &job.id, None, |st| {
+        if let Some(b) = &bar {
+            b.set_position(u64::from(st.worlds_done));
+        }
+    })
+    .await?;
+    let seconds = start.elapsed().as_secs_f64();
+    if let Some(b) = &bar {
+        b.finish_and_clear();
+    }
+    for s in samplers {
+        s.stop().await;
+    }
+
+    // Read every world back over the bus and verify it.
+    let mut summary = DemoSummary {
+        scene: file,
+        job: job.id.clone(),
+        samplers: opts.samplers.max(1),
+        worlds: state.worlds_done,
+        seconds,
+        worlds_per_s: f64::from(state.worlds_done) / seconds.max(1e-9),
+        impacts_per_world: 0.0,
+        perturbations_per_world: 0.0,
+        frames_per_world: 0.0,
+        bytes_per_world: 0.0,
+        rested_fraction: 0.0,
+        crc_valid_worlds: 0,
+        bodies: 0,
+    };
+    for i in 0..state.worlds_done {
+        let Some(w) = client::fetch_world(&session, &keys, i).await? else {
+            bail!("world {i} is missing from the store");
+        };
+        let check = verify_world(&w)?;
+        let done = w.done.unwrap_or_default();
+        summary.crc_valid_worlds += 1;
+        summary.bodies = check.bodies;
+        summary.impacts_per_world += check.impacts as f64;
+        summary.perturbations_per_world += f64::from(done.perturbations);
+        summary.frames_per_world += f64::from(check.frames);
+        summary.bytes_per_world += check.bytes as f64;
+        summary.rested_fraction += f64::from(u8::from(done.rested));
+    }
+    let n = f64::from(state.worlds_done.max(1));
+    summary.impacts_per_world /= n;
+    summary.perturbations_per_world /= n;
+    summary.frames_per_world /= n;
+    summary.bytes_per_world /= n;
+    summary.rested_fraction /= n;
+    store.stop();
+    crate::bus::close(session).await;
+    Ok(summary)
+}

@@ -1,0 +1,8 @@
+//! The `mwb` command line: one binary for every role (DESIGN.md "Shape of the system").
+//! Subcommands are thin: the nodes are libraries (`mwb-sampler`, `mwb-store`, …).
+
+pub mod bench;
+pub mod bus;
+pub mod check;
+pub mod client;
+pub mod demo;

@@ -1,0 +1,424 @@
+//! `mwb`: the manyworlds command line. See README.md and ARCHITECTURE.md.
+
+use anyhow::{Context, Result, bail};
+use clap::{Parser, Subcommand};
+use mwb::bus::{BusArgs, Mode};
+use mwb::client;
+use mwb_core::keys::Keys;
+use std::time::Duration;
+
+#[derive(Parser)]
+#[command(
+    name = "mwb",
+    version,
+    about = "manyworlds: sample, store and browse thousands of plausible rigid-body worlds"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Everything in one process: an embedded bus, a store, samplers; sample a shipped scene.
+    Demo {
+        #[command(flatten)]
+        bus: BusArgs,
+        /// Scene file, or a shipped scene name (tumble, pachinko, tower, chute).
+        #[arg(long, default_value = "tumble")]
+        scene: String,
+        #[arg(long, default_value_t = 200)]
+        worlds: u32,
+        #[arg(long, default_value_t = 2)]
+        samplers: usize,
+        /// Store memory cap, MiB.
+        #[arg(long, default_value_t = 2048)]
+        memory_cap_mib: u64,
+        /// Print the summary as one JSON line.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Run a store node (default: a zenoh router other nodes --connect to).
+    Store {
+        #[command(flatten)]
+        bus: BusArgs,
+        /// Refuse new worlds past this many MiB in memory.
+        #[arg(long, default_value_t = 4096)]
+        memory_cap_mib: u64,
+    },
+    /// Run a sampler node; it joins open jobs at any time.
+    Sampler {
+        #[command(flatten)]
+        bus: BusArgs,
+        /// Worker threads [default: all cores].
+        #[arg(long)]
+        workers: Option<usize>,
+    },
+    /// Submit, list and cancel jobs.
+    Job {
+        #[command(subcommand)]
+        command: JobCommand,
+    },
+    /// Live nodes, job progress and throughput.
+    Status {
+        #[command(flatten)]
+        bus: BusArgs,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Check a scene file: parse, validate, instantiate one world.
+    Scene {
+        /// Scene file or shipped scene name.
+        scene: String,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+    },
+    /// Benchmarks (one JSON line each).
+    Bench {
+        #[command(subcommand)]
+        command: BenchCommand,
+    },
+}
+
+#[derive(Subcommand)]
+enum JobCommand {
+    /// Submit a sampling job.
+    Submit {
+        #[command(flatten)]
+        bus: BusArgs,
+        /// Scene file or shipped scene name.
+        scene: String,
+        #[arg(long, default_value_t = 100)]
+        worlds: u32,
+        #[arg(long, default_value_t = 0)]
+        priority: i32,
+        /// Job id [default: <scene name>-<time>].
+        #[arg(long)]
+        id: Option<String>,
+        /// Follow the job until it closes.
+        #[arg(long)]
+        wait: bool,
+        /// Give up waiting after this many seconds.
+        #[arg(long)]
+        timeout: Option<u64>,
+        #[arg(long)]
+        json: bool,
+    },
+    /// List jobs known to the stores.
+    List {
+        #[command(flatten)]
+        bus: BusArgs,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Cancel a job.
+    Cancel {
+        #[command(flatten)]
+        bus: BusArgs,
+        id: String,
+    },
+}
+
+#[derive(Subcommand)]
+enum BenchCommand {
+    /// Raw rapier stepping vs the full sampling pipeline into a store over the bus.
+    Sampler {
+        #[arg(long, default_value = "tumble")]
+        scene: String,
+        #[arg(long, default_value_t = 50)]
+        worlds: u32,
+        /// (Output is always one JSON line; the flag is accepted for scripts.)
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+fn main() -> Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn,mwb=info")),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = Cli::parse();
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
+    rt.block_on(run(cli))
+}
+
+fn print_json<T: serde::Serialize>(v: &T) -> Result<()> {
+    println!("{}", serde_json::to_string(v)?);
+    Ok(())
+}
+
+async fn until_ctrl_c() {
+    let _ = tokio::signal::ctrl_c().await;
+}
+
+async fn run(cli: Cli) -> Result<()> {
+    match cli.command {
+        Command::Demo {
+            bus,
+            scene,
+            worlds,
+            samplers,
+            memory_cap_mib,
+            json,
+        } => {
+            let opts = mwb::demo::DemoOptions {
+                scene,
+                worlds,
+                samplers,
+                memory_cap_bytes: memory_cap_mib << 20,
+                show_progress: !json && std::io::IsTerminal::is_terminal(&std::io::stderr()),
+            };
+            if !json {
+                eprintln!(
+                    "mwb demo: {} worlds of {} with {} samplers on an embedded bus …",
+                    opts.worlds, opts.scene, opts.samplers
+                );
+            }
+            let s = mwb::demo::run_demo(&bus, &opts).await?;
+            if json {
+                print_json(&s)?;
+            } else {
+                println!("scene            {}", s.scene);
+                println!(
+                    "worlds           {} ({} CRC-verified, {} bodies each)",
+                    s.worlds, s.crc_valid_worlds, s.bodies
+                );
+                println!(
+                    "time             {:.2} s with {} samplers",
+                    s.seconds, s.samplers
+                );
+                println!("worlds/s         {:.1}", s.worlds_per_s);
+                println!("impacts/world    {:.1}", s.impacts_per_world);
+                println!("perturbs/world   {:.1}", s.perturbations_per_world);
+                println!("frames/world     {:.0}", s.frames_per_world);
+                println!("bytes/world      {:.0}", s.bytes_per_world);
+                println!("came to rest     {:.0} %", s.rested_fraction * 100.0);
+            }
+        }
+        Command::Store {
+            bus,
+            memory_cap_mib,
+        } => {
+            let session = bus.open(Mode::Router).await?;
+            let store = mwb_store::run_store(
+                session.clone(),
+                mwb_store::StoreConfig {
+                    space: bus.space.clone(),
+                    memory_cap_bytes: memory_cap_mib << 20,
+                    ..Default::default()
+                },
+            )
+            .await?;
+            tracing::info!(node = store.node_id(), "store running; Ctrl-C stops it");
+            until_ctrl_c().await;
+            store.stop();
+            mwb::bus::close(session).await;
+        }
+        Command::Sampler { bus, workers } => {
+            let session = bus.open(bus.client_default()).await?;
+            let mut cfg = mwb_sampler::SamplerConfig {
+                space: bus.space.clone(),
+                ..Default::default()
+            };
+            if let Some(w) = workers {
+                cfg.workers = w.max(1);
+            }
+            let sampler = mwb_sampler::run_sampler(session.clone(), cfg).await?;
+            until_ctrl_c().await;
+            sampler.stop().await;
+            mwb::bus::close(session).await;
+        }
+        Command::Job { command } => job(command).await?,
+        Command::Status { bus, json } => {
+            let keys = Keys::new(&bus.space)?;
+            let session = bus.open(bus.client_default()).await?;
+            let st = client::status(&session, &keys, Duration::from_millis(1500)).await?;
+            mwb::bus::close(session).await;
+            if json {
+                print_json(&st)?;
+            } else {
+                println!(
+                    "{:<8} {:<40} {:>8} {:>9} {:>12}",
+                    "ROLE", "NODE", "WORLDS", "WORLDS/S", "MEMORY MiB"
+                );
+                for n in &st.nodes {
+                    println!(
+                        "{:<8} {:<40} {:>8} {:>9.1} {:>12.1}",
+                        n.role,
+                        n.node,
+                        n.worlds,
+                        n.worlds_per_s,
+                        n.memory_bytes as f64 / f64::from(1u32 << 20)
+                    );
+                }
+                println!();
+                println!(
+                    "{:<40} {:>12} {:>8} {:>9}",
+                    "JOB", "DONE", "STATE", "WORLDS/S"
+                );
+                for j in &st.jobs {
+                    let state = if j.cancelled {
+                        "cancelled"
+                    } else if j.closed {
+                        "closed"
+                    } else {
+                        "open"
+                    };
+                    println!(
+                        "{:<40} {:>5}/{:<6} {:>8} {:>9.1}",
+                        j.job, j.done, j.target, state, j.worlds_per_s
+                    );
+                }
+            }
+        }
+        Command::Scene { scene, seed } => {
+            let (file, text) = client::load_scene(&scene)?;
+            let t = mwb_core::scene::SceneTemplate::parse(&text, &file)?;
+            let s = t.instantiate(seed);
+            println!(
+                "{file}: ok — scene {:?}, {} dynamic bodies, {} statics, {} joints, {} materials, distributions: {}",
+                t.name(),
+                s.bodies.len(),
+                s.statics.len(),
+                s.joints.len(),
+                s.materials.len(),
+                if t.has_distributions() { "yes" } else { "no" }
+            );
+        }
+        Command::Bench { command } => match command {
+            BenchCommand::Sampler {
+                scene,
+                worlds,
+                json: _,
+            } => {
+                let b = mwb::bench::bench_sampler(&scene, worlds).await?;
+                print_json(&b)?;
+            }
+        },
+    }
+    Ok(())
+}
+
+async fn job(command: JobCommand) -> Result<()> {
+    match command {
+        JobCommand::Submit {
+            bus,
+            scene,
+            worlds,
+            priority,
+            id,
+            wait,
+            timeout,
+            json,
+        } => {
+            let keys = Keys::new(&bus.space)?;
+            let (file, text) = client::load_scene(&scene)?;
+            let job = client::make_job(&file, &text, worlds, priority, id)?;
+            let session = bus.open(bus.client_default()).await?;
+            let mut state = client::submit_job(&session, &keys, &job).await?;
+            if !json {
+                eprintln!("submitted job {} ({} worlds of {})", job.id, worlds, file);
+            }
+            if wait {
+                let bar =
+                    (!json && std::io::IsTerminal::is_terminal(&std::io::stderr())).then(|| {
+                        let b = indicatif::ProgressBar::new(u64::from(worlds));
+                        if let Ok(style) = indicatif::ProgressStyle::with_template(
+                            "{spinner} {bar:40} {pos}/{len} worlds  {per_sec}  eta {eta}",
+                        ) {
+                            b.set_style(style);
+                        }
+                        b
+                    });
+                state = client::wait_job(
+                    &session,
+                    &keys,
+                    &job.id,
+                    timeout.map(Duration::from_secs),
+                    |st| {
+                        if let Some(b) = &bar {
+                            b.set_position(u64::from(st.worlds_done));
+                        }
+                    },
+                )
+                .await?;
+                if let Some(b) = bar {
+                    b.finish_and_clear();
+                }
+            }
+            mwb::bus::close(session).await;
+            if json {
+                print_json(&serde_json::json!({
+                    "job": job.id,
+                    "done": state.worlds_done,
+                    "target": state.target_worlds,
+                    "closed": state.closed,
+                    "rejected": state.worlds_rejected,
+                    "worlds_per_s": client::job_rate(&state),
+                }))?;
+            } else if wait {
+                println!(
+                    "job {}: {}/{} worlds, {:.1} worlds/s, {} rejected",
+                    job.id,
+                    state.worlds_done,
+                    state.target_worlds,
+                    client::job_rate(&state),
+                    state.worlds_rejected
+                );
+            } else {
+                println!("{}", job.id);
+            }
+        }
+        JobCommand::List { bus, json } => {
+            let keys = Keys::new(&bus.space)?;
+            let session = bus.open(bus.client_default()).await?;
+            let jobs = client::list_jobs(&session, &keys).await?;
+            mwb::bus::close(session).await;
+            if json {
+                let v: Vec<_> = jobs
+                    .iter()
+                    .map(|s| serde_json::json!({"job": s.job_id, "done": s.worlds_done, "target": s.target_worlds, "closed": s.closed, "cancelled": s.cancelled}))
+                    .collect();
+                print_json(&v)?;
+            } else {
+                for s in jobs {
+                    println!(
+                        "{:<40} {:>6}/{:<6} {}",
+                        s.job_id,
+                        s.worlds_done,
+                        s.target_worlds,
+                        if s.cancelled {
+                            "cancelled"
+                        } else if s.closed {
+                            "closed"
+                        } else {
+                            "open"
+                        }
+                    );
+                }
+            }
+        }
+        JobCommand::Cancel { bus, id } => {
+            let keys = Keys::new(&bus.space)?;
+            let session = bus.open(bus.client_default()).await?;
+            let st = client::cancel_job(&session, &keys, &id).await;
+            mwb::bus::close(session).await;
+            let st = st?;
+            if !st.cancelled {
+                bail!("job {id} closed before the cancel arrived");
+            }
+            println!(
+                "cancelled {id} at {}/{} worlds",
+                st.worlds_done, st.target_worlds
+            );
+        }
+    }
+    Ok(())
+}
