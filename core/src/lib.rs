@@ -5,7 +5,9 @@
 //! * [`perturb`] — §4.1.2 impact detection and perturbation sampling.
 //! * [`frames`] — the interim quantised-frames motion payload.
 //! * [`keys`] — bus key expressions.
+//! * [`browse`] — §4.4 browsing: screen-box frusta, constraints, path index, bitsets, metrics.
 
+pub mod browse;
 pub mod frames;
 pub mod keys;
 pub mod perturb;

@@ -1,7 +1,19 @@
-//! `mwb-reverse`: the velocity-level LCP time-stepper of node-reverse (thesis ch. 3 and ch. 5).
+//! `mwb-reverse`: the velocity-level LCP time-stepper of node-reverse (thesis ch. 3 and ch. 5),
+//! stepping rigid bodies forward *and* backward in time.
 //!
 //! This part holds the pure numerical core, with no I/O and no async:
 //!
+//! * [`World`] ([`world`]): dynamic [`Body`]s (box, sphere, capsule, cylinder, convex hull) and
+//!   [`StaticBody`]s (plane, box, triangle mesh), gravity and [`StepParams`] (restitution cutoff
+//!   `ε`, rest threshold `δ`, prediction distance, LCP options).
+//! * [`contact`]: parry3d contact manifolds kept per pair across steps, the contact Jacobian
+//!   (normal + two tangents, one aligned with the slip) and islands (one LCP per connected
+//!   component of the contact graph).
+//! * [`step`]: the forward Stewart–Trinkle / Anitescu–Potra step (§3.3–3.6):
+//!   [`World::step_forward`], and [`World::step_forward_with`] to replay a given contact set.
+//! * [`backward`]: the backward step of §5.2 (Figure 5.5): [`World::step_backward`], whose
+//!   [`BackwardReport`] carries the contact set, Jacobian directions and impulses, so that a
+//!   forward replay can check it, and the forward-LCP residual of its impulses.
 //! * [`lcp`]: a pivoting solver for the bounded mixed LCP `w = A x + b` of §3.4–3.7, with
 //!   normal rows (`x ≥ 0`), equality rows (joints), constant bounds, and friction rows whose
 //!   bounds `±μ x_normal` follow their normal impulse *inside the same LCP* (the coupled model of
@@ -9,6 +21,52 @@
 //!   backward stepper's targets) go into `b`.
 //! * [`qr`]: the dense QR factorisation with Givens-rotation updates (§3.7.1) that the solver
 //!   keeps of its active-set matrix as rows enter and leave the clamped set.
+//!
+//! Not in this round: joints (the LCP has equality rows, the stepper does not build them yet),
+//! rolling friction (5.15)–(5.18), the plausibility heuristics of §5.3, and any position
+//! correction of penetration (as in the thesis, all conditions are on velocities).
+//!
+//! # Example: a backward step and its forward check (§5.2)
+//!
+//! A box slides along a plane at 1 m/s. One step backward gives the state `Δt` earlier (faster:
+//! friction was slowing it) and the impulses; a forward step from there with the same contact
+//! set gives back the state we started from.
+//!
+//! ```
+//! use mwb_reverse::{BackwardChoices, Body, Material, StaticBody, World};
+//! use nalgebra::{UnitQuaternion, Vector3};
+//!
+//! # fn main() -> Result<(), mwb_reverse::BodyError> {
+//! let mat = Material { friction: 0.5, restitution: 0.3 };
+//! let mut world = World::new(); // gravity (0, 0, −9.81)
+//! world.add_static(StaticBody::plane(Vector3::z(), 0.0)?.with_material(mat));
+//! world.add_body(
+//!     Body::cuboid(Vector3::new(0.5, 0.5, 0.5), 1.0)?
+//!         .with_material(mat)
+//!         .at(Vector3::new(0.0, 0.0, 0.5), UnitQuaternion::identity())
+//!         .moving(Vector3::new(1.0, 0.0, 0.0), Vector3::zeros()),
+//! );
+//! let dt = 1.0 / 240.0;
+//! let now = world.clone();
+//!
+//! let back = world.step_backward(dt, &BackwardChoices::default());
+//! assert!(back.all_solved());
+//! assert!(back.forward_residual < 1e-12); // the impulses solve the forward LCP
+//! let earlier_speed = world.bodies[0].linvel.x;
+//! assert!((earlier_speed - (1.0 + 0.5 * 9.81 * dt)).abs() < 1e-9);
+//!
+//! let mut replay = world.clone();
+//! let fwd = replay.step_forward_with(&back.contacts, dt);
+//! assert!(fwd.all_solved());
+//! assert!((replay.bodies[0].linvel - now.bodies[0].linvel).norm() < 1e-12);
+//! assert!((replay.bodies[0].position - now.bodies[0].position).norm() < 1e-12);
+//!
+//! // Ordinary forward stepping detects contacts itself.
+//! let report = world.step_forward(dt);
+//! assert_eq!(report.contacts.len(), 4);
+//! # Ok(())
+//! # }
+//! ```
 //!
 //! # Example: a box resting on the ground, with friction
 //!
@@ -83,8 +141,42 @@
 //! # }
 //! ```
 
+pub mod backward;
+pub mod body;
+pub mod contact;
 pub mod lcp;
 pub mod qr;
+pub mod step;
+pub mod world;
+
+pub use backward::{
+    BackwardChoices, BackwardReport, BodyHint, ContactChoice, FrictionCase, NormalCase,
+};
+pub use body::{Body, Material, StaticBody};
+pub use contact::{Contact, ContactSet, Island, Partner};
+pub use world::{ContactImpulse, IslandSolve, StepParams, StepReport, World};
+
+/// Errors building a [`Body`] or [`StaticBody`].
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum BodyError {
+    /// A parameter that must be finite and positive was not.
+    #[error("{what} must be finite and > 0, got {value}")]
+    InvalidParameter {
+        /// Which parameter.
+        what: &'static str,
+        /// The value given.
+        value: f64,
+    },
+    /// The inertia tensor could not be inverted.
+    #[error("the inertia tensor is singular or not finite")]
+    SingularInertia,
+    /// The points of a convex hull span no volume.
+    #[error("the convex hull of the points is degenerate")]
+    DegenerateHull,
+    /// parry refused the triangle mesh.
+    #[error("invalid triangle mesh")]
+    InvalidMesh,
+}
 
 /// Errors of [`qr::Qr`].
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]

@@ -326,6 +326,8 @@ pub async fn run_sampler(
                     bytes: shared.bytes.load(Ordering::Relaxed),
                     malformed: shared.malformed.load(Ordering::Relaxed),
                     workers: workers as u32,
+                    pid: std::process::id(),
+                    hostname: hostname(),
                     ..Default::default()
                 };
                 if tx
@@ -507,4 +509,11 @@ pub fn cpu_time() -> f64 {
     } else {
         0.0
     }
+}
+
+/// This machine's host name, for node statistics (empty where unknown).
+fn hostname() -> String {
+    std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .map(|s| s.trim().to_owned())
+        .unwrap_or_default()
 }

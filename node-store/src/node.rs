@@ -88,6 +88,8 @@ impl Shared {
             malformed: c.malformed,
             discarded_partial: c.discarded_partial,
             duplicates: c.duplicates,
+            pid: std::process::id(),
+            hostname: hostname(),
             ..Default::default()
         }
     }
@@ -416,4 +418,11 @@ fn outcome_state(o: Outcome) -> Option<JobState> {
 
 fn intersects(query: &KeyExpr<'_>, key: &str) -> bool {
     KeyExpr::try_from(key).is_ok_and(|k| query.intersects(&k))
+}
+
+/// This machine's host name, for node statistics (empty where unknown).
+fn hostname() -> String {
+    std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .map(|s| s.trim().to_owned())
+        .unwrap_or_default()
 }

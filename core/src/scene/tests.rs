@@ -97,9 +97,9 @@ fn tower_has_192_blocks_and_a_projectile() {
     assert!((b.position[1] - 0.3).abs() < 1e-12);
     assert!((b.position[2] - (-0.303 + 2.0 * 0.202)).abs() < 1e-12);
     let ball = &s.bodies[s
-        .body_index("ball")
-        .unwrap_or_else(|| panic!("ball missing"))];
-    assert!(matches!(ball.shape, Shape::Sphere { .. }));
+        .body_index("projectile")
+        .unwrap_or_else(|| panic!("projectile missing"))];
+    assert!(matches!(ball.shape, Shape::Box { .. }));
     let speed = ball.linvel.iter().map(|v| v * v).sum::<f64>().sqrt();
     assert!((15.0..=26.0).contains(&speed), "{speed}");
     // The tower is 12 blocks of 0.2 m: top at 2.4 m.

@@ -1,0 +1,220 @@
+//! Constraints: a frustum, a polarity, a set of objects and an optional time window (§4.4.1).
+
+use serde::{Deserialize, Serialize};
+
+use super::frustum::Frustum;
+use super::path::PathTree;
+use super::{BrowseError, finite};
+
+/// Identifies a constraint within a browsing session (assigned by whoever creates it, e.g. the
+/// query coordinator).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
+#[serde(transparent)]
+pub struct ConstraintId(pub u64);
+
+impl std::fmt::Display for ConstraintId {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}", self.0)
+    }
+}
+
+/// §4.4.1: positive queries keep worlds whose motion passes through the volume, negative ones
+/// keep worlds whose motion never does.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Polarity {
+    /// "Passes through": some chosen object enters the frustum.
+    Positive,
+    /// "Never passes through": no chosen object enters the frustum.
+    Negative,
+}
+
+/// A closed interval of simulated time, seconds. §4.4.1 ignores time by default (a query is
+/// satisfied at any point of the motion); a window restricts it, like painting a region on the
+/// time slider.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(try_from = "RawWindow")]
+pub struct TimeWindow {
+    start: f64,
+    end: f64,
+}
+
+#[derive(Deserialize)]
+struct RawWindow {
+    start: f64,
+    end: f64,
+}
+
+impl TryFrom<RawWindow> for TimeWindow {
+    type Error = BrowseError;
+    fn try_from(raw: RawWindow) -> Result<Self, BrowseError> {
+        TimeWindow::new(raw.start, raw.end)
+    }
+}
+
+impl TimeWindow {
+    pub fn new(start: f64, end: f64) -> Result<Self, BrowseError> {
+        let start = finite("window.start", start)?;
+        let end = finite("window.end", end)?;
+        if start > end {
+            return Err(BrowseError::InvertedWindow { start, end });
+        }
+        Ok(Self { start, end })
+    }
+
+    pub fn start(&self) -> f64 {
+        self.start
+    }
+
+    pub fn end(&self) -> f64 {
+        self.end
+    }
+
+    pub fn contains(&self, t: f64) -> bool {
+        self.start <= t && t <= self.end
+    }
+}
+
+/// A spatial query over the centre-of-mass paths of a subset of objects (§4.4.1). It travels as
+/// JSON between the viewer, node-query and the stores; the frustum is validated on the way in.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Constraint {
+    pub id: ConstraintId,
+    pub polarity: Polarity,
+    pub frustum: Frustum,
+    /// Object indices (the scene's body order); the constraint is about "any of these". An empty
+    /// subset touches nothing: a positive constraint then keeps no world, a negative one all.
+    pub objects: Vec<u32>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub window: Option<TimeWindow>,
+}
+
+impl Constraint {
+    /// Whether any chosen object's path comes within the frustum (inflated per object by the
+    /// radius `path_of` returns with the tree: codec e_max + low-res deviation). Objects the
+    /// world does not have (`None`) do not touch it.
+    pub fn touched<'a>(&self, mut path_of: impl FnMut(u32) -> Option<(&'a PathTree, f64)>) -> bool {
+        self.objects.iter().any(|&object| {
+            path_of(object)
+                .is_some_and(|(tree, radius)| tree.intersects(&self.frustum, self.window, radius))
+        })
+    }
+
+    /// Whether a world satisfies the constraint. Inflation makes positive answers a superset
+    /// (no world that truly passes through is lost) and negative answers a subset (no world that
+    /// truly passes through is kept): either way the error is on the side of the user's intent.
+    pub fn evaluate<'a>(&self, path_of: impl FnMut(u32) -> Option<(&'a PathTree, f64)>) -> bool {
+        self.satisfied_given(self.touched(path_of))
+    }
+
+    /// The answer for a world whose chosen objects do (`touched`) or do not enter the frustum.
+    pub fn satisfied_given(&self, touched: bool) -> bool {
+        match self.polarity {
+            Polarity::Positive => touched,
+            Polarity::Negative => !touched,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::browse::{Camera, Intrinsics, Polyline, ScreenRect, Viewport};
+
+    fn constraint(polarity: Polarity, window: Option<TimeWindow>) -> Constraint {
+        let camera = Camera {
+            position: [0.0, 0.0, 10.0],
+            rotation: [0.0, 0.0, 0.0, 1.0],
+            intrinsics: Intrinsics::VerticalFov { fov_y_rad: 1.0 },
+            viewport: Viewport {
+                width: 640,
+                height: 480,
+            },
+            near: 0.1,
+            far: 100.0,
+        };
+        let rect = ScreenRect {
+            x0: 310.0,
+            y0: 230.0,
+            x1: 330.0,
+            y1: 250.0,
+        };
+        Constraint {
+            id: ConstraintId(7),
+            polarity,
+            frustum: camera.frustum(&rect).expect("valid"),
+            objects: vec![0, 2],
+            window,
+        }
+    }
+
+    fn tree(y: f64) -> PathTree {
+        // Crosses x = 0 at t = 1.
+        PathTree::build(
+            Polyline::new(vec![0.0, 2.0], vec![[-3.0, y, 0.0], [3.0, y, 0.0]]).expect("valid"),
+        )
+    }
+
+    #[test]
+    fn any_of_the_objects_polarity_and_window() {
+        let hit = tree(0.0);
+        let miss = tree(4.0);
+        let paths = [&miss, &miss, &hit];
+        let lookup = |o: u32| paths.get(o as usize).map(|t| (*t, 0.0));
+        let pos = constraint(Polarity::Positive, None);
+        let neg = constraint(Polarity::Negative, None);
+        assert!(pos.evaluate(lookup));
+        assert!(!neg.evaluate(lookup));
+        // Object 2 is not in a two-object world; object 0 misses.
+        let short = |o: u32| paths[..2].get(o as usize).map(|t| (*t, 0.0));
+        assert!(!pos.evaluate(short));
+        assert!(neg.evaluate(short));
+        // Object 1 hits but is not chosen.
+        let only1 = |o: u32| Some((if o == 1 { &hit } else { &miss }, 0.0));
+        assert!(!pos.evaluate(only1));
+        // The hit happens around t = 1: a window before it excludes it.
+        let early = constraint(Polarity::Positive, TimeWindow::new(0.0, 0.5).ok());
+        assert!(!early.evaluate(lookup));
+        let around = constraint(Polarity::Positive, TimeWindow::new(0.9, 1.1).ok());
+        assert!(around.evaluate(lookup));
+        // Inflation: the miss at y = 4 is caught with a 5 m radius.
+        assert!(pos.evaluate(|o| paths.get(o as usize).map(|_| (&miss, 5.0))));
+    }
+
+    #[test]
+    fn window_validation() {
+        assert_eq!(
+            TimeWindow::new(2.0, 1.0),
+            Err(BrowseError::InvertedWindow {
+                start: 2.0,
+                end: 1.0
+            })
+        );
+        assert!(matches!(
+            TimeWindow::new(f64::NAN, 1.0),
+            Err(BrowseError::NonFinite { .. })
+        ));
+    }
+
+    #[test]
+    fn serde_roundtrip_and_validation() {
+        let c = constraint(Polarity::Negative, TimeWindow::new(0.5, 1.5).ok());
+        let text = toml::to_string(&c).expect("serialises");
+        let back: Constraint = toml::from_str(&text).expect("parses");
+        assert_eq!(back.id, c.id);
+        assert_eq!(back.polarity, c.polarity);
+        assert_eq!(back.objects, c.objects);
+        assert_eq!(back.window, c.window);
+        for (a, b) in back.frustum.planes().iter().zip(c.frustum.planes()) {
+            assert!((a.offset - b.offset).abs() < 1e-12);
+        }
+        assert!(text.contains("polarity = \"negative\""), "{text}");
+        let inverted = text.replace("start = 0.5", "start = 5.0");
+        assert_ne!(inverted, text);
+        assert!(toml::from_str::<Constraint>(&inverted).is_err());
+        let no_window = constraint(Polarity::Positive, None);
+        let text = toml::to_string(&no_window).expect("serialises");
+        let back: Constraint = toml::from_str(&text).expect("parses");
+        assert_eq!(back.window, None);
+    }
+}

@@ -1,0 +1,293 @@
+//! §4.4.3 ranking metrics: computed once per object at ingest from the full-rate track, combined
+//! over a chosen subset of objects at query time, and used to order the surviving worlds.
+//!
+//! When the constraints leave more worlds than a user can look through (the reference says more
+//! than about a hundred), metrics order them: how much the objects spin (integrated angular
+//! speed), how long they take to come to rest (frame budgets), how often they collide, and how
+//! far their final orientation is from a goal (the starting one by default, which §4.4.3 found
+//! sufficient). Per-object values are precomputed; a ranking only sums or maxes them.
+
+use serde::{Deserialize, Serialize};
+
+use super::geom::{Quat, Vec3, norm, quat_angle_between, quat_normalize, sub};
+use super::{BrowseError, finite};
+use crate::scene::Settings;
+
+/// Speeds below which a body counts as at rest.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct RestThresholds {
+    /// m/s.
+    pub linear: f64,
+    /// rad/s.
+    pub angular: f64,
+}
+
+impl From<&Settings> for RestThresholds {
+    /// The scene's own rest thresholds (the ones the sampler ends a world with).
+    fn from(s: &Settings) -> Self {
+        Self {
+            linear: s.rest_linear,
+            angular: s.rest_angular,
+        }
+    }
+}
+
+/// One object's full-rate motion: a pose every `frame_dt` seconds from t = 0.
+#[derive(Debug, Clone, Copy)]
+pub struct Track<'a> {
+    pub frame_dt: f64,
+    pub positions: &'a [Vec3],
+    /// Unit quaternions `[x, y, z, w]` (normalised on use).
+    pub rotations: &'a [Quat],
+}
+
+/// Per-object metrics of one world.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ObjectMetrics {
+    /// ∫‖ω‖ dt over the track, radians: the sum of the rotation angles between frames.
+    pub angular_travel_rad: f64,
+    /// The first time after which the object stays below the rest thresholds, seconds; the
+    /// track's end if it never settles (then `came_to_rest` is false).
+    pub time_to_rest_s: f64,
+    pub came_to_rest: bool,
+    /// Impacts, counted by the caller with the §4.1.2 thresholds.
+    pub impacts: u32,
+    /// Angle between the final orientation and the goal, radians in [0, π].
+    pub orientation_error_rad: f64,
+}
+
+impl ObjectMetrics {
+    /// Computes the metrics of one object's track. `goal` defaults to the first orientation.
+    pub fn compute(
+        track: &Track<'_>,
+        impacts: u32,
+        rest: RestThresholds,
+        goal: Option<Quat>,
+    ) -> Result<ObjectMetrics, BrowseError> {
+        let dt = finite("frame_dt", track.frame_dt)?;
+        if dt <= 0.0 {
+            return Err(BrowseError::OutOfRange {
+                field: "frame_dt",
+                value: dt,
+                expected: "a positive frame interval",
+            });
+        }
+        let n = track.positions.len();
+        if n == 0 {
+            return Err(BrowseError::Empty {
+                field: "track.positions",
+            });
+        }
+        if track.rotations.len() != n {
+            return Err(BrowseError::LengthMismatch {
+                field: "track.rotations",
+                expected: n,
+                found: track.rotations.len(),
+            });
+        }
+        for p in track.positions {
+            for &v in p {
+                finite("track.positions", v)?;
+            }
+        }
+        let mut rotations = Vec::with_capacity(n);
+        for q in track.rotations {
+            for &v in q {
+                finite("track.rotations", v)?;
+            }
+            rotations.push(quat_normalize(*q).ok_or(BrowseError::ZeroVector {
+                field: "track.rotations",
+            })?);
+        }
+        let goal = match goal {
+            Some(g) => {
+                for v in g {
+                    finite("goal", v)?;
+                }
+                quat_normalize(g).ok_or(BrowseError::ZeroVector { field: "goal" })?
+            }
+            None => rotations[0],
+        };
+
+        let mut angular_travel = 0.0;
+        // Index of the last frame interval in which the body moved.
+        let mut last_moving: Option<usize> = None;
+        for i in 0..n - 1 {
+            let angle = quat_angle_between(rotations[i], rotations[i + 1]);
+            angular_travel += angle;
+            let speed = norm(sub(track.positions[i + 1], track.positions[i])) / dt;
+            if speed >= rest.linear || angle / dt >= rest.angular {
+                last_moving = Some(i);
+            }
+        }
+        let (time_to_rest, came_to_rest) = match last_moving {
+            None => (0.0, true),
+            Some(i) => ((i + 1) as f64 * dt, i + 2 < n),
+        };
+        Ok(ObjectMetrics {
+            angular_travel_rad: angular_travel,
+            time_to_rest_s: time_to_rest,
+            came_to_rest,
+            impacts,
+            orientation_error_rad: quat_angle_between(goal, rotations[n - 1]),
+        })
+    }
+
+    pub fn get(&self, metric: Metric) -> f64 {
+        match metric {
+            Metric::AngularTravel => self.angular_travel_rad,
+            Metric::TimeToRest => self.time_to_rest_s,
+            Metric::Impacts => f64::from(self.impacts),
+            Metric::OrientationError => self.orientation_error_rad,
+        }
+    }
+}
+
+/// The precomputed per-object metrics of §4.4.3.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Metric {
+    AngularTravel,
+    TimeToRest,
+    Impacts,
+    OrientationError,
+}
+
+/// How per-object values combine over the chosen objects (§4.4.3: sum or supremum).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Aggregate {
+    Sum,
+    Max,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Order {
+    Ascending,
+    Descending,
+}
+
+/// What to sort worlds by.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(tag = "key", rename_all = "snake_case")]
+pub enum RankKey {
+    /// A precomputed metric over the chosen objects.
+    Metric {
+        metric: Metric,
+        objects: Vec<u32>,
+        aggregate: Aggregate,
+    },
+    /// How many live constraints a world satisfies. §4.4.3: with this key the viewer shows all
+    /// worlds, not only the survivors, to suggest which ones to refine.
+    ConstraintsSatisfied,
+}
+
+impl RankKey {
+    /// The score of a world with these per-object metrics (indexed by object) that satisfies
+    /// `constraints_satisfied` live constraints.
+    pub fn score(&self, objects: &[ObjectMetrics], constraints_satisfied: u32) -> Option<f64> {
+        match self {
+            RankKey::Metric {
+                metric,
+                objects: chosen,
+                aggregate,
+            } => score(objects, chosen, *metric, *aggregate),
+            RankKey::ConstraintsSatisfied => Some(f64::from(constraints_satisfied)),
+        }
+    }
+}
+
+/// `metric` summed or maxed over the `chosen` objects of one world; `None` if none is chosen or
+/// a chosen object is missing from `objects`.
+pub fn score(
+    objects: &[ObjectMetrics],
+    chosen: &[u32],
+    metric: Metric,
+    aggregate: Aggregate,
+) -> Option<f64> {
+    let mut values = chosen
+        .iter()
+        .map(|&o| objects.get(o as usize).map(|m| m.get(metric)));
+    let first = values.next()??;
+    values.try_fold(first, |acc, v| {
+        let v = v?;
+        Some(match aggregate {
+            Aggregate::Sum => acc + v,
+            Aggregate::Max => acc.max(v),
+        })
+    })
+}
+
+/// One row of a ranking.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Ranked {
+    pub world: u32,
+    /// `None` when the world has no value for the key (sorted last).
+    pub score: Option<f64>,
+}
+
+/// Total order for rankings: scored before unscored, then by score in `order`, then by world
+/// index ascending, so equal scores keep a stable, reproducible order across shards.
+fn rank_cmp(order: Order, a: &Ranked, b: &Ranked) -> std::cmp::Ordering {
+    let by_score = match (a.score, b.score) {
+        (Some(x), Some(y)) => match order {
+            Order::Ascending => x.total_cmp(&y),
+            Order::Descending => y.total_cmp(&x),
+        },
+        (Some(_), None) => std::cmp::Ordering::Less,
+        (None, Some(_)) => std::cmp::Ordering::Greater,
+        (None, None) => std::cmp::Ordering::Equal,
+    };
+    by_score.then(a.world.cmp(&b.world))
+}
+
+/// NaN is "no value"; −0 and +0 tie.
+fn clean(score: Option<f64>) -> Option<f64> {
+    score.filter(|s| !s.is_nan()).map(|s| s + 0.0)
+}
+
+/// The best `k` of `candidates` by `score`, ties broken by world index.
+pub fn top_k(
+    candidates: impl IntoIterator<Item = u32>,
+    k: usize,
+    order: Order,
+    mut score: impl FnMut(u32) -> Option<f64>,
+) -> Vec<Ranked> {
+    let rows = candidates
+        .into_iter()
+        .map(|world| Ranked {
+            world,
+            score: score(world),
+        })
+        .collect();
+    select(rows, k, order)
+}
+
+/// Merges per-shard top-k lists into the global top `k` (each shard's list must be its own top
+/// `k` under the same key and order).
+pub fn merge_top_k(
+    lists: impl IntoIterator<Item = Vec<Ranked>>,
+    k: usize,
+    order: Order,
+) -> Vec<Ranked> {
+    select(lists.into_iter().flatten().collect(), k, order)
+}
+
+fn select(mut rows: Vec<Ranked>, k: usize, order: Order) -> Vec<Ranked> {
+    for r in &mut rows {
+        r.score = clean(r.score);
+    }
+    if k == 0 {
+        return Vec::new();
+    }
+    if k < rows.len() {
+        rows.select_nth_unstable_by(k - 1, |a, b| rank_cmp(order, a, b));
+        rows.truncate(k);
+    }
+    rows.sort_unstable_by(|a, b| rank_cmp(order, a, b));
+    rows
+}
+
+#[cfg(test)]
+mod tests;

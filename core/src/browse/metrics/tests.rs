@@ -1,0 +1,252 @@
+use super::*;
+use crate::browse::geom::{normalize, quat_mul};
+use proptest::prelude::*;
+
+const DT: f64 = 1.0 / 120.0;
+
+fn axis_angle(axis: Vec3, angle: f64) -> Quat {
+    let (s, c) = (angle / 2.0).sin_cos();
+    let a = normalize(axis).unwrap_or([1.0, 0.0, 0.0]);
+    [a[0] * s, a[1] * s, a[2] * s, c]
+}
+
+fn rest() -> RestThresholds {
+    RestThresholds::from(&Settings::default())
+}
+
+fn metrics(positions: &[Vec3], rotations: &[Quat], goal: Option<Quat>) -> ObjectMetrics {
+    ObjectMetrics::compute(
+        &Track {
+            frame_dt: DT,
+            positions,
+            rotations,
+        },
+        3,
+        rest(),
+        goal,
+    )
+    .expect("valid track")
+}
+
+#[test]
+fn constant_spin_integrates_to_omega_t() {
+    // ω = 5 rad/s about a tilted axis for T = 4 s: ∫‖ω‖dt = 20 rad (many full turns).
+    let (omega, t_end) = (5.0, 4.0);
+    let start = axis_angle([0.2, 1.0, 0.0], 0.4);
+    let frames = (t_end / DT).round() as usize;
+    let rotations: Vec<Quat> = (0..=frames)
+        .map(|i| quat_mul(axis_angle([1.0, 1.0, 0.5], omega * i as f64 * DT), start))
+        .collect();
+    let positions = vec![[0.0; 3]; rotations.len()];
+    let m = metrics(&positions, &rotations, None);
+    assert!(
+        (m.angular_travel_rad - omega * t_end).abs() < 1e-9,
+        "{}",
+        m.angular_travel_rad
+    );
+    // Spinning until the end: never rests.
+    assert!(!m.came_to_rest);
+    assert!((m.time_to_rest_s - t_end).abs() < 1e-9);
+    // 20 rad = 3 turns + 1.150… rad: the error is the angle of the leftover rotation.
+    let leftover = (omega * t_end) % std::f64::consts::TAU;
+    let want = if leftover > std::f64::consts::PI {
+        std::f64::consts::TAU - leftover
+    } else {
+        leftover
+    };
+    assert!((m.orientation_error_rad - want).abs() < 1e-9);
+    assert_eq!(m.impacts, 3);
+}
+
+#[test]
+fn a_body_stopping_at_two_seconds_rests_at_two_seconds() {
+    // Slides at 1 m/s while spinning at 2 rad/s until t = 2 s, then lies still until t = 5 s.
+    let frames = (5.0 / DT).round() as usize;
+    let stop = (2.0 / DT).round() as usize;
+    let positions: Vec<Vec3> = (0..=frames)
+        .map(|i| [i.min(stop) as f64 * DT, 0.0, 0.0])
+        .collect();
+    let rotations: Vec<Quat> = (0..=frames)
+        .map(|i| axis_angle([0.0, 1.0, 0.0], 2.0 * i.min(stop) as f64 * DT))
+        .collect();
+    let m = metrics(&positions, &rotations, None);
+    assert!(m.came_to_rest);
+    assert!(
+        (m.time_to_rest_s - 2.0).abs() < 1e-9,
+        "{}",
+        m.time_to_rest_s
+    );
+    assert!((m.angular_travel_rad - 4.0).abs() < 1e-9);
+    assert!((m.orientation_error_rad - 4.0_f64.min(std::f64::consts::TAU - 4.0)).abs() < 1e-9);
+    // A goal equal to the final orientation gives no error.
+    let m = metrics(&positions, &rotations, rotations.last().copied());
+    assert!(m.orientation_error_rad < 1e-12);
+    // Slow creep below the thresholds after the stop does not count as motion.
+    let creep: Vec<Vec3> = positions
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            [
+                p[0] + if i > stop {
+                    0.001 * (i - stop) as f64 * DT
+                } else {
+                    0.0
+                },
+                0.0,
+                0.0,
+            ]
+        })
+        .collect();
+    let m = metrics(&creep, &rotations, None);
+    assert!((m.time_to_rest_s - 2.0).abs() < 1e-9);
+    // A body that never moves rests at once.
+    let still = metrics(&[[1.0, 2.0, 3.0]; 10], &[[0.0, 0.0, 0.0, 1.0]; 10], None);
+    assert_eq!((still.time_to_rest_s, still.came_to_rest), (0.0, true));
+    assert_eq!(still.angular_travel_rad, 0.0);
+}
+
+#[test]
+fn bad_tracks_are_refused() {
+    let ok = [[0.0; 3]; 2];
+    let q = [[0.0, 0.0, 0.0, 1.0]; 2];
+    let run = |frame_dt: f64, p: &[Vec3], r: &[Quat]| {
+        ObjectMetrics::compute(
+            &Track {
+                frame_dt,
+                positions: p,
+                rotations: r,
+            },
+            0,
+            rest(),
+            None,
+        )
+    };
+    assert!(matches!(
+        run(0.0, &ok, &q),
+        Err(BrowseError::OutOfRange {
+            field: "frame_dt",
+            ..
+        })
+    ));
+    assert!(matches!(
+        run(DT, &ok, &q[..1]),
+        Err(BrowseError::LengthMismatch { .. })
+    ));
+    assert!(matches!(run(DT, &[], &[]), Err(BrowseError::Empty { .. })));
+    assert!(matches!(
+        run(DT, &ok, &[[0.0; 4]; 2]),
+        Err(BrowseError::ZeroVector { .. })
+    ));
+    assert!(matches!(
+        run(DT, &[[f64::NAN, 0.0, 0.0], [0.0; 3]], &q),
+        Err(BrowseError::NonFinite { .. })
+    ));
+}
+
+fn object(angular: f64, rest_s: f64) -> ObjectMetrics {
+    ObjectMetrics {
+        angular_travel_rad: angular,
+        time_to_rest_s: rest_s,
+        came_to_rest: true,
+        impacts: 1,
+        orientation_error_rad: 0.0,
+    }
+}
+
+#[test]
+fn score_sums_or_maxes_over_the_chosen_objects() {
+    let objs = [object(1.0, 2.0), object(3.0, 1.0), object(5.0, 4.0)];
+    assert_eq!(
+        score(&objs, &[0, 2], Metric::AngularTravel, Aggregate::Sum),
+        Some(6.0)
+    );
+    assert_eq!(
+        score(&objs, &[0, 1], Metric::TimeToRest, Aggregate::Max),
+        Some(2.0)
+    );
+    assert_eq!(
+        score(&objs, &[0, 1, 2], Metric::Impacts, Aggregate::Sum),
+        Some(3.0)
+    );
+    assert_eq!(score(&objs, &[], Metric::Impacts, Aggregate::Sum), None);
+    assert_eq!(score(&objs, &[0, 9], Metric::Impacts, Aggregate::Sum), None);
+    let key = RankKey::ConstraintsSatisfied;
+    assert_eq!(key.score(&objs, 4), Some(4.0));
+    let key = RankKey::Metric {
+        metric: Metric::TimeToRest,
+        objects: vec![2],
+        aggregate: Aggregate::Max,
+    };
+    assert_eq!(key.score(&objs, 4), Some(4.0));
+    let text = toml::to_string(&key).expect("serialises");
+    assert_eq!(toml::from_str::<RankKey>(&text).expect("parses"), key);
+}
+
+#[test]
+fn top_k_orders_ties_by_world_and_unscored_last() {
+    let scores = [
+        (7, Some(1.0)),
+        (3, Some(2.0)),
+        (5, Some(1.0)),
+        (1, None),
+        (2, Some(f64::NAN)),
+        (9, Some(-0.0)),
+        (4, Some(0.0)),
+    ];
+    let lookup = |w: u32| scores.iter().find(|(x, _)| *x == w).and_then(|(_, s)| *s);
+    let all: Vec<u32> = scores.iter().map(|(w, _)| *w).collect();
+    let asc = top_k(all.iter().copied(), 10, Order::Ascending, lookup);
+    assert_eq!(
+        asc.iter().map(|r| r.world).collect::<Vec<_>>(),
+        vec![4, 9, 5, 7, 3, 1, 2],
+        "−0 ties with +0; NaN and missing go last, by index"
+    );
+    let desc = top_k(all.iter().copied(), 3, Order::Descending, lookup);
+    assert_eq!(
+        desc.iter().map(|r| r.world).collect::<Vec<_>>(),
+        vec![3, 5, 7]
+    );
+    assert!(top_k(all.iter().copied(), 0, Order::Ascending, lookup).is_empty());
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 128, ..ProptestConfig::default() })]
+
+    /// top-k is the prefix of a stable sort by (score, world), whatever the input order, and
+    /// merging per-shard top-k lists gives the global top-k.
+    #[test]
+    fn top_k_is_stable_and_mergeable(
+        raw in prop::collection::vec(prop::option::of(0u8..6), 0..200),
+        k in 0usize..40,
+        rotate in 0usize..200,
+        descending in any::<bool>(),
+        shards in 1u32..5,
+    ) {
+        let order = if descending { Order::Descending } else { Order::Ascending };
+        let score = |w: u32| raw.get(w as usize).copied().flatten().map(f64::from);
+        let worlds: Vec<u32> = (0..raw.len() as u32).collect();
+        // Reference: stable sort of worlds (already in index order) by score.
+        let mut reference = worlds.clone();
+        reference.sort_by(|&a, &b| match (score(a), score(b)) {
+            (Some(x), Some(y)) => if descending { y.total_cmp(&x) } else { x.total_cmp(&y) },
+            (Some(_), None) => std::cmp::Ordering::Less,
+            (None, Some(_)) => std::cmp::Ordering::Greater,
+            (None, None) => std::cmp::Ordering::Equal,
+        });
+        reference.truncate(k);
+        let mut shuffled = worlds.clone();
+        if !shuffled.is_empty() {
+            let r = rotate % shuffled.len();
+            shuffled.rotate_left(r);
+            shuffled.reverse();
+        }
+        let got: Vec<u32> = top_k(shuffled, k, order, score).iter().map(|r| r.world).collect();
+        prop_assert_eq!(&got, &reference);
+        // Shard by world % shards, take each shard's top-k, merge.
+        let lists: Vec<Vec<Ranked>> = (0..shards)
+            .map(|s| top_k(worlds.iter().copied().filter(|w| w % shards == s), k, order, score))
+            .collect();
+        let merged: Vec<u32> = merge_top_k(lists, k, order).iter().map(|r| r.world).collect();
+        prop_assert_eq!(&merged, &reference);
+    }
+}

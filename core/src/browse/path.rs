@@ -1,0 +1,399 @@
+//! The per-object path index of §4.4.2: a low-resolution centre-of-mass polyline and a shallow
+//! OBB tree over it.
+//!
+//! §4.4.2 keeps an uncompressed, down-sampled copy of every path in memory and evaluates queries
+//! on it. Paths have no volume, so spheres bound them badly (the reference found sphere trees
+//! slower than brute force); oriented boxes fitted along the path do well, and a tree of depth at
+//! most three with runs of segments in its leaves keeps the memory overhead small while speeding
+//! up queries about threefold. The tree owns the polyline, so the path need not be stored twice.
+//!
+//! **Never miss.** The index answers exactly for the polyline it holds, and a caller widens the
+//! question by a radius: [`PathTree::intersects`] tests the frustum moved outward by `radius`.
+//! With `radius` = the codec's e_max + [`Polyline::max_deviation_from`] the full-rate path,
+//! every world whose decoded full-rate path enters the frustum is returned: at each time t the
+//! decoded position is within e_max of the true one, which is within the deviation of the
+//! low-resolution position at the same t, and that one lies on a tested segment inside the
+//! inflated frustum. Comparing positions *at the same time* (not nearest points) is what makes
+//! the bound hold for time windows too.
+
+use super::constraint::TimeWindow;
+use super::frustum::Frustum;
+use super::geom::{Vec3, add, dot, lerp, norm, scale, sub, sym_eigenvectors};
+use super::{BrowseError, finite};
+
+/// Maximum depth of a [`PathTree`] (the root has depth 0), so at most 2³ = 8 leaves (§4.4.2).
+pub const MAX_TREE_DEPTH: usize = 3;
+/// A node with fewer segments than this stays a leaf: splitting tiny runs costs more in boxes
+/// than it saves in segment tests.
+pub const MIN_SPLIT_SEGMENTS: usize = 4;
+
+/// A timed polyline: positions of one object's centre of mass at strictly increasing times,
+/// linearly interpolated in between.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Polyline {
+    times: Vec<f64>,
+    points: Vec<Vec3>,
+}
+
+impl Polyline {
+    /// Checks that both vectors have the same non-zero length, every value is finite and times
+    /// increase strictly.
+    pub fn new(times: Vec<f64>, points: Vec<Vec3>) -> Result<Self, BrowseError> {
+        if times.is_empty() {
+            return Err(BrowseError::Empty {
+                field: "path.times",
+            });
+        }
+        if times.len() != points.len() {
+            return Err(BrowseError::LengthMismatch {
+                field: "path.points",
+                expected: times.len(),
+                found: points.len(),
+            });
+        }
+        for (i, &t) in times.iter().enumerate() {
+            finite("path.times", t)?;
+            if i > 0 && t <= times[i - 1] {
+                return Err(BrowseError::TimesNotIncreasing {
+                    field: "path.times",
+                    at: i,
+                    value: t,
+                });
+            }
+        }
+        for p in &points {
+            for &v in p {
+                finite("path.points", v)?;
+            }
+        }
+        Ok(Self { times, points })
+    }
+
+    /// Frames `points` at `start + i·frame_dt`.
+    pub fn uniform(start: f64, frame_dt: f64, points: Vec<Vec3>) -> Result<Self, BrowseError> {
+        finite("start", start)?;
+        if finite("frame_dt", frame_dt)? <= 0.0 {
+            return Err(BrowseError::OutOfRange {
+                field: "frame_dt",
+                value: frame_dt,
+                expected: "a positive frame interval",
+            });
+        }
+        let times = (0..points.len())
+            .map(|i| start + i as f64 * frame_dt)
+            .collect();
+        Self::new(times, points)
+    }
+
+    pub fn times(&self) -> &[f64] {
+        &self.times
+    }
+
+    pub fn points(&self) -> &[Vec3] {
+        &self.points
+    }
+
+    /// Number of vertices (at least 1).
+    pub fn len(&self) -> usize {
+        self.points.len()
+    }
+
+    /// Always false: a polyline has at least one vertex.
+    pub fn is_empty(&self) -> bool {
+        self.points.is_empty()
+    }
+
+    /// Number of segments; a single vertex counts as one degenerate segment.
+    pub fn segment_count(&self) -> usize {
+        self.points.len().saturating_sub(1).max(1)
+    }
+
+    /// Segment `i`: endpoints and their times.
+    fn segment(&self, i: usize) -> (Vec3, Vec3, f64, f64) {
+        let j = (i + 1).min(self.points.len() - 1);
+        (self.points[i], self.points[j], self.times[i], self.times[j])
+    }
+
+    /// Position at time `t`, linearly interpolated, held constant outside the time range.
+    pub fn position_at(&self, t: f64) -> Vec3 {
+        let i = self.times.partition_point(|&x| x <= t);
+        if i == 0 {
+            return self.points[0];
+        }
+        if i == self.times.len() {
+            return self.points[i - 1];
+        }
+        let (t0, t1) = (self.times[i - 1], self.times[i]);
+        lerp(self.points[i - 1], self.points[i], (t - t0) / (t1 - t0))
+    }
+
+    /// A sub-sampled copy keeping a vertex at least every `period` seconds, always keeping the
+    /// first and the last (so the low-resolution path spans the same time range). A period that
+    /// is not positive keeps everything.
+    pub fn subsample(&self, period: f64) -> Polyline {
+        if period.is_nan() || period <= 0.0 || self.points.len() <= 2 {
+            return self.clone();
+        }
+        let n = self.points.len();
+        let mut keep = vec![0];
+        let mut next = self.times[0] + period;
+        for i in 1..n - 1 {
+            // A relative tolerance so that 120 Hz frames land on a 4 Hz grid despite rounding.
+            if self.times[i] >= next - 1e-9 * period {
+                keep.push(i);
+                next = self.times[i] + period;
+            }
+        }
+        keep.push(n - 1);
+        Polyline {
+            times: keep.iter().map(|&i| self.times[i]).collect(),
+            points: keep.iter().map(|&i| self.points[i]).collect(),
+        }
+    }
+
+    /// The largest distance between this polyline and `other` *at the same time*, both linearly
+    /// interpolated. Exact: the difference of two piecewise-linear paths is linear between the
+    /// union of their vertex times, and a norm of a linear function peaks at an interval end, so
+    /// checking every vertex time of both suffices.
+    pub fn max_deviation_from(&self, other: &Polyline) -> f64 {
+        let one_way = |a: &Polyline, b: &Polyline| {
+            a.times
+                .iter()
+                .zip(&a.points)
+                .map(|(&t, &p)| norm(sub(p, b.position_at(t))))
+                .fold(0.0, f64::max)
+        };
+        one_way(self, other).max(one_way(other, self))
+    }
+
+    /// The earliest time in `window` at which the polyline is inside `frustum`, testing every
+    /// segment (the brute-force reference for [`PathTree::first_entry`]).
+    pub fn first_entry(&self, frustum: &Frustum, window: Option<TimeWindow>) -> Option<f64> {
+        (0..self.segment_count()).find_map(|i| self.segment_entry(i, frustum, window))
+    }
+
+    /// Exact leaf test: the part of segment `i` inside `window` is clipped against the frustum;
+    /// returns the time it first is inside.
+    fn segment_entry(
+        &self,
+        i: usize,
+        frustum: &Frustum,
+        window: Option<TimeWindow>,
+    ) -> Option<f64> {
+        let (a, b, ta, tb) = self.segment(i);
+        let (mut s0, mut s1) = (0.0, 1.0);
+        if let Some(w) = window {
+            if tb < w.start() || ta > w.end() {
+                return None;
+            }
+            let span = tb - ta;
+            if span > 0.0 {
+                if w.start() > ta {
+                    s0 = (w.start() - ta) / span;
+                }
+                if w.end() < tb {
+                    s1 = (w.end() - ta) / span;
+                }
+            }
+        }
+        let (lo, _) = frustum.clip_segment(a, b, s0, s1)?;
+        Some((ta + lo * (tb - ta)).clamp(ta, tb))
+    }
+}
+
+/// An oriented bounding box: centre, orthonormal axes and half extents along them.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Obb {
+    pub center: Vec3,
+    pub axes: [Vec3; 3],
+    pub half: [f64; 3],
+}
+
+impl Obb {
+    /// The box along the principal axes of `points` (PCA of their covariance), just large enough
+    /// to hold them all, padded by a hair so that rounding can never make it miss one.
+    pub fn fit(points: &[Vec3]) -> Obb {
+        let n = points.len().max(1) as f64;
+        let mean = scale(points.iter().fold([0.0; 3], |acc, &p| add(acc, p)), 1.0 / n);
+        let mut cov = [[0.0; 3]; 3];
+        for p in points {
+            let d = sub(*p, mean);
+            for (r, row) in cov.iter_mut().enumerate() {
+                for (c, v) in row.iter_mut().enumerate() {
+                    *v += d[r] * d[c];
+                }
+            }
+        }
+        let axes = sym_eigenvectors(cov);
+        let mut lo = [f64::INFINITY; 3];
+        let mut hi = [f64::NEG_INFINITY; 3];
+        for p in points {
+            let d = sub(*p, mean);
+            for k in 0..3 {
+                let x = dot(axes[k], d);
+                lo[k] = lo[k].min(x);
+                hi[k] = hi[k].max(x);
+            }
+        }
+        if points.is_empty() {
+            lo = [0.0; 3];
+            hi = [0.0; 3];
+        }
+        let magnitude = mean.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        let mut center = mean;
+        let mut half = [0.0; 3];
+        for k in 0..3 {
+            center = add(center, scale(axes[k], 0.5 * (lo[k] + hi[k])));
+            let h = 0.5 * (hi[k] - lo[k]);
+            half[k] = h + 1e-9 * (1.0 + magnitude + h);
+        }
+        Obb { center, axes, half }
+    }
+
+    /// True only if some plane of `frustum` has the whole box strictly outside: the conservative
+    /// plane test of Assarsson and Möller. It may answer "overlaps" for a box that does not, but
+    /// never "outside" for one that does, so pruning by it loses no hits.
+    pub fn outside(&self, frustum: &Frustum) -> bool {
+        frustum.planes().iter().any(|p| {
+            let reach: f64 = (0..3)
+                .map(|k| dot(p.normal, self.axes[k]).abs() * self.half[k])
+                .sum();
+            p.distance(self.center) > reach
+        })
+    }
+
+    /// Whether `x` is inside the box enlarged by `tol`.
+    pub fn contains(&self, x: Vec3, tol: f64) -> bool {
+        let d = sub(x, self.center);
+        (0..3).all(|k| dot(d, self.axes[k]).abs() <= self.half[k] + tol)
+    }
+}
+
+#[derive(Debug, Clone, PartialEq)]
+struct Node {
+    obb: Obb,
+    t_start: f64,
+    t_end: f64,
+    /// Segments `first..end` of the polyline.
+    first: u32,
+    end: u32,
+    /// Earlier half, later half.
+    children: Option<[u32; 2]>,
+}
+
+/// One object's path index: the low-resolution polyline and an OBB tree of depth ≤
+/// [`MAX_TREE_DEPTH`] over it (§4.4.2). Children split their parent's run of segments in time
+/// order, which lets a query stop at the first hit and report the time of first entry.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PathTree {
+    path: Polyline,
+    nodes: Vec<Node>,
+}
+
+impl PathTree {
+    pub fn build(path: Polyline) -> PathTree {
+        let mut tree = PathTree {
+            path,
+            nodes: Vec::new(),
+        };
+        let segments = tree.path.segment_count();
+        tree.build_node(0, segments, 0);
+        tree
+    }
+
+    fn build_node(&mut self, first: usize, end: usize, depth: usize) -> u32 {
+        let last_point = end.min(self.path.len() - 1);
+        let obb = Obb::fit(&self.path.points[first..=last_point]);
+        let index = self.nodes.len();
+        self.nodes.push(Node {
+            obb,
+            t_start: self.path.times[first],
+            t_end: self.path.times[last_point],
+            first: first as u32,
+            end: end as u32,
+            children: None,
+        });
+        if depth < MAX_TREE_DEPTH && end - first >= MIN_SPLIT_SEGMENTS {
+            let mid = first + (end - first) / 2;
+            let left = self.build_node(first, mid, depth + 1);
+            let right = self.build_node(mid, end, depth + 1);
+            self.nodes[index].children = Some([left, right]);
+        }
+        index as u32
+    }
+
+    /// The polyline the tree was built over (the tree is its only copy, §4.4.2).
+    pub fn path(&self) -> &Polyline {
+        &self.path
+    }
+
+    /// Number of OBB nodes.
+    pub fn node_count(&self) -> usize {
+        self.nodes.len()
+    }
+
+    /// Depth of the deepest leaf (root = 0).
+    pub fn depth(&self) -> usize {
+        fn go(tree: &PathTree, i: u32) -> usize {
+            match tree.nodes[i as usize].children {
+                Some([l, r]) => 1 + go(tree, l).max(go(tree, r)),
+                None => 0,
+            }
+        }
+        go(self, 0)
+    }
+
+    /// Heap bytes held (polyline and nodes), for memory accounting in the store.
+    pub fn heap_bytes(&self) -> usize {
+        self.path.times.capacity() * size_of::<f64>()
+            + self.path.points.capacity() * size_of::<Vec3>()
+            + self.nodes.capacity() * size_of::<Node>()
+    }
+
+    /// The earliest time in `window` at which the polyline is inside `frustum` (exact for the
+    /// polyline; equal to [`Polyline::first_entry`]). Subtrees whose box is outside a plane, or
+    /// whose time span misses the window, are skipped.
+    pub fn first_entry(&self, frustum: &Frustum, window: Option<TimeWindow>) -> Option<f64> {
+        self.visit(0, frustum, window)
+    }
+
+    /// Never-miss test: does the polyline come within the frustum inflated by `radius` (codec
+    /// e_max + the polyline's deviation from the full-rate path) during `window`?
+    pub fn intersects(&self, frustum: &Frustum, window: Option<TimeWindow>, radius: f64) -> bool {
+        self.first_entry(&frustum.inflated(radius), window)
+            .is_some()
+    }
+
+    fn visit(&self, i: u32, frustum: &Frustum, window: Option<TimeWindow>) -> Option<f64> {
+        let node = &self.nodes[i as usize];
+        if let Some(w) = window
+            && (node.t_end < w.start() || node.t_start > w.end())
+        {
+            return None;
+        }
+        if node.obb.outside(frustum) {
+            return None;
+        }
+        match node.children {
+            // Left first: it covers earlier times, so its hit (if any) is the first entry.
+            Some([l, r]) => self
+                .visit(l, frustum, window)
+                .or_else(|| self.visit(r, frustum, window)),
+            None => (node.first as usize..node.end as usize)
+                .find_map(|s| self.path.segment_entry(s, frustum, window)),
+        }
+    }
+
+    #[cfg(test)]
+    fn check_boxes(&self) {
+        for node in &self.nodes {
+            let last = (node.end as usize).min(self.path.len() - 1);
+            for p in &self.path.points[node.first as usize..=last] {
+                assert!(node.obb.contains(*p, 0.0), "{p:?} outside {:?}", node.obb);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests;

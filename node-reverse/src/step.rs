@@ -1,0 +1,238 @@
+//! The forward velocity-level step (Stewart–Trinkle / Anitescu–Potra, §3.3–3.6).
+//!
+//! Per island, with `v⁻` the velocities at the start of the step and `J` taken at the start
+//! poses, the unknown contact impulses `f` (normal, `u`, `w` per contact) solve one LCP
+//!
+//! * `w = J (v⁻ + Δt M⁻¹ f_ext) + J M⁻¹ Jᵀ f − goal` (3.13), (3.37),
+//! * normal rows: `0 ≤ w ⊥ f_N ≥ 0` (3.19), with the Newton goal `α s` when the incoming speed
+//!   `s = −v⁻_N` exceeds the cutoff `ε`, else `0` (3.20)–(3.22);
+//! * friction rows: `|f_u|, |f_w| ≤ μ f_N`, bounds coupled to the normal impulse *inside* the
+//!   LCP (§3.6.1), maximal and opposing the post-step slip when it is nonzero (3.23)–(3.24);
+//!
+//! then `v⁺ = v⁻ + Δt M⁻¹ f_ext + M⁻¹ Jᵀ f` (3.15)–(3.16) and the semi-implicit position update
+//! `x⁺ = x⁻ + Δt v⁺`, `Θ⁺ = exp(Δt ω⁺) Θ⁻` (3.17)–(3.18). No gyroscopic term: angular velocity
+//! only changes through impulses, which keeps the step exactly invertible given its contacts.
+//! Positions are not projected out of penetration (there is no Baumgarte/ERP term): as in the
+//! thesis, the conditions are on velocities only.
+
+use nalgebra::{DVector, Vector3};
+
+use crate::contact::{Contact, ContactSet, Island, JacobianRow, Partner};
+use crate::lcp::{self, LcpProblem, RowKind};
+use crate::world::{
+    ContactImpulse, InvMass, IslandSolve, Response, StepReport, World, delassus, rotate,
+    row_velocity, store_velocities, velocity6,
+};
+
+/// Rows (normal, u, w) of one contact.
+pub(crate) fn contact_rows(c: &Contact, bodies: &[crate::body::Body]) -> [JacobianRow; 3] {
+    [
+        JacobianRow::new(c, &c.normal, bodies),
+        JacobianRow::new(c, &c.tangent_u, bodies),
+        JacobianRow::new(c, &c.tangent_w, bodies),
+    ]
+}
+
+/// The forward LCP of one island at the world's current (pre-step) state.
+pub(crate) struct ForwardIsland {
+    pub(crate) problem: LcpProblem,
+    pub(crate) responses: Vec<Response>,
+}
+
+impl World {
+    /// Relative velocity of `contact`'s body with respect to its partner at the contact point.
+    pub fn relative_velocity(&self, contact: &Contact) -> Vector3<f64> {
+        let va = self.bodies[contact.body].point_velocity(&contact.point);
+        match contact.partner {
+            Partner::Body(b) => va - self.bodies[b].point_velocity(&contact.point),
+            Partner::Static(_) => va,
+        }
+    }
+
+    pub(crate) fn forward_island(
+        &self,
+        set: &ContactSet,
+        island: &Island,
+        inv: &[InvMass],
+        dt: f64,
+    ) -> Result<ForwardIsland, crate::LcpError> {
+        let vel: Vec<[f64; 6]> = self.bodies.iter().map(velocity6).collect();
+        let gdt = self.gravity * dt;
+        let free: Vec<[f64; 6]> = self
+            .bodies
+            .iter()
+            .zip(&vel)
+            .map(|(b, v)| {
+                if b.enabled {
+                    [v[0] + gdt.x, v[1] + gdt.y, v[2] + gdt.z, v[3], v[4], v[5]]
+                } else {
+                    *v
+                }
+            })
+            .collect();
+        let eps = self.params.restitution_cutoff;
+        let mut rows = Vec::with_capacity(3 * island.contacts.len());
+        let mut kinds = Vec::with_capacity(rows.capacity());
+        let mut b = Vec::with_capacity(rows.capacity());
+        for &k in &island.contacts {
+            let c = &set.contacts[k];
+            let [rn, ru, rw] = contact_rows(c, &self.bodies);
+            // §3.5: Newton restitution only above the cutoff; the goal uses the pre-step
+            // approach speed.
+            let incoming = -row_velocity(&rn, &vel);
+            let goal = if c.restitution > 0.0 && incoming > eps {
+                c.restitution * incoming
+            } else {
+                0.0
+            };
+            let normal = kinds.len();
+            b.push(row_velocity(&rn, &free) - goal);
+            b.push(row_velocity(&ru, &free));
+            b.push(row_velocity(&rw, &free));
+            let mu = c.friction;
+            kinds.extend([
+                RowKind::Normal,
+                RowKind::Friction { normal, mu },
+                RowKind::Friction { normal, mu },
+            ]);
+            rows.extend([rn, ru, rw]);
+        }
+        let responses: Vec<Response> = rows.iter().map(|r| Response::new(r, inv)).collect();
+        let a = delassus(&rows, &responses);
+        let problem = LcpProblem::new(a, DVector::from_vec(b), kinds)?;
+        Ok(ForwardIsland { problem, responses })
+    }
+
+    /// One forward step: detects contacts at the current poses, aligns each contact's first
+    /// friction direction with its current slip (§3.6.1), and steps with
+    /// [`World::step_forward_with`].
+    pub fn step_forward(&mut self, dt: f64) -> StepReport {
+        let (mut set, unsupported) = self.detect_contacts();
+        let delta = self.params.rest_threshold;
+        for k in 0..set.contacts.len() {
+            let rel = self.relative_velocity(&set.contacts[k]);
+            set.contacts[k].align_tangents(&rel, delta);
+        }
+        let mut report = self.step_forward_with(&set, dt);
+        report.unsupported_pairs = unsupported;
+        report
+    }
+
+    /// One forward step with a given contact set and Jacobian directions (no detection): the
+    /// replay half of the round-trip check of §5.2.
+    pub fn step_forward_with(&mut self, set: &ContactSet, dt: f64) -> StepReport {
+        let inv: Vec<InvMass> = self.bodies.iter().map(InvMass::of).collect();
+        let mut vel: Vec<[f64; 6]> = self.bodies.iter().map(velocity6).collect();
+        let gdt = self.gravity * dt;
+        for (b, v) in self.bodies.iter().zip(vel.iter_mut()) {
+            if b.enabled {
+                v[0] += gdt.x;
+                v[1] += gdt.y;
+                v[2] += gdt.z;
+            }
+        }
+        let mut impulses = vec![ContactImpulse::default(); set.contacts.len()];
+        let mut islands = Vec::with_capacity(set.islands.len());
+        for island in &set.islands {
+            let solved = self
+                .forward_island(set, island, &inv, dt)
+                .and_then(|fi| Ok((lcp::solve(&fi.problem, &self.params.lcp)?, fi)));
+            match solved {
+                Ok((sol, fi)) => {
+                    let finite = sol.x.iter().all(|v| v.is_finite());
+                    if finite {
+                        for (j, resp) in fi.responses.iter().enumerate() {
+                            resp.add_to(sol.x[j], &mut vel);
+                        }
+                        for (slot, &k) in island.contacts.iter().enumerate() {
+                            impulses[k] = ContactImpulse {
+                                normal: sol.x[3 * slot],
+                                tangent_u: sol.x[3 * slot + 1],
+                                tangent_w: sol.x[3 * slot + 2],
+                            };
+                        }
+                    }
+                    islands.push(IslandSolve {
+                        status: if finite {
+                            sol.status
+                        } else {
+                            lcp::LcpStatus::Degenerate
+                        },
+                        residual: sol.residual,
+                        rows: fi.problem.len(),
+                        pivots: sol.pivots,
+                    });
+                }
+                Err(_) => islands.push(IslandSolve {
+                    status: lcp::LcpStatus::Degenerate,
+                    residual: f64::NAN,
+                    rows: 3 * island.contacts.len(),
+                    pivots: 0,
+                }),
+            }
+        }
+        let before: Vec<_> = self.bodies.clone();
+        store_velocities(&mut self.bodies, &vel);
+        for b in self.bodies.iter_mut().filter(|b| b.enabled) {
+            b.position += b.linvel * dt;
+            b.orientation = rotate(&b.orientation, &b.angvel, dt);
+        }
+        let disabled = disable_non_finite(&mut self.bodies, &before);
+        StepReport {
+            contacts: set.clone(),
+            impulses,
+            islands,
+            unsupported_pairs: 0,
+            disabled,
+        }
+    }
+
+    /// The largest forward-LCP complementarity residual of `impulses` (one per contact of
+    /// `set`) over all islands, evaluated at the world's current state as the start of a
+    /// forward step: zero exactly when the impulses are a valid forward solution. `NaN` if an
+    /// island's problem cannot be built or the lengths disagree.
+    pub fn forward_residual(&self, set: &ContactSet, impulses: &[ContactImpulse], dt: f64) -> f64 {
+        if impulses.len() != set.contacts.len() {
+            return f64::NAN;
+        }
+        let inv: Vec<InvMass> = self.bodies.iter().map(InvMass::of).collect();
+        let mut worst = 0.0f64;
+        for island in &set.islands {
+            let Ok(fi) = self.forward_island(set, island, &inv, dt) else {
+                return f64::NAN;
+            };
+            let x = DVector::from_iterator(
+                fi.problem.len(),
+                island.contacts.iter().flat_map(|&k| {
+                    let i = impulses[k];
+                    [i.normal, i.tangent_u, i.tangent_w]
+                }),
+            );
+            let r = lcp::complementarity_residual(&fi.problem, &x);
+            if r.is_nan() {
+                return f64::NAN;
+            }
+            worst = worst.max(r);
+        }
+        worst
+    }
+}
+
+/// Restores and freezes bodies whose new state is not finite (rapier's habit: bad numbers
+/// disable the body instead of taking the run down). Returns their indices.
+pub(crate) fn disable_non_finite(
+    bodies: &mut [crate::body::Body],
+    before: &[crate::body::Body],
+) -> Vec<usize> {
+    let mut disabled = Vec::new();
+    for (i, (b, old)) in bodies.iter_mut().zip(before).enumerate() {
+        if b.enabled && !b.is_finite() {
+            *b = old.clone();
+            b.linvel = Vector3::zeros();
+            b.angvel = Vector3::zeros();
+            b.enabled = false;
+            disabled.push(i);
+        }
+    }
+    disabled
+}

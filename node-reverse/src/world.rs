@@ -1,0 +1,277 @@
+//! The simulated world and the pieces shared by the forward and the backward step: parameters,
+//! reports, per-island LCP assembly and the semi-implicit position update (3.17)–(3.18).
+
+use nalgebra::{DMatrix, Matrix3, UnitQuaternion, Vector3};
+
+use crate::body::{Body, StaticBody};
+use crate::contact::{ContactSet, JacobianRow, NarrowPhase};
+use crate::lcp::{LcpOptions, LcpStatus};
+
+/// Default restitution cutoff `ε` (§3.5): an approach slower than this is treated as inelastic.
+pub const DEFAULT_RESTITUTION_CUTOFF: f64 = 0.1;
+/// Default `δ ≪ ε` of (5.1): contact velocities below it count as zero when stepping backward.
+pub const DEFAULT_REST_THRESHOLD: f64 = 1e-5;
+/// Default contact prediction distance (m): points closer than this enter the LCP. Kept tiny,
+/// because the velocity-level conditions treat a predicted point as touching.
+pub const DEFAULT_PREDICTION: f64 = 1e-5;
+
+/// Stepper settings.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepParams {
+    /// `ε`: restitution applies only when the incoming normal speed exceeds it (§3.5).
+    pub restitution_cutoff: f64,
+    /// `δ` of (5.1): below it a contact velocity is "zero" (resting, not sliding).
+    pub rest_threshold: f64,
+    /// Contact prediction distance.
+    pub prediction: f64,
+    /// LCP solver settings.
+    pub lcp: LcpOptions,
+}
+
+impl Default for StepParams {
+    fn default() -> Self {
+        Self {
+            restitution_cutoff: DEFAULT_RESTITUTION_CUTOFF,
+            rest_threshold: DEFAULT_REST_THRESHOLD,
+            prediction: DEFAULT_PREDICTION,
+            // Stacks of boxes give redundant contact rows (four coplanar corners per face);
+            // the pivoting path then gets stuck more often and another row order helps.
+            lcp: LcpOptions {
+                restarts: 10,
+                ..LcpOptions::default()
+            },
+        }
+    }
+}
+
+/// Impulses of one contact in the forward sense (what the forward step applies), N·s.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ContactImpulse {
+    /// Along the normal (≥ 0).
+    pub normal: f64,
+    /// Along `tangent_u`.
+    pub tangent_u: f64,
+    /// Along `tangent_w`.
+    pub tangent_w: f64,
+}
+
+/// How one island's LCP went.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct IslandSolve {
+    /// Solver status.
+    pub status: LcpStatus,
+    /// Complementarity residual of the returned impulses.
+    pub residual: f64,
+    /// Number of LCP rows.
+    pub rows: usize,
+    /// Pivots taken.
+    pub pivots: usize,
+}
+
+/// What a forward step did.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct StepReport {
+    /// The contact set and Jacobian directions used.
+    pub contacts: ContactSet,
+    /// One entry per contact of `contacts`.
+    pub impulses: Vec<ContactImpulse>,
+    /// One entry per island.
+    pub islands: Vec<IslandSolve>,
+    /// Shape pairs parry could not handle (skipped).
+    pub unsupported_pairs: usize,
+    /// Bodies disabled in this step because their state became non-finite.
+    pub disabled: Vec<usize>,
+}
+
+impl StepReport {
+    /// True when every island's LCP was solved and nothing was disabled or skipped.
+    pub fn all_solved(&self) -> bool {
+        self.islands.iter().all(|s| s.status.is_solution())
+            && self.disabled.is_empty()
+            && self.unsupported_pairs == 0
+    }
+}
+
+/// A world of dynamic bodies and static geometry.
+#[derive(Debug, Clone)]
+pub struct World {
+    /// Dynamic bodies.
+    pub bodies: Vec<Body>,
+    /// Static geometry.
+    pub statics: Vec<StaticBody>,
+    /// Gravitational acceleration.
+    pub gravity: Vector3<f64>,
+    /// Stepper settings.
+    pub params: StepParams,
+    pub(crate) narrow_phase: NarrowPhase,
+}
+
+impl Default for World {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl World {
+    /// An empty world with gravity `(0, 0, −9.81)` and default parameters.
+    pub fn new() -> Self {
+        Self {
+            bodies: Vec::new(),
+            statics: Vec::new(),
+            gravity: Vector3::new(0.0, 0.0, -9.81),
+            params: StepParams::default(),
+            narrow_phase: NarrowPhase::default(),
+        }
+    }
+
+    /// Adds a body; returns its index.
+    pub fn add_body(&mut self, body: Body) -> usize {
+        self.bodies.push(body);
+        self.bodies.len() - 1
+    }
+
+    /// Adds static geometry; returns its index.
+    pub fn add_static(&mut self, body: StaticBody) -> usize {
+        self.statics.push(body);
+        self.statics.len() - 1
+    }
+
+    /// Contacts at the current poses (default tangents), with islands. Updates the persistent
+    /// manifolds. The second value counts shape pairs parry could not handle.
+    pub fn detect_contacts(&mut self) -> (ContactSet, usize) {
+        let (contacts, unsupported) =
+            self.narrow_phase
+                .detect(&self.bodies, &self.statics, self.params.prediction);
+        (ContactSet::new(contacts, self.bodies.len()), unsupported)
+    }
+
+    /// Total kinetic energy.
+    pub fn kinetic_energy(&self) -> f64 {
+        self.bodies.iter().map(Body::kinetic_energy).sum()
+    }
+
+    /// Total kinetic plus gravitational potential energy.
+    pub fn energy(&self) -> f64 {
+        self.bodies
+            .iter()
+            .map(|b| b.kinetic_energy() - b.position.dot(&self.gravity) / b.inv_mass)
+            .sum()
+    }
+}
+
+/// Per-body inverse mass data at the pose where the Jacobian is taken.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct InvMass {
+    pub(crate) inv_mass: f64,
+    pub(crate) inv_inertia: Matrix3<f64>,
+}
+
+impl InvMass {
+    pub(crate) fn of(body: &Body) -> Self {
+        Self {
+            inv_mass: if body.enabled { body.inv_mass } else { 0.0 },
+            inv_inertia: if body.enabled {
+                body.world_inv_inertia()
+            } else {
+                Matrix3::zeros()
+            },
+        }
+    }
+
+    /// `M⁻¹ j` for one body's 6-vector.
+    pub(crate) fn apply(&self, j: &[f64; 6]) -> [f64; 6] {
+        let ang = self.inv_inertia * Vector3::new(j[3], j[4], j[5]);
+        [
+            self.inv_mass * j[0],
+            self.inv_mass * j[1],
+            self.inv_mass * j[2],
+            ang.x,
+            ang.y,
+            ang.z,
+        ]
+    }
+}
+
+/// A body's generalized velocity `(v, ω)`.
+pub(crate) fn velocity6(body: &Body) -> [f64; 6] {
+    [
+        body.linvel.x,
+        body.linvel.y,
+        body.linvel.z,
+        body.angvel.x,
+        body.angvel.y,
+        body.angvel.z,
+    ]
+}
+
+fn dot6(a: &[f64; 6], b: &[f64; 6]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+/// An impulse direction (column of `Jᵀ`, possibly with sliding friction folded in) premultiplied
+/// by `M⁻¹`: the velocity change per unit impulse, per body.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Response {
+    pub(crate) a: (usize, [f64; 6]),
+    pub(crate) b: Option<(usize, [f64; 6])>,
+}
+
+impl Response {
+    pub(crate) fn new(dir: &JacobianRow, inv: &[InvMass]) -> Self {
+        Self {
+            a: (dir.a.0, inv[dir.a.0].apply(&dir.a.1)),
+            b: dir.b.map(|(i, j)| (i, inv[i].apply(&j))),
+        }
+    }
+
+    /// Adds `scale ×` this response to the velocities.
+    pub(crate) fn add_to(&self, scale: f64, vel: &mut [[f64; 6]]) {
+        for (i, r) in std::iter::once(&self.a).chain(self.b.as_ref()) {
+            for (v, d) in vel[*i].iter_mut().zip(r) {
+                *v += scale * d;
+            }
+        }
+    }
+}
+
+/// `J_row · v` over generalized body velocities.
+pub(crate) fn row_velocity(row: &JacobianRow, vel: &[[f64; 6]]) -> f64 {
+    dot6(&row.a.1, &vel[row.a.0]) + row.b.map_or(0.0, |(i, j)| dot6(&j, &vel[i]))
+}
+
+/// `A_ij = J_i M⁻¹ G_jᵀ` (3.13)–(3.14), with `G_j` the impulse direction of unknown `j`.
+pub(crate) fn delassus(rows: &[JacobianRow], responses: &[Response]) -> DMatrix<f64> {
+    let n = rows.len();
+    DMatrix::from_fn(n, n, |i, j| {
+        let row = &rows[i];
+        let resp = &responses[j];
+        let mut sum = 0.0;
+        for (bi, ji) in std::iter::once(&row.a).chain(row.b.as_ref()) {
+            for (bj, rj) in std::iter::once(&resp.a).chain(resp.b.as_ref()) {
+                if bi == bj {
+                    sum += dot6(ji, rj);
+                }
+            }
+        }
+        sum
+    })
+}
+
+/// Writes generalized velocities back into the bodies.
+pub(crate) fn store_velocities(bodies: &mut [Body], vel: &[[f64; 6]]) {
+    for (b, v) in bodies.iter_mut().zip(vel) {
+        if b.enabled {
+            b.linvel = Vector3::new(v[0], v[1], v[2]);
+            b.angvel = Vector3::new(v[3], v[4], v[5]);
+        }
+    }
+}
+
+/// Orientation after rotating by `ω Δt` in the world frame (3.18), renormalised.
+pub(crate) fn rotate(
+    q: &UnitQuaternion<f64>,
+    angvel: &Vector3<f64>,
+    dt: f64,
+) -> UnitQuaternion<f64> {
+    UnitQuaternion::new_normalize((UnitQuaternion::from_scaled_axis(angvel * dt) * q).into_inner())
+}
