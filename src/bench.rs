@@ -22,6 +22,8 @@ use std::time::{Duration, Instant};
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct SamplerBench {
     pub scene: String,
+    /// Segment payload: "spline" (the §4.3 codec) or "frames" (quantised frames).
+    pub encoding: String,
     pub worlds: u32,
     pub bodies: usize,
     pub raw_steps_per_s: f64,
@@ -52,7 +54,11 @@ pub fn free_port() -> Result<u16> {
         .port())
 }
 
-pub async fn bench_sampler(scene_arg: &str, worlds: u32) -> Result<SamplerBench> {
+pub async fn bench_sampler(
+    scene_arg: &str,
+    worlds: u32,
+    motion: client::MotionArgs,
+) -> Result<SamplerBench> {
     let (file, text) = client::load_scene(scene_arg)?;
     let template = SceneTemplate::parse(&text, &file)?;
 
@@ -65,6 +71,7 @@ pub async fn bench_sampler(scene_arg: &str, worlds: u32) -> Result<SamplerBench>
             let opts = RunOptions {
                 perturb: false,
                 record: false,
+                ..RunOptions::default()
             };
             let s = run_world(&template, seed, opts, &mut |_| ControlFlow::Continue(()))?;
             steps += s.steps;
@@ -101,7 +108,8 @@ pub async fn bench_sampler(scene_arg: &str, worlds: u32) -> Result<SamplerBench>
         },
     )
     .await?;
-    let job = client::make_job(&file, &text, worlds, 0, None)?;
+    let mut job = client::make_job(&file, &text, worlds, 0, None)?;
+    motion.apply(&mut job);
     let cpu0 = process_cpu_seconds();
     let t = Instant::now();
     let sampler = run_sampler(
@@ -143,6 +151,7 @@ pub async fn bench_sampler(scene_arg: &str, worlds: u32) -> Result<SamplerBench>
     let pipeline = steps as f64 / wall.max(1e-9);
     Ok(SamplerBench {
         scene: file,
+        encoding: format!("{:?}", motion.encoding).to_lowercase(),
         worlds: state.worlds_done,
         bodies: template.body_count(),
         raw_steps_per_s: raw,

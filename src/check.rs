@@ -1,15 +1,20 @@
 //! Verifying a fetched world end to end: every segment's CRC, contiguity, and that the payload
-//! decodes to the announced number of frames.
+//! decodes to the announced number of frames and bodies, all finite. Payloads are motion-codec
+//! streams (`SPLINE_V1`) or, in recordings made before the codec, interim quantised frames.
 
-use anyhow::{Result, bail};
-use mwb_proto::v1::{Encoding, World};
+use anyhow::{Context, Result, bail};
+use mwb_codec::WorldReader;
+use mwb_proto::v1::{Encoding, MotionSegment, World};
 
 /// What a verified world contains.
 #[derive(Debug, Clone, PartialEq)]
 pub struct WorldCheck {
     pub frames: u32,
     pub bodies: u32,
+    /// Payload bytes (compressed motion).
     pub bytes: u64,
+    /// The same motion as 7 × f32 per body-frame, for comparison.
+    pub raw_f32_bytes: u64,
     pub impacts: u64,
 }
 
@@ -35,19 +40,7 @@ pub fn verify_world(w: &World) -> Result<WorldCheck> {
         if s.seq as usize != i || s.first_frame != frames || s.seed != done.seed {
             bail!("world {}: segment {i} out of order", w.index);
         }
-        if s.encoding != Encoding::QuantisedFramesV1 as i32 {
-            bail!(
-                "world {}: segment {i}: unknown encoding {}",
-                w.index,
-                s.encoding
-            );
-        }
-        let poses = mwb_core::frames::decode(&s.payload, s.frame_count, s.body_count)?;
-        if poses.iter().any(|p| {
-            p.position.iter().any(|x| !x.is_finite()) || p.rotation.iter().any(|x| !x.is_finite())
-        }) {
-            bail!("world {}: segment {i}: non-finite pose", w.index);
-        }
+        verify_payload(s).with_context(|| format!("world {}: segment {i}", w.index))?;
         frames += s.frame_count;
         bytes += s.payload.len() as u64;
     }
@@ -62,6 +55,60 @@ pub fn verify_world(w: &World) -> Result<WorldCheck> {
         frames,
         bodies,
         bytes,
+        raw_f32_bytes: u64::from(frames)
+            * u64::from(bodies)
+            * mwb_codec::RAW_BYTES_PER_OBJECT_FRAME as u64,
         impacts: done.impacts.iter().map(|&x| u64::from(x)).sum(),
     })
+}
+
+/// Decodes one segment's payload and checks it against the segment's frame and body counts.
+fn verify_payload(s: &MotionSegment) -> Result<()> {
+    let finite = |p: &[f64]| p.iter().all(|x| x.is_finite());
+    match Encoding::try_from(s.encoding) {
+        Ok(Encoding::SplineV1) => {
+            let reader = WorldReader::new(&s.payload)?;
+            if reader.object_count() != s.body_count as usize
+                || reader.frame_count() != s.frame_count as usize
+            {
+                bail!(
+                    "payload holds {} bodies × {} frames, segment says {} × {}",
+                    reader.object_count(),
+                    reader.frame_count(),
+                    s.body_count,
+                    s.frame_count
+                );
+            }
+            for (body, track) in reader.decode_all()?.iter().enumerate() {
+                if track.len() != s.frame_count as usize {
+                    bail!("body {body}: {} frames", track.len());
+                }
+                if !track.positions.iter().all(|p| finite(p))
+                    || !track.rotations.iter().all(|q| finite(q))
+                {
+                    bail!("body {body}: non-finite pose");
+                }
+            }
+            if let Some(l) = &s.lowres {
+                let expected = l.frames.len() * s.body_count as usize * 3;
+                if l.xyz.len() != expected || l.max_deviation.len() != s.body_count as usize {
+                    bail!("low-res path does not match {} bodies", s.body_count);
+                }
+                if l.frames.last().is_some_and(|&f| f + 1 != s.frame_count) {
+                    bail!("low-res path does not end at the last frame");
+                }
+            }
+        }
+        Ok(Encoding::QuantisedFramesV1) => {
+            let poses = mwb_core::frames::decode(&s.payload, s.frame_count, s.body_count)?;
+            if poses
+                .iter()
+                .any(|p| !finite(&p.position) || !finite(&p.rotation))
+            {
+                bail!("non-finite pose");
+            }
+        }
+        Ok(Encoding::Unspecified) | Err(_) => bail!("unknown encoding {}", s.encoding),
+    }
+    Ok(())
 }

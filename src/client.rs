@@ -4,7 +4,7 @@
 use anyhow::{Context, Result, anyhow, bail};
 use mwb_core::keys::{Keys, role};
 use mwb_core::scene::SceneTemplate;
-use mwb_proto::v1::{Encoding, Job, JobKind, JobState, Message, NodeStats, Scene, World};
+use mwb_proto::v1::{Encoding, Job, JobKind, JobState, Message, NodeStats, Quality, Scene, World};
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use zenoh::Session;
@@ -75,7 +75,8 @@ pub fn make_job(
         priority,
         created_unix_ms: unix_ms(),
         cancelled: false,
-        encoding: Encoding::QuantisedFramesV1 as i32,
+        encoding: Encoding::SplineV1 as i32,
+        quality: Quality::Standard as i32,
     })
 }
 
@@ -361,5 +362,62 @@ pub fn job_rate(st: &JobState) -> f64 {
         f64::from(st.worlds_done - 1) / span
     } else {
         0.0
+    }
+}
+
+/// How a job's worlds are encoded: the sampler's speed-versus-size knobs.
+#[derive(Debug, Clone, Copy, Default, clap::Args)]
+pub struct MotionArgs {
+    /// Segment payload: the spline codec (small) or quantised frames (cheap to produce).
+    #[arg(long, value_enum, default_value_t = EncodingArg::Spline)]
+    pub encoding: EncodingArg,
+    /// Codec error bounds: draft 5 mm / 5 mrad, standard 1 mm / 1 mrad, final 0.1 mm / 0.1 mrad.
+    #[arg(long, value_enum, default_value_t = QualityArg::Standard)]
+    pub quality: QualityArg,
+}
+
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum EncodingArg {
+    #[default]
+    Spline,
+    Frames,
+}
+
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum QualityArg {
+    Draft,
+    #[default]
+    Standard,
+    Final,
+}
+
+impl MotionArgs {
+    /// Sets the job's encoding and quality.
+    pub fn apply(&self, job: &mut Job) {
+        job.encoding = match self.encoding {
+            EncodingArg::Spline => Encoding::SplineV1,
+            EncodingArg::Frames => Encoding::QuantisedFramesV1,
+        } as i32;
+        job.quality = match self.quality {
+            QualityArg::Draft => Quality::Draft,
+            QualityArg::Standard => Quality::Standard,
+            QualityArg::Final => Quality::Final,
+        } as i32;
+    }
+
+    /// The sampler's run options for these arguments.
+    pub fn run_options(&self) -> mwb_sampler::RunOptions {
+        mwb_sampler::RunOptions {
+            quality: match self.quality {
+                QualityArg::Draft => mwb_codec::Quality::Draft,
+                QualityArg::Standard => mwb_codec::Quality::Standard,
+                QualityArg::Final => mwb_codec::Quality::Final,
+            },
+            encoding: match self.encoding {
+                EncodingArg::Spline => mwb_sampler::PayloadEncoding::Spline,
+                EncodingArg::Frames => mwb_sampler::PayloadEncoding::QuantisedFrames,
+            },
+            ..Default::default()
+        }
     }
 }

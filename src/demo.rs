@@ -18,6 +18,7 @@ pub struct DemoOptions {
     pub samplers: usize,
     pub memory_cap_bytes: u64,
     pub show_progress: bool,
+    pub motion: client::MotionArgs,
 }
 
 #[derive(Debug, Clone, serde::Serialize)]
@@ -31,7 +32,10 @@ pub struct DemoSummary {
     pub impacts_per_world: f64,
     pub perturbations_per_world: f64,
     pub frames_per_world: f64,
+    /// Motion payload per world, as stored and served (motion codec, the job's quality).
     pub bytes_per_world: f64,
+    /// The same motion as 7 × f32 per body-frame.
+    pub raw_f32_bytes_per_world: f64,
     pub rested_fraction: f64,
     pub crc_valid_worlds: u32,
     pub bodies: u32,
@@ -40,7 +44,8 @@ pub struct DemoSummary {
 pub async fn run_demo(bus: &BusArgs, opts: &DemoOptions) -> Result<DemoSummary> {
     let keys = Keys::new(&bus.space)?;
     let (file, text) = client::load_scene(&opts.scene)?;
-    let job = client::make_job(&file, &text, opts.worlds, 0, None)?;
+    let mut job = client::make_job(&file, &text, opts.worlds, 0, None)?;
+    opts.motion.apply(&mut job);
     let session = bus.open(Mode::Peer).await?;
     let zid = session.zid().to_string();
     let store = run_store(
@@ -107,6 +112,7 @@ pub async fn run_demo(bus: &BusArgs, opts: &DemoOptions) -> Result<DemoSummary> 
         perturbations_per_world: 0.0,
         frames_per_world: 0.0,
         bytes_per_world: 0.0,
+        raw_f32_bytes_per_world: 0.0,
         rested_fraction: 0.0,
         crc_valid_worlds: 0,
         bodies: 0,
@@ -123,6 +129,7 @@ pub async fn run_demo(bus: &BusArgs, opts: &DemoOptions) -> Result<DemoSummary> 
         summary.perturbations_per_world += f64::from(done.perturbations);
         summary.frames_per_world += f64::from(check.frames);
         summary.bytes_per_world += check.bytes as f64;
+        summary.raw_f32_bytes_per_world += check.raw_f32_bytes as f64;
         summary.rested_fraction += f64::from(u8::from(done.rested));
     }
     let n = f64::from(state.worlds_done.max(1));
@@ -130,6 +137,7 @@ pub async fn run_demo(bus: &BusArgs, opts: &DemoOptions) -> Result<DemoSummary> 
     summary.perturbations_per_world /= n;
     summary.frames_per_world /= n;
     summary.bytes_per_world /= n;
+    summary.raw_f32_bytes_per_world /= n;
     summary.rested_fraction /= n;
     store.stop();
     crate::bus::close(session).await;

@@ -2,6 +2,7 @@
 //! Subcommands are thin: the nodes are libraries (`mwb-sampler`, `mwb-store`, …).
 
 pub mod bench;
+pub mod bench_codec;
 pub mod bus;
 pub mod check;
 pub mod client;

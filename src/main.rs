@@ -37,6 +37,8 @@ enum Command {
         /// Print the summary as one JSON line.
         #[arg(long)]
         json: bool,
+        #[command(flatten)]
+        motion: client::MotionArgs,
     },
     /// Run a store node (default: a zenoh router other nodes --connect to).
     Store {
@@ -103,6 +105,8 @@ enum JobCommand {
         timeout: Option<u64>,
         #[arg(long)]
         json: bool,
+        #[command(flatten)]
+        motion: client::MotionArgs,
     },
     /// List jobs known to the stores.
     List {
@@ -122,12 +126,41 @@ enum JobCommand {
 #[derive(Subcommand)]
 enum BenchCommand {
     /// Raw rapier stepping vs the full sampling pipeline into a store over the bus.
+    /// Our LCP stepper forward vs backward (ch. 5): step cost, round trip, energy growth.
+    Reverse {
+        /// Worlds sampled backward for the round-trip and energy numbers.
+        #[arg(long, default_value_t = 16)]
+        worlds: usize,
+        /// Skip the big ball-array run.
+        #[arg(long)]
+        no_balls: bool,
+        /// (Output is always one JSON line.)
+        #[arg(long)]
+        json: bool,
+    },
     Sampler {
         #[arg(long, default_value = "tumble")]
         scene: String,
         #[arg(long, default_value_t = 50)]
         worlds: u32,
         /// (Output is always one JSON line; the flag is accepted for scripts.)
+        #[arg(long)]
+        json: bool,
+        #[command(flatten)]
+        motion: client::MotionArgs,
+    },
+    /// The motion codec on sampled worlds: one JSON line per (scene, preset).
+    Codec {
+        /// Scene files or shipped scene names [default: every shipped scene].
+        #[arg(long = "scene")]
+        scenes: Vec<String>,
+        /// Worlds sampled per scene.
+        #[arg(long, default_value_t = 8)]
+        worlds: u32,
+        /// Also sweep the bounds and write a rate–distortion plot (PNG) here.
+        #[arg(long)]
+        plot: Option<std::path::PathBuf>,
+        /// (Output is always JSON lines; the flag is accepted for scripts.)
         #[arg(long)]
         json: bool,
     },
@@ -149,6 +182,41 @@ fn main() -> Result<()> {
     rt.block_on(run(cli))
 }
 
+fn bench_codec(scenes: Vec<String>, worlds: u32, plot: Option<&std::path::Path>) -> Result<()> {
+    use mwb::bench_codec::{PRESETS, SceneMotion, measure, plot_rate_distortion, rate_distortion};
+    let scenes = if scenes.is_empty() {
+        mwb_core::scene::builtin::NAMES
+            .iter()
+            .map(|s| (*s).to_owned())
+            .collect()
+    } else {
+        scenes
+    };
+    let mut curves = Vec::new();
+    for scene in &scenes {
+        let motion = SceneMotion::sample(scene, worlds)?;
+        for quality in PRESETS {
+            print_json(&measure(&motion, quality)?)?;
+        }
+        if plot.is_some() {
+            curves.push((motion.scene.clone(), rate_distortion(&motion)?));
+        }
+    }
+    if let Some(path) = plot {
+        let labelled = plot_rate_distortion(path, &curves)?;
+        eprintln!(
+            "wrote {}{}",
+            path.display(),
+            if labelled {
+                ""
+            } else {
+                " (no font found: drawn without labels)"
+            }
+        );
+    }
+    Ok(())
+}
+
 fn print_json<T: serde::Serialize>(v: &T) -> Result<()> {
     println!("{}", serde_json::to_string(v)?);
     Ok(())
@@ -166,6 +234,7 @@ async fn run(cli: Cli) -> Result<()> {
             worlds,
             samplers,
             memory_cap_mib,
+            motion,
             json,
         } => {
             let opts = mwb::demo::DemoOptions {
@@ -173,6 +242,7 @@ async fn run(cli: Cli) -> Result<()> {
                 worlds,
                 samplers,
                 memory_cap_bytes: memory_cap_mib << 20,
+                motion,
                 show_progress: !json && std::io::IsTerminal::is_terminal(&std::io::stderr()),
             };
             if !json {
@@ -198,7 +268,12 @@ async fn run(cli: Cli) -> Result<()> {
                 println!("impacts/world    {:.1}", s.impacts_per_world);
                 println!("perturbs/world   {:.1}", s.perturbations_per_world);
                 println!("frames/world     {:.0}", s.frames_per_world);
-                println!("bytes/world      {:.0}", s.bytes_per_world);
+                println!(
+                    "bytes/world      {:.0} (motion codec; 7 × f32 would be {:.0}, {:.0}× more)",
+                    s.bytes_per_world,
+                    s.raw_f32_bytes_per_world,
+                    s.raw_f32_bytes_per_world / s.bytes_per_world.max(1.0)
+                );
                 println!("came to rest     {:.0} %", s.rested_fraction * 100.0);
             }
         }
@@ -293,14 +368,49 @@ async fn run(cli: Cli) -> Result<()> {
             );
         }
         Command::Bench { command } => match command {
+            BenchCommand::Reverse {
+                worlds,
+                no_balls,
+                json: _,
+            } => {
+                let mut o = mwb_reverse::BenchOptions {
+                    worlds,
+                    ..Default::default()
+                };
+                if no_balls {
+                    o.balls_scene = None;
+                }
+                let b = tokio::task::spawn_blocking(move || mwb_reverse::bench(&o)).await??;
+                print_json(&serde_json::json!({
+                    "bodies": b.bodies,
+                    "forward_step_us": b.forward_step_us,
+                    "backward_step_us": b.backward_step_us,
+                    "ratio": b.ratio,
+                    "roundtrip_max_rel_err": b.roundtrip_max_rel_err,
+                    "energy_growth_p50": b.energy_growth_p50,
+                    "angular_speed_peak_p50": b.angular_speed_peak_p50,
+                    "balls": b.balls,
+                    "balls_steps": b.balls_steps,
+                    "balls_seconds": b.balls_seconds,
+                    "balls_learn_seconds": b.balls_learn_seconds,
+                    "balls_energy_growth": b.balls_energy_growth,
+                }))?;
+            }
             BenchCommand::Sampler {
                 scene,
                 worlds,
                 json: _,
+                motion,
             } => {
-                let b = mwb::bench::bench_sampler(&scene, worlds).await?;
+                let b = mwb::bench::bench_sampler(&scene, worlds, motion).await?;
                 print_json(&b)?;
             }
+            BenchCommand::Codec {
+                scenes,
+                worlds,
+                plot,
+                json: _,
+            } => bench_codec(scenes, worlds, plot.as_deref())?,
         },
     }
     Ok(())
@@ -317,10 +427,12 @@ async fn job(command: JobCommand) -> Result<()> {
             wait,
             timeout,
             json,
+            motion,
         } => {
             let keys = Keys::new(&bus.space)?;
             let (file, text) = client::load_scene(&scene)?;
-            let job = client::make_job(&file, &text, worlds, priority, id)?;
+            let mut job = client::make_job(&file, &text, worlds, priority, id)?;
+            motion.apply(&mut job);
             let session = bus.open(bus.client_default()).await?;
             let mut state = client::submit_job(&session, &keys, &job).await?;
             if !json {

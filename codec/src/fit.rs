@@ -200,11 +200,20 @@ pub(crate) fn fit_position(
                 },
             };
             let coeffs = QuadraticQ { bq, aq };
-            let curve = coeffs.curve(coding, k);
-            if !(1..=len).all(|u| within(&curve, u)) {
-                break;
+            // A refit that quantises to the curve already verified on 1..len−1 (the common case
+            // once the window has a few points) needs only the new point checked: same decisions
+            // and bytes, without re-evaluating the window.
+            if let Some((_, _, curve)) = current.filter(|&(ck, cq, _)| (ck, cq) == (k, coeffs)) {
+                if !within(&curve, len) {
+                    break;
+                }
+            } else {
+                let curve = coeffs.curve(coding, k);
+                if !(1..=len).all(|u| within(&curve, u)) {
+                    break;
+                }
+                current = Some((k, coeffs, curve));
             }
-            current = Some((k, coeffs, curve));
         } else if let Some((_, _, curve)) = &current
             && !within(curve, len)
         {
@@ -268,13 +277,20 @@ pub(crate) fn fit_rotation(
             let Some(wq) = quantise3(w, sw) else {
                 break;
             };
-            let curve = RotationCurve::Linear {
-                w: crate::segment::dequantise3(wq, sw),
-            };
-            if !(1..=len).all(|u| within(&curve, u)) {
-                break;
+            // As for positions: an unchanged quantised curve needs only the new point checked.
+            if let Some((_, _, curve)) = current.filter(|&(ck, cq, _)| (ck, cq) == (k, wq)) {
+                if !within(&curve, len) {
+                    break;
+                }
+            } else {
+                let curve = RotationCurve::Linear {
+                    w: crate::segment::dequantise3(wq, sw),
+                };
+                if !(1..=len).all(|u| within(&curve, u)) {
+                    break;
+                }
+                current = Some((k, wq, curve));
             }
-            current = Some((k, wq, curve));
         } else if let Some((_, _, curve)) = &current
             && !within(curve, len)
         {

@@ -59,11 +59,64 @@ pub struct BodyHint {
     pub slide_velocity: Vector3<f64>,
 }
 
+/// Which of a body's resting contacts leave the ground in this step: the contact-count
+/// transition of §5.3.6 (Figure 5.12) made concrete. The `count` resting contacts of the body
+/// whose points lie furthest along `direction` get the lift-off goal `speed` (5.5); the others
+/// keep goal 0, so a box resting on a face tips onto an edge instead of jumping flat.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LiftPlan {
+    /// How many resting contacts to lift.
+    pub count: usize,
+    /// Ranks the contacts (world frame); ties keep contact order.
+    pub direction: Vector3<f64>,
+    /// Incoming normal speed goal of a lifted contact; clamped to `[0, 0.99 ε]`.
+    pub speed: f64,
+}
+
 /// Choices for one backward step.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct BackwardChoices {
     /// Hints by body index.
     pub hints: BTreeMap<usize, BodyHint>,
+    /// Contact-count transitions by body index; they override the hint's `lift_off_speed` for
+    /// that body's resting contacts.
+    pub lifts: BTreeMap<usize, LiftPlan>,
+    /// Restitution used *by the backward decision* for a pair `(body, partner)` (as
+    /// [`crate::Contact`] names them) instead of the material's: the rattling heuristic of
+    /// §5.3.1 pushes it to 1 after an elastic contact. The contact set keeps the material's
+    /// value, so [`BackwardReport::forward_residual`] measures the departure.
+    pub restitution: BTreeMap<(usize, Partner), f64>,
+    /// The stacking heuristic of §5.3.3: a resting contact between two bodies that are not
+    /// free to bounce (or between such a body and static geometry) is held, allowing the
+    /// normal impulse to pull, so a stack does not fly apart when stepped backward. `None`:
+    /// off. The value caps the pulling impulse (and the friction impulse) of a held contact in
+    /// units of the body's weight times `Δt`.
+    pub stacking_glue: Option<f64>,
+}
+
+/// The free-to-bounce test of §5.3.3 for every body: true when every pair of its contact
+/// normals (each pointing into the body) has a non-negative dot product, false when two of
+/// them oppose (something above and something below: the body is part of a stack).
+pub fn free_to_bounce(set: &ContactSet, n_bodies: usize) -> Vec<bool> {
+    let mut normals: Vec<Vec<Vector3<f64>>> = vec![Vec::new(); n_bodies];
+    for c in &set.contacts {
+        if let Some(list) = normals.get_mut(c.body) {
+            list.push(c.normal);
+        }
+        if let Partner::Body(p) = c.partner
+            && let Some(list) = normals.get_mut(p)
+        {
+            list.push(-c.normal);
+        }
+    }
+    normals
+        .iter()
+        .map(|ns| {
+            ns.iter()
+                .enumerate()
+                .all(|(i, a)| ns[i + 1..].iter().all(|b| a.dot(b) >= -1e-9))
+        })
+        .collect()
 }
 
 /// What happened at a contact's normal, as decided by the backward step.
@@ -75,6 +128,9 @@ pub enum NormalCase {
     Resting,
     /// Separating without an impulse of its own (Figure 5.1, case 2).
     Separating,
+    /// Resting contact of a stacked body, held bilateral with a bounded pull (the stacking
+    /// heuristic of §5.3.3; not forward-valid when it pulls).
+    Held,
 }
 
 /// What happened in a contact's tangent plane.
@@ -161,6 +217,32 @@ enum Var {
 }
 
 impl World {
+    /// Per contact index, the lift-off goal the [`LiftPlan`]s ask for (absent: no plan).
+    fn lifted_contacts(&self, set: &ContactSet, choices: &BackwardChoices) -> BTreeMap<usize, f64> {
+        let mut out = BTreeMap::new();
+        for (&body, plan) in &choices.lifts {
+            let mut mine: Vec<(f64, usize)> = set
+                .contacts
+                .iter()
+                .enumerate()
+                .filter(|(_, c)| c.body == body || c.partner == Partner::Body(body))
+                .map(|(k, c)| {
+                    let along = c.point.dot(&plan.direction);
+                    (if along.is_finite() { along } else { 0.0 }, k)
+                })
+                .collect();
+            // Furthest along the direction first; stable for ties.
+            mine.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+            for &(_, k) in mine.iter().take(plan.count) {
+                out.insert(k, plan.speed);
+            }
+            for &(_, k) in mine.iter().skip(plan.count) {
+                out.entry(k).or_insert(0.0);
+            }
+        }
+        out
+    }
+
     /// One backward step of length `dt` (see the [module docs](self)). The world's state
     /// becomes the state at `t − Δt`.
     pub fn step_backward(&mut self, dt: f64, choices: &BackwardChoices) -> BackwardReport {
@@ -174,6 +256,12 @@ impl World {
         let (mut set, unsupported) = self.detect_contacts();
         let eps = self.params.restitution_cutoff;
         let delta = self.params.rest_threshold;
+        let free = if choices.stacking_glue.is_some() {
+            free_to_bounce(&set, self.bodies.len())
+        } else {
+            Vec::new()
+        };
+        let lifted = self.lifted_contacts(&set, choices);
 
         // Figure 5.5, per contact.
         let mut decisions = Vec::with_capacity(set.contacts.len());
@@ -204,23 +292,44 @@ impl World {
             } else {
                 (FrictionCase::Sticking, 0.0)
             };
-            let elastic_floor = c.restitution * eps * (1.0 + 1e-9) + f64::EPSILON;
+            let alpha = choices
+                .restitution
+                .get(&(c.body, c.partner))
+                .copied()
+                .filter(|a| a.is_finite())
+                .map_or(c.restitution, |a| a.clamp(0.0, 1.0));
+            let elastic_floor = alpha * eps * (1.0 + 1e-9) + f64::EPSILON;
             if v_n < -delta {
                 approaching += 1;
             }
             let (normal, normal_goal) = if v_n >= delta {
-                if c.restitution > 0.0 && v_n > elastic_floor {
-                    (NormalCase::Elastic, v_n / c.restitution)
+                if alpha > 0.0 && v_n > elastic_floor {
+                    (NormalCase::Elastic, v_n / alpha)
                 } else {
                     (NormalCase::Separating, 0.0)
                 }
             } else {
-                let lift = if hint.lift_off_speed.is_finite() {
-                    hint.lift_off_speed.clamp(0.0, 0.99 * eps)
+                let held = !free.is_empty()
+                    && choices
+                        .stacking_glue
+                        .is_some_and(|g| g > 0.0 && g.is_finite())
+                    && friction == FrictionCase::Sticking
+                    && !free[c.body]
+                    && match c.partner {
+                        Partner::Body(p) => !free[p],
+                        Partner::Static(_) => true,
+                    };
+                let wish = lifted.get(&k).copied().unwrap_or(hint.lift_off_speed);
+                let lift = if wish.is_finite() {
+                    wish.clamp(0.0, 0.99 * eps)
                 } else {
                     0.0
                 };
-                (NormalCase::Resting, lift)
+                if held && lift == 0.0 {
+                    (NormalCase::Held, 0.0)
+                } else {
+                    (NormalCase::Resting, lift)
+                }
             };
             decisions.push(ContactChoice {
                 normal,
@@ -241,7 +350,7 @@ impl World {
                 v[2] -= gdt.z;
             }
         }
-        let free = vel.clone();
+        let free_vel = vel.clone();
         let mut impulses = vec![ContactImpulse::default(); set.contacts.len()];
         let mut islands = Vec::with_capacity(set.islands.len());
         for island in &set.islands {
@@ -259,6 +368,23 @@ impl World {
                 let [rn, ru, rw] = contact_rows(c, &self.bodies);
                 let normal = kinds.len();
                 let mu = c.friction;
+                if d.normal == NormalCase::Held {
+                    // §5.3.3: hold the contact, w = 0 while the impulses stay inside ±cap.
+                    let weight = self.gravity.norm() * dt / self.bodies[c.body].inv_mass;
+                    let cap = choices.stacking_glue.unwrap_or(0.0).max(0.0) * weight;
+                    for (row, var, hi) in [
+                        (rn, Var::Normal(k), f64::INFINITY),
+                        (ru, Var::U(k), cap),
+                        (rw, Var::W(k), cap),
+                    ] {
+                        rows.push(row);
+                        dirs.push(row);
+                        kinds.push(RowKind::Bounded { lo: -cap, hi });
+                        b.push(-row_velocity(&row, &free_vel));
+                        vars.push(var);
+                    }
+                    continue;
+                }
                 // Normal: w = −v⁻_N − goal (5.3)/(5.5).
                 rows.push(rn);
                 dirs.push(match d.friction {
@@ -266,20 +392,20 @@ impl World {
                     FrictionCase::Sticking => rn,
                 });
                 kinds.push(RowKind::Normal);
-                b.push(-row_velocity(&rn, &free) - d.normal_goal);
+                b.push(-row_velocity(&rn, &free_vel) - d.normal_goal);
                 vars.push(Var::Normal(k));
                 // Friction: w = −(v⁻_T − goal_T) (5.7); interior impulse ⇒ the goal is met.
                 if d.friction == FrictionCase::Sticking {
                     rows.push(ru);
                     dirs.push(ru);
                     kinds.push(RowKind::Friction { normal, mu });
-                    b.push(-row_velocity(&ru, &free) + d.tangent_goal);
+                    b.push(-row_velocity(&ru, &free_vel) + d.tangent_goal);
                     vars.push(Var::U(k));
                 }
                 rows.push(rw);
                 dirs.push(rw);
                 kinds.push(RowKind::Friction { normal, mu });
-                b.push(-row_velocity(&rw, &free));
+                b.push(-row_velocity(&rw, &free_vel));
                 vars.push(Var::W(k));
             }
             if rows.is_empty() {
@@ -315,17 +441,16 @@ impl World {
                 if !sol.x.iter().all(|v| v.is_finite()) {
                     break;
                 }
-                let mut trial = vel.clone();
-                for (j, resp) in responses.iter().enumerate() {
-                    resp.add_to(-sol.x[j], &mut trial);
-                }
+                // J v⁻ after undoing the impulses is J v − A x (A = J M⁻¹ Gᵀ): no need to
+                // touch the velocities of bodies outside the island.
+                let undone = &problem.a * &sol.x;
                 let mut changed = false;
                 for (j, var) in vars.iter().enumerate() {
                     let Var::Normal(k) = *var else { continue };
                     if decisions[k].normal != NormalCase::Resting {
                         continue;
                     }
-                    let incoming = -row_velocity(&rows[j], &trial);
+                    let incoming = -(row_velocity(&rows[j], &vel) - undone[j]);
                     let clearance = (self.params.prediction - set.contacts[k].dist).max(0.0);
                     let needed = LIFT_CLEARANCE * clearance / dt + delta;
                     if incoming > LIFT_NOISE

@@ -252,8 +252,8 @@ impl NarrowPhase {
 
     /// All contact points with `dist ≤ prediction` at the bodies' current poses, tangents in
     /// the default basis. Pairs that parry cannot handle are skipped and counted in the second
-    /// return value. The broad phase is all pairs with an AABB test (fine for the scene sizes
-    /// of the tests; a sweep-and-prune belongs here for thousands of bodies).
+    /// return value. Candidate pairs come from the sweep-and-prune broad phase
+    /// ([`crate::broad_phase`]); bodies far from everything cost one bounding box each.
     pub fn detect(
         &mut self,
         bodies: &[Body],
@@ -263,43 +263,40 @@ impl NarrowPhase {
         let pred = prediction.max(0.0) as f32;
         let body_aabbs: Vec<_> = bodies
             .iter()
-            .map(|b| b.shape.compute_aabb(&b.pose()).loosened(pred))
+            .map(|b| {
+                b.enabled
+                    .then(|| b.shape.compute_aabb(&b.pose()).loosened(pred))
+            })
             .collect();
         let static_aabbs: Vec<_> = statics
             .iter()
             .map(|s| s.shape.compute_aabb(&s.pose()).loosened(pred))
             .collect();
+        let live = crate::broad_phase::sweep_and_prune(&body_aabbs, &static_aabbs);
         let mut contacts = Vec::new();
         let mut unsupported = 0;
-        let mut live: Vec<(usize, Partner)> = Vec::new();
-        for (i, bi) in bodies.iter().enumerate() {
-            if !bi.enabled {
-                continue;
-            }
-            for (s, st) in statics.iter().enumerate() {
-                if body_aabbs[i].intersects(&static_aabbs[s]) {
-                    let key = (i, Partner::Static(s));
-                    live.push(key);
+        for &key in &live {
+            let bi = &bodies[key.0];
+            let ok = match key.1 {
+                Partner::Static(s) => {
+                    let st = &statics[s];
                     let mat = bi.material.combine(st.material);
-                    if !self.pair(key, bi, &st.shape, st.pose(), mat, pred, &mut contacts) {
-                        unsupported += 1;
-                    }
+                    self.pair(key, bi, &st.shape, st.pose(), mat, pred, &mut contacts)
                 }
-            }
-            for (j, bj) in bodies.iter().enumerate().skip(i + 1) {
-                if bj.enabled && body_aabbs[i].intersects(&body_aabbs[j]) {
-                    let key = (i, Partner::Body(j));
-                    live.push(key);
+                Partner::Body(j) => {
+                    let bj = &bodies[j];
                     let mat = bi.material.combine(bj.material);
-                    if !self.pair(key, bi, &bj.shape, bj.pose(), mat, pred, &mut contacts) {
-                        unsupported += 1;
-                    }
+                    self.pair(key, bi, &bj.shape, bj.pose(), mat, pred, &mut contacts)
                 }
+            };
+            if !ok {
+                unsupported += 1;
             }
         }
-        // Drop caches of pairs that separated.
-        live.sort_unstable();
-        self.pairs.retain(|k, _| live.binary_search(k).is_ok());
+        // Drop caches of pairs that separated (`live` is sorted, but in its own order).
+        let mut sorted = live;
+        sorted.sort_unstable();
+        self.pairs.retain(|k, _| sorted.binary_search(k).is_ok());
         (contacts, unsupported)
     }
 

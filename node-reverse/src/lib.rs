@@ -22,9 +22,19 @@
 //! * [`qr`]: the dense QR factorisation with Givens-rotation updates (§3.7.1) that the solver
 //!   keeps of its active-set matrix as rows enter and leave the clamped set.
 //!
+//! * [`broad_phase`]: sweep and prune over bounding boxes (half-spaces tested per body), so a
+//!   scene of thousands of bodies costs `O(n log n)` per step before the narrow phase; bodies
+//!   without contacts form no island and cost no LCP.
+//! * [`chain`]: the contact-count Markov chain of §5.3.6, learned per scene from forward runs.
+//! * [`run`]: backward runs with seeded free choices, the §5.3 heuristics (reverse damping,
+//!   rattling, stacking, user hints) and per-world plausibility measurements
+//!   ([`BackwardRunReport`]); mixed runs from an intermediate frame (§5.4.4).
+//! * [`scene`]: the ordinary scene format read as a final state, and `scenes/reverse/`.
+//! * [`bench`]: the numbers of `mwb bench reverse`.
+//!
 //! Not in this round: joints (the LCP has equality rows, the stepper does not build them yet),
-//! rolling friction (5.15)–(5.18), the plausibility heuristics of §5.3, and any position
-//! correction of penetration (as in the thesis, all conditions are on velocities).
+//! rolling friction (5.15)–(5.18), and any position correction of penetration (as in the
+//! thesis, all conditions are on velocities).
 //!
 //! # Example: a backward step and its forward check (§5.2)
 //!
@@ -142,18 +152,31 @@
 //! ```
 
 pub mod backward;
+pub mod bench;
 pub mod body;
+pub mod broad_phase;
+pub mod chain;
 pub mod contact;
 pub mod lcp;
 pub mod qr;
+pub mod run;
+pub mod scene;
 pub mod step;
 pub mod world;
 
 pub use backward::{
-    BackwardChoices, BackwardReport, BodyHint, ContactChoice, FrictionCase, NormalCase,
+    BackwardChoices, BackwardReport, BodyHint, ContactChoice, FrictionCase, LiftPlan, NormalCase,
+    free_to_bounce,
 };
+pub use bench::{BenchOptions, ReverseBench, bench};
 pub use body::{Body, Material, StaticBody};
+pub use chain::{ChainLearning, ContactChain};
 pub use contact::{Contact, ContactSet, Island, Partner};
+pub use run::{
+    BackwardRun, BackwardRunReport, Frame, Heuristics, HintMotion, MixedRun, Pose, ReverseSettings,
+    Sampling, UserHint, run_backward, run_mixed,
+};
+pub use scene::{SceneConvertError, world_from_scene};
 pub use world::{ContactImpulse, IslandSolve, StepParams, StepReport, World};
 
 /// Errors building a [`Body`] or [`StaticBody`].

@@ -49,16 +49,12 @@ impl World {
         }
     }
 
-    pub(crate) fn forward_island(
-        &self,
-        set: &ContactSet,
-        island: &Island,
-        inv: &[InvMass],
-        dt: f64,
-    ) -> Result<ForwardIsland, crate::LcpError> {
+    /// Generalized velocities `v⁻` and the free velocities `v⁻ + Δt M⁻¹ f_ext` of all bodies,
+    /// computed once per step and shared by every island.
+    pub(crate) fn free_velocities(&self, dt: f64) -> (Vec<[f64; 6]>, Vec<[f64; 6]>) {
         let vel: Vec<[f64; 6]> = self.bodies.iter().map(velocity6).collect();
         let gdt = self.gravity * dt;
-        let free: Vec<[f64; 6]> = self
+        let free = self
             .bodies
             .iter()
             .zip(&vel)
@@ -70,6 +66,16 @@ impl World {
                 }
             })
             .collect();
+        (vel, free)
+    }
+
+    pub(crate) fn forward_island(
+        &self,
+        set: &ContactSet,
+        island: &Island,
+        inv: &[InvMass],
+        (vel, free): (&[[f64; 6]], &[[f64; 6]]),
+    ) -> Result<ForwardIsland, crate::LcpError> {
         let eps = self.params.restitution_cutoff;
         let mut rows = Vec::with_capacity(3 * island.contacts.len());
         let mut kinds = Vec::with_capacity(rows.capacity());
@@ -79,16 +85,16 @@ impl World {
             let [rn, ru, rw] = contact_rows(c, &self.bodies);
             // §3.5: Newton restitution only above the cutoff; the goal uses the pre-step
             // approach speed.
-            let incoming = -row_velocity(&rn, &vel);
+            let incoming = -row_velocity(&rn, vel);
             let goal = if c.restitution > 0.0 && incoming > eps {
                 c.restitution * incoming
             } else {
                 0.0
             };
             let normal = kinds.len();
-            b.push(row_velocity(&rn, &free) - goal);
-            b.push(row_velocity(&ru, &free));
-            b.push(row_velocity(&rw, &free));
+            b.push(row_velocity(&rn, free) - goal);
+            b.push(row_velocity(&ru, free));
+            b.push(row_velocity(&rw, free));
             let mu = c.friction;
             kinds.extend([
                 RowKind::Normal,
@@ -122,20 +128,13 @@ impl World {
     /// replay half of the round-trip check of §5.2.
     pub fn step_forward_with(&mut self, set: &ContactSet, dt: f64) -> StepReport {
         let inv: Vec<InvMass> = self.bodies.iter().map(InvMass::of).collect();
-        let mut vel: Vec<[f64; 6]> = self.bodies.iter().map(velocity6).collect();
-        let gdt = self.gravity * dt;
-        for (b, v) in self.bodies.iter().zip(vel.iter_mut()) {
-            if b.enabled {
-                v[0] += gdt.x;
-                v[1] += gdt.y;
-                v[2] += gdt.z;
-            }
-        }
+        let (pre, free) = self.free_velocities(dt);
+        let mut vel = free.clone();
         let mut impulses = vec![ContactImpulse::default(); set.contacts.len()];
         let mut islands = Vec::with_capacity(set.islands.len());
         for island in &set.islands {
             let solved = self
-                .forward_island(set, island, &inv, dt)
+                .forward_island(set, island, &inv, (&pre, &free))
                 .and_then(|fi| Ok((lcp::solve(&fi.problem, &self.params.lcp)?, fi)));
             match solved {
                 Ok((sol, fi)) => {
@@ -196,9 +195,10 @@ impl World {
             return f64::NAN;
         }
         let inv: Vec<InvMass> = self.bodies.iter().map(InvMass::of).collect();
+        let (pre, free) = self.free_velocities(dt);
         let mut worst = 0.0f64;
         for island in &set.islands {
-            let Ok(fi) = self.forward_island(set, island, &inv, dt) else {
+            let Ok(fi) = self.forward_island(set, island, &inv, (&pre, &free)) else {
                 return f64::NAN;
             };
             let x = DVector::from_iterator(

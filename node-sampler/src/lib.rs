@@ -7,5 +7,8 @@
 pub mod node;
 pub mod world;
 
-pub use node::{SamplerConfig, SamplerHandle, run_sampler};
-pub use world::{RunOptions, Segment, WorldSummary, provenance, run_world};
+pub use node::{SamplerConfig, SamplerHandle, run_sampler, segment_message};
+pub use world::{
+    PayloadEncoding, RunOptions, Segment, WorldSummary, motion_model, provenance, run_world,
+    run_world_observed,
+};

@@ -4,11 +4,14 @@
 //! world it was computing; the store discards that partial world when its liveliness token
 //! goes away.
 
-use crate::world::{RunError, RunOptions, Segment, provenance, run_world};
+use crate::world::{PayloadEncoding, RunError, RunOptions, Segment, provenance, run_world};
 use mwb_core::keys::{Keys, role};
 use mwb_core::rng::world_seed;
 use mwb_core::scene::SceneTemplate;
-use mwb_proto::v1::{Job, JobKind, JobState, Message, MotionSegment, NodeStats, WorldDone};
+use mwb_proto::v1::{
+    Encoding, Job, JobKind, JobState, LowResPath, Message, MotionSegment, NodeStats, Quality,
+    WorldDone,
+};
 use std::collections::HashMap;
 use std::ops::ControlFlow;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -68,6 +71,77 @@ struct JobEntry {
     in_flight: u32,
 }
 
+/// What a worker needs to run one world of a job.
+struct Picked {
+    job_id: String,
+    template: Arc<SceneTemplate>,
+    scene_hash: u64,
+    quality: mwb_codec::Quality,
+    encoding: PayloadEncoding,
+}
+
+/// The job's codec preset; unspecified (or unknown to this version) is standard.
+fn codec_quality(q: Quality) -> mwb_codec::Quality {
+    match q {
+        Quality::Draft => mwb_codec::Quality::Draft,
+        Quality::Final => mwb_codec::Quality::Final,
+        Quality::Standard | Quality::Unspecified => mwb_codec::Quality::Standard,
+    }
+}
+
+/// The wire form of a recorded segment of world `(job, node, counter)`: the codec payload
+/// (`SPLINE_V1`) with its CRC and, beside it, the low-resolution paths.
+pub fn segment_message(
+    job_id: &str,
+    node: &str,
+    counter: u64,
+    seed: u64,
+    seg: Segment,
+) -> MotionSegment {
+    MotionSegment {
+        job_id: job_id.to_owned(),
+        node_id: node.to_owned(),
+        world_counter: counter,
+        seed,
+        seq: seg.seq,
+        first_frame: seg.first_frame,
+        frame_count: seg.frame_count,
+        body_count: seg.body_count,
+        encoding: match seg.encoding {
+            PayloadEncoding::Spline => Encoding::SplineV1,
+            PayloadEncoding::QuantisedFrames => Encoding::QuantisedFramesV1,
+        } as i32,
+        crc32: crc32fast::hash(&seg.payload),
+        lowres: Some(lowres_message(&seg.lowres, mwb_codec::DEFAULT_LOWRES_HZ)),
+        payload: seg.payload,
+    }
+}
+
+/// A segment's low-resolution paths on the wire: the vertex frames once (they are the same for
+/// every body of a segment), then every body's vertices.
+fn lowres_message(paths: &[mwb_codec::LowResPath], hz: f64) -> LowResPath {
+    LowResPath {
+        hz,
+        frames: paths.first().map(|p| p.frames.clone()).unwrap_or_default(),
+        xyz: paths
+            .iter()
+            .flat_map(|p| p.positions.iter().flatten().copied())
+            .collect(),
+        // Rounded up, so the bound stays a bound in f32.
+        max_deviation: paths
+            .iter()
+            .map(|p| {
+                let d = p.max_deviation as f32;
+                if f64::from(d) < p.max_deviation {
+                    d.next_up()
+                } else {
+                    d
+                }
+            })
+            .collect(),
+    }
+}
+
 #[derive(Default)]
 struct Board {
     jobs: HashMap<String, JobEntry>,
@@ -76,7 +150,7 @@ struct Board {
 impl Board {
     /// The job a free worker should take: highest priority, then refinements, then the job
     /// with the fewest worlds still missing ("refinement and small jobs first"), then oldest.
-    fn pick(&mut self) -> Option<(String, Arc<SceneTemplate>, u64)> {
+    fn pick(&mut self) -> Option<Picked> {
         let best = self
             .jobs
             .iter()
@@ -95,8 +169,16 @@ impl Board {
             .map(|(id, _)| id.clone())?;
         let e = self.jobs.get_mut(&best)?;
         e.in_flight += 1;
-        let hash = e.job.scene.as_ref().map_or(0, |s| s.content_hash);
-        Some((best, e.template.clone()?, hash))
+        Some(Picked {
+            scene_hash: e.job.scene.as_ref().map_or(0, |s| s.content_hash),
+            template: e.template.clone()?,
+            quality: codec_quality(e.job.quality()),
+            encoding: match e.job.encoding() {
+                Encoding::QuantisedFramesV1 => PayloadEncoding::QuantisedFrames,
+                Encoding::SplineV1 | Encoding::Unspecified => PayloadEncoding::Spline,
+            },
+            job_id: best,
+        })
     }
 
     fn is_open(&self, job: &str) -> bool {
@@ -415,7 +497,14 @@ fn worker(shared: &Shared, tx: &mpsc::Sender<Outgoing>, keys: &Keys, node: &str)
                 }
             }
         };
-        let Some((job_id, template, scene_hash)) = picked else {
+        let Some(Picked {
+            job_id,
+            template,
+            scene_hash,
+            quality,
+            encoding,
+        }) = picked
+        else {
             continue;
         };
         let counter = shared.counter.fetch_add(1, Ordering::Relaxed);
@@ -425,21 +514,10 @@ fn worker(shared: &Shared, tx: &mpsc::Sender<Outgoing>, keys: &Keys, node: &str)
             if shared.stop.load(Ordering::SeqCst) || !shared.lock().is_open(&job_id) {
                 return ControlFlow::Break(());
             }
-            let msg = MotionSegment {
-                job_id: job_id.clone(),
-                node_id: node.to_owned(),
-                world_counter: counter,
-                seed,
-                seq: seg.seq,
-                first_frame: seg.first_frame,
-                frame_count: seg.frame_count,
-                body_count: seg.body_count,
-                encoding: mwb_proto::v1::Encoding::QuantisedFramesV1 as i32,
-                crc32: crc32fast::hash(&seg.payload),
-                payload: seg.payload,
-            };
+            let key = keys.segment(&job_id, node, counter, seg.seq);
+            let msg = segment_message(&job_id, node, counter, seed, seg);
             let out = Outgoing::Put {
-                key: keys.segment(&job_id, node, counter, seg.seq),
+                key,
                 bytes: msg.encode_to_vec(),
             };
             match tx.blocking_send(out) {
@@ -447,7 +525,12 @@ fn worker(shared: &Shared, tx: &mpsc::Sender<Outgoing>, keys: &Keys, node: &str)
                 Err(_) => ControlFlow::Break(()),
             }
         };
-        let result = run_world(&template, seed, RunOptions::default(), &mut emit);
+        let opts = RunOptions {
+            quality,
+            encoding,
+            ..RunOptions::default()
+        };
+        let result = run_world(&template, seed, opts, &mut emit);
         {
             let mut board = shared.lock();
             if let Some(e) = board.jobs.get_mut(&job_id) {
@@ -516,4 +599,87 @@ fn hostname() -> String {
     std::fs::read_to_string("/proc/sys/kernel/hostname")
         .map(|s| s.trim().to_owned())
         .unwrap_or_default()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use mwb_proto::v1::Scene;
+
+    fn job(id: &str, target: u32, priority: i32, kind: JobKind, created: u64) -> Job {
+        let toml = mwb_core::scene::builtin::TUMBLE.to_owned();
+        Job {
+            id: id.into(),
+            revision: 1,
+            kind: kind as i32,
+            scene: Some(Scene {
+                toml,
+                ..Default::default()
+            }),
+            target_worlds: target,
+            priority,
+            created_unix_ms: created,
+            ..Default::default()
+        }
+    }
+
+    fn picks(board: &mut Board, n: usize) -> Vec<String> {
+        (0..n)
+            .filter_map(|_| board.pick())
+            .map(|p| p.job_id)
+            .collect()
+    }
+
+    #[test]
+    fn priority_then_refinement_then_small_jobs_first() {
+        let mut b = Board::default();
+        b.upsert_job(job("big", 1000, 0, JobKind::Sample, 1));
+        b.upsert_job(job("small", 3, 0, JobKind::Sample, 2));
+        b.upsert_job(job("refine", 500, 0, JobKind::Refine, 3));
+        b.upsert_job(job("urgent", 1000, 5, JobKind::Sample, 4));
+        // Higher priority first, until its worlds are all in flight.
+        if let Some(e) = b.jobs.get_mut("urgent") {
+            e.job.target_worlds = 2;
+        }
+        assert_eq!(picks(&mut b, 2), ["urgent", "urgent"]);
+        // Then refinements, then the smallest remaining job, then the big one.
+        if let Some(e) = b.jobs.get_mut("refine") {
+            e.job.target_worlds = 1;
+        }
+        assert_eq!(
+            picks(&mut b, 5),
+            ["refine", "small", "small", "small", "big"]
+        );
+    }
+
+    #[test]
+    fn closed_cancelled_and_invalid_jobs_are_never_picked() {
+        let mut b = Board::default();
+        b.upsert_job(job("a", 10, 0, JobKind::Sample, 1));
+        let mut bad = job("bad", 10, 9, JobKind::Sample, 1);
+        if let Some(s) = bad.scene.as_mut() {
+            s.toml = "not = [valid".into();
+        }
+        b.upsert_job(bad);
+        b.apply_state(&JobState {
+            job_id: "a".into(),
+            worlds_done: 10,
+            closed: true,
+            ..Default::default()
+        });
+        assert!(b.pick().is_none());
+        let mut c = job("c", 10, 0, JobKind::Sample, 1);
+        b.upsert_job(c.clone());
+        c.revision = 2;
+        c.cancelled = true;
+        b.upsert_job(c);
+        assert!(b.pick().is_none());
+    }
+
+    #[test]
+    fn in_flight_worlds_count_towards_the_target() {
+        let mut b = Board::default();
+        b.upsert_job(job("a", 2, 0, JobKind::Sample, 1));
+        assert_eq!(picks(&mut b, 5).len(), 2);
+    }
 }

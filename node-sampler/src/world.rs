@@ -2,8 +2,13 @@
 //!
 //! This module is pure computation (no bus, no async): [`run_world`] turns `(scene, seed)` into
 //! motion segments and a summary, deterministically. The node around it only ships the bytes.
+//!
+//! Recording: every ~1 s of frames becomes one [`Segment`] whose payload is a self-contained
+//! `mwb-codec` world stream (§4.3; one track per body, decodable without its neighbours) and
+//! whose low-resolution path travels beside it.
 
-use mwb_core::frames::{self, Pose as FramePose};
+use mwb_codec::{EncodeParams, LowResPath, MotionModel, Quality, Track, encode_world};
+use mwb_core::frames::Pose as FramePose;
 use mwb_core::perturb::{self, V3};
 use mwb_core::rng::{Stream, WorldRng};
 use mwb_core::scene::{BodyRef, JointKind, Scene, SceneTemplate, Shape};
@@ -37,8 +42,26 @@ pub enum BuildError {
 pub struct RunOptions {
     /// Apply §4.1.2 perturbations (off for the raw-stepping baseline of the benchmark).
     pub perturb: bool,
-    /// Record and encode frames (off for the raw-stepping baseline).
+    /// Record and encode frames (off for the raw-stepping baseline: then nothing is encoded).
     pub record: bool,
+    /// Error bounds of the motion codec (the job's; standard by default).
+    pub quality: Quality,
+    /// What a segment's payload is (the job's; the spline codec by default).
+    pub encoding: PayloadEncoding,
+}
+
+/// A segment payload's encoding: the speed-versus-size knob of the sampler.
+///
+/// The spline codec (§4.3) is 4–20× smaller but costs about as much CPU per object-frame as a
+/// rapier step (docs/performance.md); the quantised frames cost almost nothing to produce and
+/// are the choice when samplers, not store memory or bandwidth, are the bottleneck.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum PayloadEncoding {
+    /// `ENCODING_SPLINE_V1`: error-bounded piecewise splines (`mwb-codec`).
+    #[default]
+    Spline,
+    /// `ENCODING_QUANTISED_FRAMES_V1`: every frame, 0.1 mm / 1/32767, delta varints.
+    QuantisedFrames,
 }
 
 impl Default for RunOptions {
@@ -46,18 +69,26 @@ impl Default for RunOptions {
         Self {
             perturb: true,
             record: true,
+            quality: Quality::default(),
+            encoding: PayloadEncoding::default(),
         }
     }
 }
 
 /// One encoded segment of a world's motion.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct Segment {
     pub seq: u32,
     pub first_frame: u32,
     pub frame_count: u32,
     pub body_count: u32,
+    /// An `mwb-codec` world stream of this segment's frames, one object per body in scene order
+    /// (`ENCODING_SPLINE_V1` on the wire).
     pub payload: Vec<u8>,
+    /// The few-Hz path of each body over this segment (frames relative to `first_frame`).
+    pub lowres: Vec<LowResPath>,
+    /// How `payload` is encoded.
+    pub encoding: PayloadEncoding,
 }
 
 /// What happened in a world.
@@ -83,8 +114,32 @@ pub enum RunError {
     Build(#[from] BuildError),
     #[error("stopped by the caller")]
     Stopped,
+    #[error("motion encoding: {0}")]
+    Codec(#[from] mwb_codec::CodecError),
     #[error("frame encoding: {0}")]
-    Frames(#[from] frames::FrameError),
+    Frames(#[from] mwb_core::frames::FrameError),
+}
+
+/// The codec's position model, chosen from the scene and never by the user (§4.3: "model only
+/// what the scene requires").
+///
+/// Without linear damping and joints, a body between contacts feels gravity alone, and rapier's
+/// symplectic Euler (`v += g·dt; x += v·dt`) gives `x_n = x_0 + n·dt·v_0 + g·dt²·n(n+1)/2`: the
+/// `n²` term of every flight segment is exactly gravity's, so it costs one flag bit instead of
+/// three quantised coefficients. Linear damping scales the velocity every step (an exponential,
+/// not a parabola) and joints add constraint forces, so there the flag would almost never hold and
+/// only cost a bit per segment: such scenes use the general per-axis quadratic. Angular damping
+/// does not touch the centre-of-mass path and does not matter here. Either way the bound holds:
+/// the gravity model only adds a cheaper candidate, segments that are not in free flight (contact,
+/// rolling, rest) still get a full quadratic.
+pub fn motion_model(scene: &Scene) -> MotionModel {
+    if scene.settings.linear_damping == 0.0 && scene.joints.is_empty() {
+        MotionModel::FreeFlightGravity {
+            g: scene.settings.gravity,
+        }
+    } else {
+        MotionModel::General
+    }
 }
 
 fn v3(a: [f64; 3]) -> Vector {
@@ -281,6 +336,15 @@ impl SimWorld {
         })
     }
 
+    /// Appends every body's current pose to its track.
+    fn record(&self, tracks: &mut [Track]) {
+        for (i, t) in tracks.iter_mut().enumerate() {
+            let p = self.pose(i);
+            t.positions.push(p.position);
+            t.rotations.push(p.rotation);
+        }
+    }
+
     fn pose(&self, i: usize) -> FramePose {
         let rb = &self.world.bodies[self.bodies[i]];
         let p = rb.position();
@@ -315,6 +379,19 @@ pub fn run_world(
     opts: RunOptions,
     emit: &mut dyn FnMut(Segment) -> ControlFlow<()>,
 ) -> Result<WorldSummary, RunError> {
+    run_world_observed(template, seed, opts, emit, &mut |_| {})
+}
+
+/// [`run_world`], also handing `observe` the simulated poses of every segment (one [`Track`] per
+/// body, full rate, before encoding), just before the segment is emitted. For tests and the codec
+/// benchmark, which compare them with what the payload decodes to; the segments are the same.
+pub fn run_world_observed(
+    template: &SceneTemplate,
+    seed: u64,
+    opts: RunOptions,
+    emit: &mut dyn FnMut(Segment) -> ControlFlow<()>,
+    observe: &mut dyn FnMut(&[Track]),
+) -> Result<WorldSummary, RunError> {
     let scene = template.instantiate(seed);
     let mut sim = SimWorld::build(&scene)?;
     let s = &scene.settings;
@@ -330,7 +407,14 @@ pub fn run_world(
             impacts: 0,
         })
         .collect();
-    let mut pending: Vec<FramePose> = Vec::with_capacity(frames_per_segment * n);
+    let params = EncodeParams::from_quality(opts.quality, dt, motion_model(&scene));
+    // The frames of the segment being recorded, one track per body.
+    let mut pending: Vec<Track> = (0..n)
+        .map(|_| Track {
+            positions: Vec::with_capacity(frames_per_segment),
+            rotations: Vec::with_capacity(frames_per_segment),
+        })
+        .collect();
     let mut summary = WorldSummary {
         seed,
         frame_count: 0,
@@ -342,12 +426,37 @@ pub fn run_world(
         steps: 0,
         payload_bytes: 0,
     };
-    let mut flush = |pending: &mut Vec<FramePose>, summary: &mut WorldSummary| {
-        if pending.is_empty() || n == 0 {
+    let mut flush = |pending: &mut [Track], summary: &mut WorldSummary| {
+        let frame_count = pending.first().map_or(0, Track::len) as u32;
+        if frame_count == 0 {
             return Ok(());
         }
-        let frame_count = (pending.len() / n) as u32;
-        let payload = frames::encode(pending, n)?;
+        let (payload, lowres) = match opts.encoding {
+            // Each segment is its own codec world, so it decodes without its neighbours.
+            PayloadEncoding::Spline => {
+                let encoded = encode_world(pending, &params)?;
+                (encoded.bytes, encoded.lowres)
+            }
+            PayloadEncoding::QuantisedFrames => {
+                let frames = frame_count as usize;
+                let poses: Vec<FramePose> = (0..frames)
+                    .flat_map(|f| {
+                        pending.iter().map(move |t| FramePose {
+                            position: t.positions[f],
+                            rotation: t.rotations[f],
+                        })
+                    })
+                    .collect();
+                let lowres = pending
+                    .iter()
+                    .map(|t| {
+                        LowResPath::from_positions(&t.positions, dt, mwb_codec::DEFAULT_LOWRES_HZ)
+                    })
+                    .collect();
+                (mwb_core::frames::encode(&poses, n)?, lowres)
+            }
+        };
+        observe(pending);
         summary.payload_bytes += payload.len() as u64;
         let seg = Segment {
             seq: summary.segment_count,
@@ -355,8 +464,13 @@ pub fn run_world(
             frame_count,
             body_count: n as u32,
             payload,
+            lowres,
+            encoding: opts.encoding,
         };
-        pending.clear();
+        for t in pending.iter_mut() {
+            t.positions.clear();
+            t.rotations.clear();
+        }
         summary.segment_count += 1;
         match emit(seg) {
             ControlFlow::Continue(()) => Ok(()),
@@ -366,7 +480,7 @@ pub fn run_world(
 
     // Frame 0: the initial state.
     if opts.record {
-        pending.extend((0..n).map(|i| sim.pose(i)));
+        sim.record(&mut pending);
         summary.frame_count += 1;
     }
     let mut before: Vec<(V3, V3)> = vec![([0.0; 3], [0.0; 3]); n];
@@ -423,9 +537,9 @@ pub fn run_world(
         }
 
         if opts.record {
-            pending.extend((0..n).map(|i| sim.pose(i)));
+            sim.record(&mut pending);
             summary.frame_count += 1;
-            if pending.len() >= frames_per_segment * n {
+            if pending.first().map_or(0, Track::len) >= frames_per_segment {
                 flush(&mut pending, &mut summary)?;
             }
         }

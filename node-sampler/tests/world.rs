@@ -1,9 +1,14 @@
 //! The sampler's physics path: determinism byte for byte, free flight is never an impact,
-//! bounded perturbations at impacts, rest detection, CCD selection.
+//! bounded perturbations at impacts, rest detection, CCD selection; and its recording: every
+//! decoded frame within the codec's bounds of what rapier simulated, on the wire as `SPLINE_V1`.
 
+use mwb_codec::{MotionModel, Quality, Track, WorldReader};
 use mwb_core::frames;
 use mwb_core::scene::{SceneTemplate, builtin};
-use mwb_sampler::world::{RunOptions, Segment, WorldSummary, ccd_bodies, run_world};
+use mwb_proto::v1::Encoding;
+use mwb_sampler::world::{
+    RunOptions, Segment, WorldSummary, ccd_bodies, motion_model, run_world, run_world_observed,
+};
 use std::ops::ControlFlow;
 
 fn run(template: &SceneTemplate, seed: u64, opts: RunOptions) -> (WorldSummary, Vec<Segment>) {
@@ -20,13 +25,65 @@ fn parse(src: &str) -> SceneTemplate {
     SceneTemplate::parse(src, "test.toml").unwrap_or_else(|e| panic!("{e}"))
 }
 
+/// Decoded poses, frame-major (all bodies of frame 0, then of frame 1, …).
 fn poses(segs: &[Segment]) -> Vec<frames::Pose> {
     segs.iter()
         .flat_map(|s| {
-            frames::decode(&s.payload, s.frame_count, s.body_count)
-                .unwrap_or_else(|e| panic!("{e}"))
+            let tracks = WorldReader::new(&s.payload)
+                .and_then(|r| r.decode_all())
+                .unwrap_or_else(|e| panic!("segment {}: {e}", s.seq));
+            assert_eq!(tracks.len(), s.body_count as usize);
+            (0..s.frame_count as usize)
+                .flat_map(|f| {
+                    tracks
+                        .iter()
+                        .map(|t| frames::Pose {
+                            position: t.positions[f],
+                            rotation: t.rotations[f],
+                        })
+                        .collect::<Vec<_>>()
+                })
+                .collect::<Vec<_>>()
         })
         .collect()
+}
+
+/// Segments plus the simulated (pre-encoding) tracks of each.
+fn run_observed(
+    template: &SceneTemplate,
+    seed: u64,
+    opts: RunOptions,
+) -> (WorldSummary, Vec<Segment>, Vec<Vec<Track>>) {
+    let mut segs = Vec::new();
+    let mut raw = Vec::new();
+    let summary = run_world_observed(
+        template,
+        seed,
+        opts,
+        &mut |s| {
+            segs.push(s);
+            ControlFlow::Continue(())
+        },
+        &mut |tracks| raw.push(tracks.to_vec()),
+    )
+    .unwrap_or_else(|e| panic!("world failed: {e}"));
+    (summary, segs, raw)
+}
+
+/// Angle of the rotation taking `a` to `b` (q ≡ −q): 2·atan2(‖v‖, |w|) of `conj(a)·b`.
+fn angle_between(a: [f64; 4], b: [f64; 4]) -> f64 {
+    let unit = |q: [f64; 4]| {
+        let n = q.iter().map(|x| x * x).sum::<f64>().sqrt();
+        q.map(|x| x / n)
+    };
+    let ([ax, ay, az, aw], [bx, by, bz, bw]) = (unit(a), unit(b));
+    let w = aw * bw + ax * bx + ay * by + az * bz;
+    let v = [
+        aw * bx - bw * ax - (ay * bz - az * by),
+        aw * by - bw * ay - (az * bx - ax * bz),
+        aw * bz - bw * az - (ax * by - ay * bx),
+    ];
+    2.0 * v.iter().map(|x| x * x).sum::<f64>().sqrt().atan2(w.abs())
 }
 
 #[test]
@@ -62,7 +119,7 @@ fn perturbation_changes_the_world_but_only_at_impacts() {
         7,
         RunOptions {
             perturb: false,
-            record: true,
+            ..RunOptions::default()
         },
     );
     let (pert, p1) = run(&t, 7, RunOptions::default());
@@ -170,7 +227,7 @@ fn perturbation_stays_within_alpha_of_the_impact() {
         3,
         RunOptions {
             perturb: false,
-            record: true,
+            ..RunOptions::default()
         },
     );
     assert_eq!(sa, sb);
@@ -204,4 +261,160 @@ fn every_shipped_scene_builds_and_steps() {
             sim.world.step();
         }
     }
+}
+
+#[test]
+fn decoded_motion_stays_within_the_bounds_of_the_simulation() {
+    // Free flight under gravity (tumble) and a damped scene (general model), at two presets.
+    let damped = DROP.replace(
+        "angular_damping = 2.0",
+        "angular_damping = 2.0\nlinear_damping = 0.3",
+    );
+    let cases = [
+        (builtin::TUMBLE, Quality::Standard),
+        (builtin::TUMBLE, Quality::Final),
+        (builtin::PACHINKO, Quality::Draft),
+        (damped.as_str(), Quality::Standard),
+    ];
+    for (src, quality) in cases {
+        let t = parse(src);
+        let opts = RunOptions {
+            quality,
+            ..RunOptions::default()
+        };
+        let (summary, segs, raw) = run_observed(&t, 5, opts);
+        assert_eq!(segs.len(), raw.len());
+        let (e_max, theta_max) = quality.bounds();
+        let (mut worst_pos, mut worst_rot, mut frames) = (0.0f64, 0.0f64, 0u32);
+        for (seg, tracks) in segs.iter().zip(&raw) {
+            let reader = WorldReader::new(&seg.payload).unwrap_or_else(|e| panic!("{e}"));
+            assert_eq!((reader.e_max(), reader.theta_max()), (e_max, theta_max));
+            assert_eq!(reader.frame_count(), seg.frame_count as usize);
+            let decoded = reader.decode_all().unwrap_or_else(|e| panic!("{e}"));
+            assert_eq!(decoded.len(), tracks.len());
+            for (body, (d, x)) in decoded.iter().zip(tracks).enumerate() {
+                assert_eq!(x.len(), seg.frame_count as usize);
+                for f in 0..x.len() {
+                    let e = (0..3)
+                        .map(|i| (d.positions[f][i] - x.positions[f][i]).powi(2))
+                        .sum::<f64>()
+                        .sqrt();
+                    let a = angle_between(d.rotations[f], x.rotations[f]);
+                    assert!(
+                        e <= e_max && a <= theta_max * (1.0 + 1e-9),
+                        "{quality:?} segment {} body {body} frame {f}: {e:e} m, {a:e} rad",
+                        seg.seq
+                    );
+                    worst_pos = worst_pos.max(e);
+                    worst_rot = worst_rot.max(a);
+                }
+            }
+            // The low-res path: one per body, over the segment's frames.
+            assert_eq!(seg.lowres.len(), seg.body_count as usize);
+            for l in &seg.lowres {
+                assert_eq!(l.frames.first(), Some(&0));
+                assert_eq!(l.frames.last(), Some(&(seg.frame_count - 1)));
+            }
+            frames += seg.frame_count;
+        }
+        assert_eq!(frames, summary.frame_count);
+        // The bound is used, not wasted: errors come close to it somewhere.
+        assert!(worst_pos > 0.05 * e_max, "{quality:?}: {worst_pos:e}");
+        assert!(worst_rot > 0.0, "{quality:?}");
+    }
+}
+
+#[test]
+fn the_motion_model_comes_from_the_scene() {
+    let tumble = parse(builtin::TUMBLE).instantiate(0);
+    assert_eq!(
+        motion_model(&tumble),
+        MotionModel::FreeFlightGravity {
+            g: [0.0, -9.81, 0.0]
+        }
+    );
+    let damped =
+        parse(&DROP.replace("angular_damping = 2.0", "linear_damping = 0.1")).instantiate(0);
+    assert_eq!(motion_model(&damped), MotionModel::General);
+    // Angular damping does not touch the centre of mass.
+    assert!(matches!(
+        motion_model(&parse(DROP).instantiate(0)),
+        MotionModel::FreeFlightGravity { .. }
+    ));
+}
+
+#[test]
+fn segments_go_on_the_wire_as_spline_v1_with_their_low_res_path() {
+    let t = parse(builtin::TUMBLE);
+    let (_, segs) = run(&t, 9, RunOptions::default());
+    let bodies = t.body_count();
+    for seg in segs {
+        let (payload, seq, frames) = (seg.payload.clone(), seg.seq, seg.frame_count);
+        let msg = mwb_sampler::segment_message("job", "node", 3, 9, seg);
+        assert_eq!(msg.encoding, Encoding::SplineV1 as i32);
+        assert_eq!(msg.crc32, crc32fast::hash(&payload));
+        assert_eq!((msg.seq, msg.body_count as usize), (seq, bodies));
+        assert!(WorldReader::new(&msg.payload).is_ok());
+        let l = msg
+            .lowres
+            .unwrap_or_else(|| panic!("segment {seq}: no low-res path"));
+        assert!(l.hz > 0.0);
+        assert_eq!(l.frames.last(), Some(&(frames - 1)));
+        assert_eq!(l.xyz.len(), l.frames.len() * bodies * 3);
+        assert_eq!(l.max_deviation.len(), bodies);
+        assert!(l.max_deviation.iter().all(|d| d.is_finite() && *d >= 0.0));
+    }
+}
+
+#[test]
+fn without_recording_nothing_is_encoded() {
+    let t = parse(builtin::TUMBLE);
+    let opts = RunOptions {
+        perturb: false,
+        record: false,
+        ..RunOptions::default()
+    };
+    let (mut segments, mut observed) = (0, 0);
+    let s = run_world_observed(
+        &t,
+        1,
+        opts,
+        &mut |_| {
+            segments += 1;
+            ControlFlow::Continue(())
+        },
+        &mut |_| observed += 1,
+    )
+    .unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(
+        (segments, observed, s.segment_count, s.payload_bytes),
+        (0, 0, 0, 0)
+    );
+    assert!(s.steps > 0);
+}
+
+#[test]
+fn quantised_frames_payload_is_the_same_motion_within_its_quantum() {
+    let t = parse(builtin::TUMBLE);
+    let spline = run(&t, 21, RunOptions::default());
+    let frames_opts = RunOptions {
+        encoding: mwb_sampler::PayloadEncoding::QuantisedFrames,
+        ..RunOptions::default()
+    };
+    let (summary, segs) = run(&t, 21, frames_opts);
+    // The encoding does not change the simulation.
+    assert_eq!(summary.impacts, spline.0.impacts);
+    assert_eq!(summary.frame_count, spline.0.frame_count);
+    let mut frames_total = 0;
+    for s in &segs {
+        assert_eq!(s.encoding, mwb_sampler::PayloadEncoding::QuantisedFrames);
+        let poses = frames::decode(&s.payload, s.frame_count, s.body_count)
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(poses.len(), (s.frame_count * s.body_count) as usize);
+        assert_eq!(s.lowres.len(), s.body_count as usize);
+        frames_total += s.frame_count;
+    }
+    assert_eq!(frames_total, summary.frame_count);
+    // Cheap, not small: the spline payload is several times smaller.
+    assert!(summary.payload_bytes > 2 * spline.0.payload_bytes);
 }

@@ -200,6 +200,8 @@ pub fn precessing(rng: &mut Rng, frames: usize, dt: f64) -> Track {
     let v = rng.vec3(-2.0, 2.0);
     let sub = 8;
     let h = dt / sub as f64;
+    let energy = |w: [f64; 3]| (0..3).map(|i| inertia[i] * w[i] * w[i]).sum::<f64>();
+    let e0 = energy(wb);
     let mut t = Track::default();
     for _ in 0..frames {
         t.positions.push(x);
@@ -213,6 +215,12 @@ pub fn precessing(rng: &mut Rng, frames: usize, dt: f64) -> Track {
             ];
             for i in 0..3 {
                 wb[i] -= h * cross[i] / inertia[i];
+            }
+            // Explicit Euler gains energy and, at large steps, blows up to NaN; torque-free
+            // motion keeps its kinetic energy, so put it back.
+            let e = energy(wb);
+            if e > 0.0 {
+                wb = wb.map(|c| c * (e0 / e).sqrt());
             }
             q = normalise(quat_mul(q, quat_exp(wb.map(|c| c * h))));
         }

@@ -1,0 +1,584 @@
+//! Backward runs (§5.3–5.4): many backward steps from a final (or intermediate) state, with the
+//! free choices of Figure 5.5 sampled from a seed, the plausibility heuristics of §5.3, and the
+//! measurements a user needs to rank or drop implausible worlds (§5.3.1).
+//!
+//! * [`run_backward`]: the world's state is the *last* frame; steps go back in time and the
+//!   result is returned time-ordered (played forward), so it can be stored like any world.
+//! * [`run_mixed`]: the state is an intermediate frame; a backward run leads into it and a
+//!   forward run leads out of it, joined into one world (§5.4.4).
+//!
+//! A world is `(scene, seed, settings)`: the same three give the same frames, bit for bit.
+
+use std::collections::BTreeMap;
+
+use mwb_core::rng::{Stream, WorldRng};
+use nalgebra::{UnitQuaternion, Vector3};
+
+use crate::backward::{BackwardChoices, BodyHint, LiftPlan, NormalCase, free_to_bounce};
+use crate::chain::{ACTIVE_IMPULSE, ContactChain, MAX_STATE};
+use crate::contact::{ContactSet, Partner};
+use crate::{Body, World};
+
+/// Time over which restitution blends back from 1 to the material's value after an elastic
+/// contact between a pair (§5.3.1: 0.2 s).
+pub const DEFAULT_RATTLE_BLEND: f64 = 0.2;
+/// Default cap of a held contact's pulling impulse, in body weights × Δt (§5.3.3).
+pub const DEFAULT_STACKING_GLUE: f64 = 20.0;
+/// A replayed step whose velocities differ by less than this (relative) is forward-valid.
+pub const FORWARD_VALID_REL: f64 = 1e-6;
+
+/// The plausibility heuristics of §5.3. Each bends physics on purpose; each is measured by
+/// [`BackwardRunReport::max_departure`] when [`ReverseSettings::measure_departure`] is on.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Heuristics {
+    /// `k_d` (1/s) of the reverse angular damping (5.14): every backward step scales angular
+    /// velocity by `1 / (1 + k_d Δt)`, per unit inertia. Played forward, bodies seem to spin up
+    /// into their collisions; too much makes them "skittle" (§5.4.4). Off (0) by default.
+    pub reverse_angular_damping: f64,
+    /// Rattling (§5.3.1): after an elastic contact between a pair, the restitution the backward
+    /// step uses for that pair is 1 and blends linearly back to the material's over this many
+    /// seconds. `None`: off. Default 0.2 s.
+    pub rattle_blend: Option<f64>,
+    /// Stacking (§5.3.3): only bodies that pass the free-to-bounce test get sampled lift-offs
+    /// and slides, and resting contacts inside a stack are held with this pull cap (body
+    /// weights × Δt). `None`: off. Default [`DEFAULT_STACKING_GLUE`].
+    pub stacking_glue: Option<f64>,
+}
+
+impl Default for Heuristics {
+    fn default() -> Self {
+        Self {
+            reverse_angular_damping: 0.0,
+            rattle_blend: Some(DEFAULT_RATTLE_BLEND),
+            stacking_glue: Some(DEFAULT_STACKING_GLUE),
+        }
+    }
+}
+
+impl Heuristics {
+    /// Every heuristic off: each step is a plain §5.2 backward step.
+    pub fn off() -> Self {
+        Self {
+            reverse_angular_damping: 0.0,
+            rattle_blend: None,
+            stacking_glue: None,
+        }
+    }
+}
+
+/// How the free choices are drawn (Figure 5.5's "user preference" when the user gave none).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Sampling {
+    /// Lift-off speed of a contact leaving rest, as a fraction of `ε`, uniform in this range.
+    pub lift_speed: (f64, f64),
+    /// Probability that a body leaving a contact also gets a slide goal (5.7).
+    pub slide_probability: f64,
+    /// Slide speed (m/s), uniform in this range.
+    pub slide_speed: (f64, f64),
+}
+
+impl Default for Sampling {
+    fn default() -> Self {
+        Self {
+            lift_speed: (0.3, 0.95),
+            slide_probability: 0.5,
+            slide_speed: (0.05, 0.6),
+        }
+    }
+}
+
+/// What the user wants a body to do (Figure 5.10).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum HintMotion {
+    /// Let the contact-count chain decide.
+    Free,
+    /// Slide in along this direction (world frame; played forward, the body arrives moving
+    /// along it). Its length is ignored; the speed is sampled.
+    Slide(Vector3<f64>),
+    /// Bounce in: all resting contacts lift at once.
+    Bounce,
+    /// Stay where it is for the whole run.
+    Stay,
+}
+
+/// A user hint for one body.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct UserHint {
+    /// What it should do.
+    pub motion: HintMotion,
+    /// Seconds before the run's last frame before which the body leaves its resting contacts
+    /// (played forward: it settles this long before the end, not later). 0: any time.
+    pub release_before_end: f64,
+}
+
+/// Settings of a backward (or mixed) run.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ReverseSettings {
+    /// Time step (s).
+    pub dt: f64,
+    /// Simulated time to go back (s).
+    pub duration: f64,
+    /// §5.3 heuristics.
+    pub heuristics: Heuristics,
+    /// How free choices are sampled.
+    pub sampling: Sampling,
+    /// The contact-count chain (§5.3.6); `None`: bodies leave rest only by user hints.
+    pub chain: Option<ContactChain>,
+    /// User hints by body index.
+    pub hints: BTreeMap<usize, UserHint>,
+    /// Replay every step forward with its contact set and measure how far it departs from a
+    /// forward-valid step (costs one forward step per step).
+    pub measure_departure: bool,
+}
+
+impl Default for ReverseSettings {
+    fn default() -> Self {
+        Self {
+            dt: 1.0 / 120.0,
+            duration: 2.0,
+            heuristics: Heuristics::default(),
+            sampling: Sampling::default(),
+            chain: None,
+            hints: BTreeMap::new(),
+            measure_departure: true,
+        }
+    }
+}
+
+/// A body's pose in one frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Pose {
+    /// Centre of mass.
+    pub position: Vector3<f64>,
+    /// Orientation.
+    pub orientation: UnitQuaternion<f64>,
+}
+
+/// All bodies' poses at one time.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Frame {
+    /// Time (s) on the played-forward clock; the first frame of a run is at 0.
+    pub time: f64,
+    /// One pose per body.
+    pub poses: Vec<Pose>,
+}
+
+impl Frame {
+    fn of(world: &World, time: f64) -> Self {
+        Self {
+            time,
+            poses: world
+                .bodies
+                .iter()
+                .map(|b| Pose {
+                    position: b.position,
+                    orientation: b.orientation,
+                })
+                .collect(),
+        }
+    }
+}
+
+/// Per-world plausibility measurements (§5.3.1) and what the heuristics cost.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct BackwardRunReport {
+    /// Backward steps taken.
+    pub steps: usize,
+    /// Total energy per frame, time-ordered like the frames (J). Kinetic plus potential, with
+    /// the `½ Δt m g·v` term that makes it exact for the stepper's free flight (its
+    /// semi-implicit Euler otherwise gains `½ m g² Δt²` per backward step).
+    pub energy: Vec<f64>,
+    /// Energy of the last (given) frame (J).
+    pub energy_final: f64,
+    /// Peak energy over all frames minus the final energy (J): what the run had to gain
+    /// backward — dissipation run in reverse, plus anything implausible.
+    pub energy_gain: f64,
+    /// [`Self::energy_gain`] as the height (m) the whole mass would have to fall to lose it:
+    /// comparable across scenes; a world whose bodies "came from" far higher than the scene
+    /// is implausible.
+    pub energy_growth: f64,
+    /// Largest angular speed of any body in the last frame (rad/s).
+    pub angular_speed_final: f64,
+    /// Largest angular speed of any body in any frame (rad/s).
+    pub angular_speed_peak: f64,
+    /// `angular_speed_peak − angular_speed_final` (rad/s): the angular growth of §5.3.1.
+    pub angular_speed_growth: f64,
+    /// Per body, its largest angular speed (rad/s).
+    pub body_angular_speed_peak: Vec<f64>,
+    /// Largest forward-LCP residual of a step's impulses (0: every step's impulses are a valid
+    /// forward solution with the materials' restitution).
+    pub max_forward_residual: f64,
+    /// Mean of the per-step forward residuals.
+    pub mean_forward_residual: f64,
+    /// Largest relative velocity error of a step replayed forward with its own contact set
+    /// (NaN when not measured): how far the heuristics bend a step away from forward-valid.
+    pub max_departure: f64,
+    /// Mean of the per-step departures (NaN when not measured).
+    pub mean_departure: f64,
+    /// Steps whose departure exceeded [`FORWARD_VALID_REL`].
+    pub departed_steps: usize,
+    /// Elastic contacts that pushed (collisions explained as bounces, §5.2.2).
+    pub elastic_contacts: usize,
+    /// Contact lift-offs sampled from the chain or asked by hints.
+    pub lifts: usize,
+    /// Held contact-steps (stacking heuristic).
+    pub held_contacts: usize,
+    /// Islands whose LCP came back without a solution.
+    pub unsolved_islands: usize,
+    /// Contacts still approaching at `t` (no exact forward-valid predecessor).
+    pub approaching_contacts: usize,
+    /// Bodies disabled for non-finite state.
+    pub disabled_bodies: usize,
+}
+
+/// A sampled backward world.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BackwardRun {
+    /// Frames in time order; the last one is the given state.
+    pub frames: Vec<Frame>,
+    /// Measurements.
+    pub report: BackwardRunReport,
+}
+
+/// A mixed world (§5.4.4): backward into the given state, forward out of it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MixedRun {
+    /// Frames in time order.
+    pub frames: Vec<Frame>,
+    /// Index of the given state in `frames`.
+    pub join: usize,
+    /// Measurements of the backward half.
+    pub report: BackwardRunReport,
+}
+
+/// Mixed into the seed of the run's choice stream (the core `Stream`s name only scene and
+/// perturbation draws).
+const RUN_SALT: u64 = 0x7265_7665_7273_655f;
+
+/// The energy of the run's energy series: kinetic + potential + `½ Δt m g·v` (see
+/// [`BackwardRunReport::energy`]).
+pub fn shadow_energy(world: &World, dt: f64) -> f64 {
+    world
+        .bodies
+        .iter()
+        .map(|b| {
+            let m = 1.0 / b.inv_mass;
+            b.kinetic_energy()
+                + m * (-world.gravity.dot(&b.position))
+                + 0.5 * dt * m * world.gravity.dot(&b.linvel)
+        })
+        .sum()
+}
+
+fn body_contacts(
+    set: &ContactSet,
+    impulses: Option<&[crate::ContactImpulse]>,
+    n: usize,
+) -> Vec<usize> {
+    let mut eta = vec![0usize; n];
+    for (k, c) in set.contacts.iter().enumerate() {
+        let active = impulses.is_none_or(|i| i.get(k).is_some_and(|i| i.normal > ACTIVE_IMPULSE));
+        if !active {
+            continue;
+        }
+        if let Some(e) = eta.get_mut(c.body) {
+            *e += 1;
+        }
+        if let Partner::Body(p) = c.partner
+            && let Some(e) = eta.get_mut(p)
+        {
+            *e += 1;
+        }
+    }
+    eta
+}
+
+/// A random unit vector perpendicular to `up`.
+fn horizontal(rng: &mut WorldRng, up: &Vector3<f64>) -> Vector3<f64> {
+    let (u, w) = crate::contact::default_tangents(up);
+    let a = rng.uniform(0.0, std::f64::consts::TAU);
+    u * a.cos() + w * a.sin()
+}
+
+/// Samples a backward world from `world`'s state, taken as the last frame (see the
+/// [module docs](self)). `world` is left at the earliest state.
+pub fn run_backward(world: &mut World, seed: u64, settings: &ReverseSettings) -> BackwardRun {
+    let dt = if settings.dt.is_finite() && settings.dt > 0.0 {
+        settings.dt
+    } else {
+        1.0 / 120.0
+    };
+    let steps = if settings.duration.is_finite() && settings.duration > 0.0 {
+        (settings.duration / dt).round() as usize
+    } else {
+        0
+    };
+    let n = world.bodies.len();
+    let up = (-world.gravity)
+        .try_normalize(1e-12)
+        .unwrap_or(Vector3::z());
+    let eps = world.params.restitution_cutoff;
+    let mut rng = WorldRng::new(seed ^ RUN_SALT, Stream::Perturbation);
+    let h = settings.heuristics;
+    let s = settings.sampling;
+
+    let mut frames = Vec::with_capacity(steps + 1);
+    let end_time = steps as f64 * dt;
+    frames.push(Frame::of(world, end_time));
+    let mut energy = vec![shadow_energy(world, dt)];
+    let mut ang_peak: Vec<f64> = world.bodies.iter().map(|b| b.angvel.norm()).collect();
+    let angular_speed_final = ang_peak.iter().copied().fold(0.0, f64::max);
+    let mut report = BackwardRunReport {
+        angular_speed_final,
+        ..Default::default()
+    };
+
+    // Contacts at the final frame: every touching contact counts as active.
+    let (initial, _) = world.detect_contacts();
+    let mut eta = body_contacts(&initial, None, n);
+    let mut free = free_to_bounce(&initial, n);
+    // Slide speeds drawn once per body, so the stream does not depend on when it slides.
+    let slide_speed: Vec<f64> = (0..n)
+        .map(|_| rng.uniform(s.slide_speed.0, s.slide_speed.1))
+        .collect();
+    let mut last_elastic: BTreeMap<(usize, Partner), (f64, f64)> = BTreeMap::new();
+    let (mut residual_sum, mut departure_sum) = (0.0, 0.0);
+    let (mut max_residual, mut max_departure) = (0.0f64, 0.0f64);
+
+    for k in 0..steps {
+        let elapsed = k as f64 * dt;
+        let mut choices = BackwardChoices {
+            stacking_glue: h.stacking_glue,
+            ..Default::default()
+        };
+        for b in 0..n {
+            if eta[b] == 0 || !world.bodies[b].enabled {
+                continue;
+            }
+            let hint = settings.hints.get(&b);
+            if hint.is_some_and(|u| elapsed < u.release_before_end) {
+                continue;
+            }
+            let user_motion = hint.map(|u| u.motion);
+            if h.stacking_glue.is_some() && !free[b] && user_motion.is_none() {
+                continue; // §5.3.3: only the top of a pile may leave first.
+            }
+            match user_motion.unwrap_or(HintMotion::Free) {
+                HintMotion::Stay => {}
+                HintMotion::Slide(dir) => {
+                    let tangential = dir - up * up.dot(&dir);
+                    if let Some(d) = tangential.try_normalize(1e-12) {
+                        // Just before it stopped, the body was moving along the direction.
+                        choices.hints.insert(
+                            b,
+                            BodyHint {
+                                lift_off_speed: 0.0,
+                                slide_velocity: d * slide_speed[b],
+                            },
+                        );
+                    }
+                }
+                HintMotion::Bounce => {
+                    let speed = eps * rng.uniform(s.lift_speed.0, s.lift_speed.1);
+                    choices.lifts.insert(
+                        b,
+                        LiftPlan {
+                            count: usize::MAX,
+                            direction: up,
+                            speed,
+                        },
+                    );
+                    report.lifts += eta[b];
+                }
+                HintMotion::Free => {
+                    let Some(chain) = &settings.chain else {
+                        continue;
+                    };
+                    let from = eta[b].min(MAX_STATE);
+                    let to = chain.sample(from, rng.next_f64());
+                    if to >= from {
+                        continue;
+                    }
+                    let count = if to == 0 { eta[b] } else { from - to };
+                    let direction = horizontal(&mut rng, &up);
+                    let speed = eps * rng.uniform(s.lift_speed.0, s.lift_speed.1);
+                    choices.lifts.insert(
+                        b,
+                        LiftPlan {
+                            count,
+                            direction,
+                            speed,
+                        },
+                    );
+                    report.lifts += count;
+                    if rng.next_f64() < s.slide_probability {
+                        let d = horizontal(&mut rng, &up);
+                        choices.hints.insert(
+                            b,
+                            BodyHint {
+                                lift_off_speed: 0.0,
+                                slide_velocity: d * slide_speed[b],
+                            },
+                        );
+                    }
+                }
+            }
+        }
+        if let Some(blend) = h.rattle_blend.filter(|b| *b > 0.0) {
+            last_elastic.retain(|_, (t, _)| elapsed - *t < blend);
+            for (&pair, &(t, alpha)) in &last_elastic {
+                let f = ((elapsed - t) / blend).clamp(0.0, 1.0);
+                choices.restitution.insert(pair, 1.0 - (1.0 - alpha) * f);
+            }
+        }
+
+        let at_t = if settings.measure_departure {
+            Some(world.clone())
+        } else {
+            None
+        };
+        let step = world.step_backward(dt, &choices);
+        if h.reverse_angular_damping > 0.0 && h.reverse_angular_damping.is_finite() {
+            let scale = 1.0 / (1.0 + h.reverse_angular_damping * dt);
+            for b in world.bodies.iter_mut().filter(|b| b.enabled) {
+                b.angvel *= scale;
+            }
+        }
+        if let Some(at_t) = at_t {
+            let mut replay = world.clone();
+            replay.step_forward_with(&step.contacts, dt);
+            let scale = at_t
+                .bodies
+                .iter()
+                .flat_map(|b| b.linvel.iter().chain(b.angvel.iter()))
+                .fold(world.gravity.norm() * dt, |m, v| m.max(v.abs()));
+            let err = at_t
+                .bodies
+                .iter()
+                .zip(&replay.bodies)
+                .map(|(want, got)| {
+                    (want.linvel - got.linvel)
+                        .amax()
+                        .max((want.angvel - got.angvel).amax())
+                })
+                .fold(0.0, f64::max)
+                / scale;
+            let err = if err.is_finite() { err } else { f64::INFINITY };
+            max_departure = max_departure.max(err);
+            departure_sum += err;
+            if err > FORWARD_VALID_REL {
+                report.departed_steps += 1;
+            }
+        }
+        let r = if step.forward_residual.is_finite() {
+            step.forward_residual
+        } else {
+            f64::INFINITY
+        };
+        max_residual = max_residual.max(r);
+        residual_sum += r;
+        for (c, (choice, imp)) in step
+            .contacts
+            .contacts
+            .iter()
+            .zip(step.choices.iter().zip(&step.impulses))
+        {
+            match choice.normal {
+                NormalCase::Elastic if imp.normal > ACTIVE_IMPULSE => {
+                    report.elastic_contacts += 1;
+                    last_elastic.insert((c.body, c.partner), (elapsed, c.restitution));
+                }
+                NormalCase::Held => report.held_contacts += 1,
+                _ => {}
+            }
+        }
+        report.unsolved_islands += step
+            .islands
+            .iter()
+            .filter(|i| !i.status.is_solution())
+            .count();
+        report.approaching_contacts += step.approaching_contacts;
+        report.disabled_bodies += step.disabled.len();
+        eta = body_contacts(&step.contacts, Some(&step.impulses), n);
+        free = free_to_bounce(&step.contacts, n);
+
+        frames.push(Frame::of(world, end_time - (k + 1) as f64 * dt));
+        energy.push(shadow_energy(world, dt));
+        for (p, b) in ang_peak.iter_mut().zip(&world.bodies) {
+            *p = p.max(b.angvel.norm());
+        }
+    }
+    frames.reverse();
+    energy.reverse();
+    let energy_final = energy.last().copied().unwrap_or(0.0);
+    let peak = energy.iter().copied().fold(energy_final, f64::max);
+    let mass: f64 = world.bodies.iter().map(|b: &Body| 1.0 / b.inv_mass).sum();
+    let g = world.gravity.norm();
+    report.steps = steps;
+    report.energy_final = energy_final;
+    report.energy_gain = peak - energy_final;
+    report.energy_growth = if mass > 0.0 && g > 0.0 {
+        report.energy_gain / (mass * g)
+    } else {
+        report.energy_gain
+    };
+    report.angular_speed_peak = ang_peak.iter().copied().fold(0.0, f64::max);
+    report.angular_speed_growth = report.angular_speed_peak - report.angular_speed_final;
+    report.body_angular_speed_peak = ang_peak;
+    report.energy = energy;
+    report.max_forward_residual = max_residual;
+    report.mean_forward_residual = if steps > 0 {
+        residual_sum / steps as f64
+    } else {
+        0.0
+    };
+    if settings.measure_departure {
+        report.max_departure = max_departure;
+        report.mean_departure = if steps > 0 {
+            departure_sum / steps as f64
+        } else {
+            0.0
+        };
+    } else {
+        report.max_departure = f64::NAN;
+        report.mean_departure = f64::NAN;
+    }
+    BackwardRun { frames, report }
+}
+
+/// A mixed world from an intermediate state (§5.4.4): [`run_backward`] for
+/// `settings.duration` into the state, then `forward_duration` seconds of forward steps out of
+/// it, one time-ordered list of frames with the given state once, at `join`. `world` is left
+/// at the end of the forward half.
+pub fn run_mixed(
+    world: &mut World,
+    seed: u64,
+    settings: &ReverseSettings,
+    forward_duration: f64,
+) -> MixedRun {
+    let start = world.clone();
+    let back = run_backward(world, seed, settings);
+    *world = start;
+    let dt = if settings.dt.is_finite() && settings.dt > 0.0 {
+        settings.dt
+    } else {
+        1.0 / 120.0
+    };
+    let forward_steps = if forward_duration.is_finite() && forward_duration > 0.0 {
+        (forward_duration / dt).round() as usize
+    } else {
+        0
+    };
+    let mut frames = back.frames;
+    let join = frames.len().saturating_sub(1);
+    let t0 = frames.last().map_or(0.0, |f| f.time);
+    for k in 0..forward_steps {
+        world.step_forward(dt);
+        frames.push(Frame::of(world, t0 + (k + 1) as f64 * dt));
+    }
+    MixedRun {
+        frames,
+        join,
+        report: back.report,
+    }
+}

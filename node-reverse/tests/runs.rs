@@ -1,0 +1,356 @@
+//! Backward runs (§5.3–5.4): determinism, mixed runs, the learned contact chain, the energy
+//! metric, the broad phase and the shipped scenes.
+
+use mwb_reverse::broad_phase::{all_pairs, sweep_and_prune};
+use mwb_reverse::chain::MAX_STATE;
+use mwb_reverse::run::shadow_energy;
+use mwb_reverse::scene::{builtin, world_from_toml};
+use mwb_reverse::{
+    Body, ChainLearning, ContactChain, Heuristics, HintMotion, ReverseSettings, UserHint, World,
+    free_to_bounce, run_backward, run_mixed,
+};
+use nalgebra::{UnitQuaternion, Vector3};
+use parry3d::bounding_volume::Aabb;
+use parry3d::math::Vec3;
+
+fn scene(src: &str, name: &str) -> World {
+    match world_from_toml(src, name) {
+        Ok(w) => w,
+        Err(e) => panic!("{name}: {e}"),
+    }
+}
+
+fn quick_chain(world: &World) -> ContactChain {
+    let learning = ChainLearning {
+        runs: 8,
+        max_duration: 1.5,
+        ..ChainLearning::default()
+    };
+    ContactChain::learn(world, &learning, 7)
+}
+
+fn frame_bits(frames: &[mwb_reverse::Frame]) -> Vec<u64> {
+    frames
+        .iter()
+        .flat_map(|f| {
+            std::iter::once(f.time.to_bits()).chain(f.poses.iter().flat_map(|p| {
+                p.position
+                    .iter()
+                    .chain(p.orientation.coords.iter())
+                    .map(|v| v.to_bits())
+                    .collect::<Vec<_>>()
+            }))
+        })
+        .collect()
+}
+
+#[test]
+fn shipped_scenes_parse_and_convert() {
+    let expect = [
+        ("word", 16),
+        ("stack", 10),
+        ("balls", 2744),
+        ("balls_small", 27),
+        ("crash", 5),
+    ];
+    for ((name, src), (want_name, bodies)) in builtin::ALL.iter().zip(expect) {
+        assert_eq!(*name, want_name);
+        let world = scene(src, name);
+        assert_eq!(world.bodies.len(), bodies, "{name}");
+        assert!((world.gravity - Vector3::new(0.0, -9.81, 0.0)).norm() < 1e-12);
+    }
+    // Final states rest: every word box touches only the ground, and is free to bounce.
+    let mut word = scene(builtin::WORD, "word");
+    let (set, unsupported) = word.detect_contacts();
+    assert_eq!(unsupported, 0);
+    assert!(set.contacts.iter().all(|c| c.dist.abs() < 1e-5));
+    assert_eq!(set.islands.len(), 16, "no box touches another");
+    assert!(free_to_bounce(&set, 16).iter().all(|f| *f));
+    // In the stack only the top brick is free to bounce (§5.3.3).
+    let mut stack = scene(builtin::STACK, "stack");
+    let (set, _) = stack.detect_contacts();
+    let free = free_to_bounce(&set, 10);
+    assert_eq!(free.iter().filter(|f| **f).count(), 1, "{free:?}");
+    assert!(free[9]);
+    // Balls rest on the floor, one contact each, touching no wall.
+    let mut balls = scene(builtin::BALLS_SMALL, "balls_small");
+    let (set, _) = balls.detect_contacts();
+    assert_eq!(set.contacts.len(), 27);
+    // A scene with a joint is refused with a reason, not mangled.
+    let jointed = r#"
+name = "j"
+[[material]]
+name = "m"
+[[body]]
+name = "a"
+shape = "sphere"
+radius = 0.1
+material = "m"
+[[joint]]
+name = "pin"
+kind = "spherical"
+body1 = "world"
+body2 = "a"
+"#;
+    let err = world_from_toml(jointed, "j.toml").map(|_| ()).unwrap_err();
+    assert!(err.to_string().contains("joint"), "{err}");
+}
+
+#[test]
+fn broad_phase_equals_all_pairs_on_random_scenes() {
+    let mut state = 0x1234_5678_9abc_def0u64;
+    let mut rnd = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state >> 11) as f32 / (1u64 << 53) as f32
+    };
+    for trial in 0..60 {
+        let n = 1 + (rnd() * 150.0) as usize;
+        let spread = 0.5 + 10.0 * rnd();
+        let boxes = |count: usize, rnd: &mut dyn FnMut() -> f32| -> Vec<Aabb> {
+            (0..count)
+                .map(|_| {
+                    let c = Vec3::new(rnd(), rnd(), rnd()) * spread;
+                    let h = Vec3::new(rnd(), rnd(), rnd()) * 0.6 + Vec3::splat(0.01);
+                    Aabb::new(c - h, c + h)
+                })
+                .collect()
+        };
+        let bodies: Vec<Option<Aabb>> = boxes(n, &mut rnd)
+            .into_iter()
+            .enumerate()
+            .map(|(i, b)| (i % 11 != 3).then_some(b)) // some disabled bodies
+            .collect();
+        let mut statics = boxes((rnd() * 8.0) as usize, &mut rnd);
+        if trial % 2 == 0 {
+            // A ground half-space: an unbounded box.
+            statics.push(Aabb::new(
+                Vec3::new(-1e30, -1e30, -1e30),
+                Vec3::new(1e30, 0.3 * spread, 1e30),
+            ));
+        }
+        let mut fast = sweep_and_prune(&bodies, &statics);
+        let mut slow = all_pairs(&bodies, &statics);
+        fast.sort();
+        slow.sort();
+        assert_eq!(fast, slow, "trial {trial}: {n} bodies");
+    }
+}
+
+#[test]
+fn learned_chain_rows_are_probabilities() {
+    let world = scene(builtin::WORD, "word");
+    let chain = quick_chain(&world);
+    let total: u64 = chain.counts.iter().flatten().sum();
+    assert!(total > 100, "learning runs recorded {total} transitions");
+    assert_eq!(chain.probabilities.len(), MAX_STATE + 1);
+    for (j, row) in chain.probabilities.iter().enumerate() {
+        let sum: f64 = row.iter().sum();
+        assert!((sum - 1.0).abs() < 1e-12, "row {j} sums to {sum}");
+        assert!(row.iter().all(|p| (0.0..=1.0).contains(p)));
+        // Figure 5.12: backward, only towards fewer contacts.
+        assert!(row[j + 1..].iter().all(|p| *p == 0.0), "row {j}: {row:?}");
+    }
+    // Boxes landing flat rest on more than one contact, and leave rest sometimes.
+    assert!(
+        chain.counts[MAX_STATE].iter().sum::<u64>() > 0,
+        "{:?}",
+        chain.counts
+    );
+    assert!(chain.probabilities[MAX_STATE][MAX_STATE] < 1.0);
+    // Sampling follows the rows.
+    assert_eq!(chain.sample(0, 0.999), 0);
+    let stay = ContactChain::stay();
+    assert_eq!(stay.sample(3, 0.5), 3);
+}
+
+#[test]
+fn backward_runs_are_deterministic_per_seed() {
+    let world = scene(builtin::BALLS_SMALL, "balls_small");
+    let settings = ReverseSettings {
+        duration: 0.75,
+        chain: Some(quick_chain(&world)),
+        ..Default::default()
+    };
+    let a = run_backward(&mut world.clone(), 11, &settings);
+    let b = run_backward(&mut world.clone(), 11, &settings);
+    let c = run_backward(&mut world.clone(), 12, &settings);
+    assert_eq!(a.frames.len(), 91);
+    assert_eq!(frame_bits(&a.frames), frame_bits(&b.frames));
+    assert_eq!(a.report.energy.len(), a.frames.len());
+    assert_eq!(
+        a.report
+            .energy
+            .iter()
+            .map(|e| e.to_bits())
+            .collect::<Vec<_>>(),
+        b.report
+            .energy
+            .iter()
+            .map(|e| e.to_bits())
+            .collect::<Vec<_>>()
+    );
+    assert_ne!(
+        frame_bits(&a.frames),
+        frame_bits(&c.frames),
+        "the seed matters"
+    );
+    assert!(a.report.lifts > 0, "{:?}", a.report);
+    // Time-ordered, and the last frame is the given (final) state.
+    assert!(a.frames.windows(2).all(|w| w[0].time < w[1].time));
+    let last = a.frames.last().map(|f| f.poses.clone()).unwrap_or_default();
+    for (p, body) in last.iter().zip(&world.bodies) {
+        assert_eq!(p.position, body.position);
+    }
+}
+
+#[test]
+fn mixed_run_joins_continuously() {
+    let world = scene(builtin::CRASH, "crash");
+    let dt = 1.0 / 120.0;
+    let settings = ReverseSettings {
+        dt,
+        duration: 0.25,
+        ..Default::default()
+    };
+    let mixed = run_mixed(&mut world.clone(), 3, &settings, 0.25);
+    assert_eq!(mixed.frames.len(), 30 + 1 + 30);
+    assert_eq!(mixed.join, 30);
+    let join = &mixed.frames[mixed.join];
+    assert!((join.time - 0.25).abs() < 1e-12);
+    for (p, b) in join.poses.iter().zip(&world.bodies) {
+        assert_eq!(p.position, b.position, "the join is the given state");
+        assert_eq!(p.orientation, b.orientation);
+    }
+    assert!(mixed.frames.windows(2).all(|w| w[0].time < w[1].time));
+    // In free flight both halves follow one parabola through the join: the second difference of
+    // positions is g Δt² on both sides, and equal across it.
+    let g = world.gravity;
+    for j in [mixed.join - 1, mixed.join, mixed.join + 1] {
+        for i in 0..world.bodies.len() {
+            let x = |k: usize| mixed.frames[k].poses[i].position;
+            let second = x(j + 1) - 2.0 * x(j) + x(j - 1);
+            assert!(
+                (second - g * dt * dt).norm() < 1e-12,
+                "frame {j} body {i}: {second:?}"
+            );
+            // Rotation continues at the same rate.
+            let q = |k: usize| mixed.frames[k].poses[i].orientation;
+            let before = q(j).rotation_to(&q(j - 1)).angle();
+            let after = q(j + 1).rotation_to(&q(j)).angle();
+            assert!((before - after).abs() < 1e-9, "frame {j} body {i}");
+        }
+    }
+}
+
+#[test]
+fn free_fall_backward_gains_no_energy() {
+    let mut world = World::new();
+    world.add_body(
+        Body::cuboid(Vector3::new(0.3, 0.2, 0.1), 700.0)
+            .expect("positive extents")
+            .at(
+                Vector3::new(0.0, 0.0, 5.0),
+                UnitQuaternion::from_euler_angles(0.2, 0.1, 0.0),
+            )
+            .moving(Vector3::new(1.0, -0.5, -2.0), Vector3::new(0.5, 1.0, 2.0)),
+    );
+    let dt = 1.0 / 120.0;
+    let run = run_backward(
+        &mut world,
+        5,
+        &ReverseSettings {
+            dt,
+            duration: 1.0,
+            ..Default::default()
+        },
+    );
+    let r = &run.report;
+    assert_eq!(r.steps, 120);
+    assert!(r.energy_growth.abs() < 1e-9, "{}", r.energy_growth);
+    assert!(r.angular_speed_growth.abs() < 1e-9);
+    assert!(
+        r.max_departure < 1e-9 && r.max_forward_residual == 0.0,
+        "{r:?}"
+    );
+    // Without the Δt term, semi-implicit Euler gains ½ g² Δt² per kg and step going backward.
+    let plain = |w: &World| w.energy();
+    let mut w2 = world.clone();
+    let e0 = plain(&w2);
+    let s0 = shadow_energy(&w2, dt);
+    w2.step_forward(dt);
+    let m = 1.0 / w2.bodies[0].inv_mass;
+    assert!((e0 - plain(&w2) - 0.5 * m * 9.81f64.powi(2) * dt * dt).abs() < 1e-6 * m);
+    assert!((s0 - shadow_energy(&w2, dt)).abs() < 1e-9 * m);
+}
+
+#[test]
+fn reverse_damping_slows_spin_backward() {
+    let spinning = || {
+        let mut w = World::new();
+        w.add_body(
+            Body::ball(0.1, 1000.0)
+                .expect("positive radius")
+                .at(Vector3::new(0.0, 0.0, 10.0), UnitQuaternion::identity())
+                .moving(Vector3::zeros(), Vector3::new(0.0, 0.0, 10.0)),
+        );
+        w
+    };
+    let settings = |kd| ReverseSettings {
+        duration: 0.5,
+        heuristics: Heuristics {
+            reverse_angular_damping: kd,
+            ..Heuristics::default()
+        },
+        ..Default::default()
+    };
+    let mut off = spinning();
+    let r_off = run_backward(&mut off, 1, &settings(0.0));
+    assert!((off.bodies[0].angvel.z - 10.0).abs() < 1e-12);
+    assert!(r_off.report.max_departure < 1e-9);
+    let mut on = spinning();
+    let r_on = run_backward(&mut on, 1, &settings(2.0));
+    let expect = 10.0 / (1.0 + 2.0 / 120.0f64).powi(60);
+    assert!((on.bodies[0].angvel.z - expect).abs() < 1e-9);
+    // The damping is a departure from forward-valid steps, and it is measured.
+    assert!(r_on.report.max_departure > 1e-3, "{:?}", r_on.report);
+    assert_eq!(r_on.report.departed_steps, 60);
+}
+
+#[test]
+fn stack_holds_while_the_top_brick_slides_away() {
+    let world = scene(builtin::STACK, "stack");
+    let mut hints = std::collections::BTreeMap::new();
+    hints.insert(
+        9,
+        UserHint {
+            motion: HintMotion::Slide(Vector3::new(1.0, 0.0, 0.0)),
+            release_before_end: 0.1,
+        },
+    );
+    let settings = ReverseSettings {
+        duration: 0.5,
+        hints,
+        ..Default::default()
+    };
+    let mut w = world.clone();
+    let run = run_backward(&mut w, 4, &settings);
+    let r = &run.report;
+    assert_eq!(r.unsolved_islands, 0, "{r:?}");
+    // The top brick moved off along −x backward (it slid in along +x).
+    let top = &w.bodies[9];
+    assert!(
+        top.position.x < world.bodies[9].position.x - 0.05,
+        "{top:?}"
+    );
+    // The bricks below it stayed (held by the stacking heuristic).
+    for (i, (now, then)) in w.bodies.iter().zip(&world.bodies).take(9).enumerate() {
+        assert!(
+            (now.position - then.position).norm() < 1e-3,
+            "brick {i} moved {:?}",
+            now.position - then.position
+        );
+    }
+    assert!(r.held_contacts > 0);
+}

@@ -1,0 +1,437 @@
+//! `mwb bench codec`: the §4.3 motion codec on worlds sampled from the shipped scenes (issue 3).
+//!
+//! Per scene, `worlds` worlds are sampled exactly as a sampler does (perturbations on), and the
+//! simulated full-rate poses of every ~1 s segment are kept ([`run_world_observed`]). Each
+//! segment is then encoded the way the sampler ships it — one self-contained codec stream per
+//! segment — at each quality preset, and decoded again to measure the error against the
+//! simulation. References, over the same segments:
+//!
+//! * raw: 7 × f32 per object-frame at the scene's frame rate;
+//! * zstd: `zstd -19` over [`quantised_frames_baseline`] (every frame quantised to the same
+//!   bounds, delta + varint, channel-planar) — what a user would pick instead, one compressed
+//!   blob per segment, like ours.
+//!
+//! `whole_world_*` repeat both ratios with each world encoded as one stream instead of one per
+//! segment: what streaming in ~1 s pieces costs.
+//!
+//! Timings are single-threaded; `encode_mframes_per_s` includes the encoder's own decode-and-check
+//! of every frame (the guarantee), `decode_mframes_per_s` is `WorldReader::new` + `decode_all`.
+
+use crate::client;
+use anyhow::{Context, Result, bail};
+use mwb_codec::{
+    DEFAULT_LOWRES_HZ, EncodeParams, MotionModel, Quality, Track, WorldReader, encode_world,
+    quantised_frames_baseline, raw_f32_size,
+};
+use mwb_core::rng::world_seed;
+use mwb_core::scene::SceneTemplate;
+use mwb_sampler::{RunOptions, motion_model, run_world_observed};
+use std::ops::ControlFlow;
+use std::path::Path;
+use std::time::Instant;
+
+/// zstd level of the reference ("what a user would pick instead": the strongest regular level).
+pub const ZSTD_LEVEL: i32 = 19;
+
+/// The presets every scene is measured at, in the order they are printed.
+pub const PRESETS: [Quality; 3] = [Quality::Draft, Quality::Standard, Quality::Final];
+
+/// Bounds swept for the rate–distortion plot (e_max in metres; θ_max = the same number in
+/// radians, as in the presets).
+pub const SWEEP: [f64; 7] = [1e-4, 2e-4, 5e-4, 1e-3, 2e-3, 5e-3, 1e-2];
+
+/// One line of the benchmark: one scene at one preset.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct CodecBench {
+    pub scene: String,
+    pub preset: String,
+    pub model: String,
+    pub worlds: u32,
+    pub bodies: usize,
+    pub segments: usize,
+    pub object_seconds: f64,
+    pub e_max: f64,
+    pub theta_max: f64,
+    pub bytes_per_object_second: f64,
+    pub ratio_vs_f32: f64,
+    pub zstd_bytes_per_object_second: f64,
+    pub ratio_vs_zstd: f64,
+    pub whole_world_ratio_vs_f32: f64,
+    pub whole_world_ratio_vs_zstd: f64,
+    pub max_pos_err: f64,
+    pub max_rot_err: f64,
+    pub encode_mframes_per_s: f64,
+    pub decode_mframes_per_s: f64,
+    /// Mean spline segment lengths (frames): how much of the motion one segment covers.
+    pub frames_per_position_segment: f64,
+    pub frames_per_rotation_segment: f64,
+    /// Largest distance of the decoded motion from its low-res path (4 Hz).
+    pub lowres_max_deviation: f64,
+}
+
+/// The recorded motion of one scene: per world, per segment, one track per body.
+pub struct SceneMotion {
+    pub scene: String,
+    pub bodies: usize,
+    pub frame_dt: f64,
+    pub model: MotionModel,
+    pub worlds: Vec<Vec<Vec<Track>>>,
+}
+
+impl SceneMotion {
+    /// Samples `worlds` worlds of a scene and keeps the simulated poses of every segment.
+    pub fn sample(scene_arg: &str, worlds: u32) -> Result<Self> {
+        let (file, text) = client::load_scene(scene_arg)?;
+        let template = SceneTemplate::parse(&text, &file)?;
+        let mut out = Vec::new();
+        let mut frame_dt = 0.0;
+        let mut model = MotionModel::General;
+        for i in 0..worlds {
+            let seed = world_seed("bench-codec", &file, u64::from(i));
+            let scene = template.instantiate(seed);
+            frame_dt = scene.settings.dt;
+            model = motion_model(&scene);
+            let mut segments = Vec::new();
+            run_world_observed(
+                &template,
+                seed,
+                RunOptions::default(),
+                &mut |_| ControlFlow::Continue(()),
+                &mut |tracks| segments.push(tracks.to_vec()),
+            )
+            .with_context(|| format!("{file}: world {i}"))?;
+            out.push(segments);
+        }
+        Ok(Self {
+            scene: file,
+            bodies: template.body_count(),
+            frame_dt,
+            model,
+            worlds: out,
+        })
+    }
+
+    fn segments(&self) -> impl Iterator<Item = &[Track]> {
+        self.worlds.iter().flatten().map(Vec::as_slice)
+    }
+
+    /// Each world as one track per body over all its frames.
+    fn whole_worlds(&self) -> Vec<Vec<Track>> {
+        self.worlds
+            .iter()
+            .map(|segs| {
+                let mut tracks = vec![Track::default(); self.bodies];
+                for seg in segs {
+                    for (t, s) in tracks.iter_mut().zip(seg) {
+                        t.positions.extend_from_slice(&s.positions);
+                        t.rotations.extend_from_slice(&s.rotations);
+                    }
+                }
+                tracks
+            })
+            .collect()
+    }
+
+    fn params(&self, e_max: f64, theta_max: f64) -> EncodeParams {
+        EncodeParams {
+            e_max,
+            theta_max,
+            frame_dt: self.frame_dt,
+            model: self.model,
+            lowres_hz: DEFAULT_LOWRES_HZ,
+        }
+    }
+}
+
+/// Sizes of one bound over a set of streams.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Sizes {
+    pub codec: usize,
+    pub zstd: usize,
+    pub raw: usize,
+    pub object_frames: u64,
+}
+
+/// Encoded and zstd sizes of `streams` (each encoded on its own) at one bound.
+fn sizes<'a>(streams: impl Iterator<Item = &'a [Track]>, p: &EncodeParams) -> Result<Sizes> {
+    let mut s = Sizes::default();
+    for tracks in streams {
+        let encoded = encode_world(tracks, p)?;
+        s.codec += encoded.bytes.len();
+        s.zstd += zstd_size(tracks, p)?;
+        s.raw += raw_f32_size(tracks);
+        s.object_frames += encoded.stats.object_frames;
+    }
+    Ok(s)
+}
+
+fn zstd_size(tracks: &[Track], p: &EncodeParams) -> Result<usize> {
+    let frames = quantised_frames_baseline(tracks, p.e_max, p.theta_max)?;
+    Ok(zstd::bulk::compress(&frames, ZSTD_LEVEL)?.len())
+}
+
+/// Measures one scene at one preset.
+pub fn measure(m: &SceneMotion, quality: Quality) -> Result<CodecBench> {
+    let (e_max, theta_max) = quality.bounds();
+    let p = m.params(e_max, theta_max);
+    let (mut bytes, mut zstd, mut raw, mut object_frames) = (0usize, 0usize, 0usize, 0u64);
+    let (mut encode_s, mut decode_s) = (0.0f64, 0.0f64);
+    let (mut max_pos_err, mut max_rot_err, mut lowres_dev) = (0.0f64, 0.0f64, 0.0f64);
+    let mut segments = 0;
+    let (mut pos_segments, mut rot_segments) = (0u64, 0u64);
+    for tracks in m.segments() {
+        segments += 1;
+        let t = Instant::now();
+        let encoded = encode_world(tracks, &p)?;
+        encode_s += t.elapsed().as_secs_f64();
+        let t = Instant::now();
+        let decoded = WorldReader::new(&encoded.bytes)?.decode_all()?;
+        decode_s += t.elapsed().as_secs_f64();
+        if decoded.len() != tracks.len() {
+            bail!(
+                "{}: decoded {} of {} bodies",
+                m.scene,
+                decoded.len(),
+                tracks.len()
+            );
+        }
+        for (d, x) in decoded.iter().zip(tracks) {
+            if d.len() != x.len() {
+                bail!("{}: decoded {} of {} frames", m.scene, d.len(), x.len());
+            }
+            for f in 0..x.len() {
+                max_pos_err = max_pos_err.max(distance(d.positions[f], x.positions[f]));
+                max_rot_err = max_rot_err.max(rotation_angle(d.rotations[f], x.rotations[f]));
+            }
+        }
+        lowres_dev = encoded
+            .lowres
+            .iter()
+            .map(|l| l.max_deviation)
+            .fold(lowres_dev, f64::max);
+        bytes += encoded.bytes.len();
+        zstd += zstd_size(tracks, &p)?;
+        raw += raw_f32_size(tracks);
+        object_frames += encoded.stats.object_frames;
+        pos_segments += encoded.stats.position_segments;
+        rot_segments += encoded.stats.rotation_segments;
+    }
+    let whole = m.whole_worlds();
+    let w = sizes(whole.iter().map(Vec::as_slice), &p)?;
+    let object_seconds = object_frames as f64 * m.frame_dt;
+    let ratio = |a: usize, b: usize| a as f64 / b.max(1) as f64;
+    Ok(CodecBench {
+        scene: m.scene.clone(),
+        preset: format!("{quality:?}").to_lowercase(),
+        model: match m.model {
+            MotionModel::General => "general".into(),
+            MotionModel::FreeFlightGravity { .. } => "free-flight-gravity".into(),
+        },
+        worlds: m.worlds.len() as u32,
+        bodies: m.bodies,
+        segments,
+        object_seconds,
+        e_max,
+        theta_max,
+        bytes_per_object_second: bytes as f64 / object_seconds.max(1e-12),
+        ratio_vs_f32: ratio(raw, bytes),
+        zstd_bytes_per_object_second: zstd as f64 / object_seconds.max(1e-12),
+        ratio_vs_zstd: ratio(zstd, bytes),
+        whole_world_ratio_vs_f32: ratio(w.raw, w.codec),
+        whole_world_ratio_vs_zstd: ratio(w.zstd, w.codec),
+        max_pos_err,
+        max_rot_err,
+        encode_mframes_per_s: object_frames as f64 / encode_s.max(1e-12) / 1e6,
+        decode_mframes_per_s: object_frames as f64 / decode_s.max(1e-12) / 1e6,
+        frames_per_position_segment: object_frames as f64 / pos_segments.max(1) as f64,
+        frames_per_rotation_segment: object_frames as f64 / rot_segments.max(1) as f64,
+        lowres_max_deviation: lowres_dev,
+    })
+}
+
+/// One point of the rate–distortion curve: bytes per object-second at a bound.
+#[derive(Debug, Clone, Copy)]
+pub struct RdPoint {
+    pub e_max: f64,
+    pub codec: f64,
+    pub zstd: f64,
+}
+
+/// The [`SWEEP`] over one scene, per-segment streams as shipped.
+pub fn rate_distortion(m: &SceneMotion) -> Result<Vec<RdPoint>> {
+    SWEEP
+        .iter()
+        .map(|&e| {
+            let s = sizes(m.segments(), &m.params(e, e))?;
+            let secs = (s.object_frames as f64 * m.frame_dt).max(1e-12);
+            Ok(RdPoint {
+                e_max: e,
+                codec: s.codec as f64 / secs,
+                zstd: s.zstd as f64 / secs,
+            })
+        })
+        .collect()
+}
+
+fn distance(a: [f64; 3], b: [f64; 3]) -> f64 {
+    (0..3).map(|i| (a[i] - b[i]).powi(2)).sum::<f64>().sqrt()
+}
+
+/// Angle of the rotation taking `a` to `b` (q ≡ −q): 2·atan2(‖v‖, |w|) of `conj(a)·b`.
+fn rotation_angle(a: [f64; 4], b: [f64; 4]) -> f64 {
+    let unit = |q: [f64; 4]| {
+        let n = q.iter().map(|x| x * x).sum::<f64>().sqrt();
+        q.map(|x| x / n)
+    };
+    let ([ax, ay, az, aw], [bx, by, bz, bw]) = (unit(a), unit(b));
+    let w = aw * bw + ax * bx + ay * by + az * bz;
+    let v = [
+        aw * bx - bw * ax - (ay * bz - az * by),
+        aw * by - bw * ay - (az * bx - ax * bz),
+        aw * bz - bw * az - (ax * by - ay * bx),
+    ];
+    2.0 * v.iter().map(|x| x * x).sum::<f64>().sqrt().atan2(w.abs())
+}
+
+/// Where the plot looks for a font for its labels; without one it is drawn without text.
+const FONT_CANDIDATES: [&str; 3] = [
+    "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
+    "/usr/share/fonts/TTF/DejaVuSans.ttf",
+    "/usr/share/fonts/dejavu/DejaVuSans.ttf",
+];
+
+/// Registers a system font with plotters; `false` if none was found.
+fn register_font() -> bool {
+    for path in FONT_CANDIDATES {
+        if let Ok(bytes) = std::fs::read(path) {
+            // plotters keeps registered fonts for the life of the process.
+            let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
+            if plotters::style::register_font(
+                "sans-serif",
+                plotters::style::FontStyle::Normal,
+                bytes,
+            )
+            .is_ok()
+            {
+                return true;
+            }
+        }
+    }
+    false
+}
+
+/// Writes the rate–distortion plot (PNG): bytes per object-second against e_max, log–log, one
+/// colour per scene; solid with dots = the codec, dashed with crosses = zstd -19 over quantised
+/// frames. Returns whether the labels could be drawn (a font was found).
+pub fn plot_rate_distortion(path: &Path, curves: &[(String, Vec<RdPoint>)]) -> Result<bool> {
+    use plotters::prelude::*;
+    let text = register_font();
+    let (mut x_lo, mut x_hi) = (f64::INFINITY, 0.0f64);
+    for p in curves.iter().flat_map(|(_, c)| c) {
+        x_lo = x_lo.min(p.codec.min(p.zstd));
+        x_hi = x_hi.max(p.codec.max(p.zstd));
+    }
+    if !(x_lo.is_finite() && x_lo > 0.0) {
+        bail!("nothing to plot");
+    }
+    let (y_lo, y_hi) = (SWEEP[0] * 0.7, SWEEP[SWEEP.len() - 1] * 1.4);
+    let err = |e: &dyn std::fmt::Display| anyhow::anyhow!("plot {}: {e}", path.display());
+    let root = BitMapBackend::new(path, (960, 640)).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| err(&e))?;
+    let mut builder = ChartBuilder::on(&root);
+    builder.margin(20);
+    if text {
+        builder
+            .caption(
+                "Motion codec vs zstd -19 over quantised frames (per 1 s segment)",
+                ("sans-serif", 22),
+            )
+            .x_label_area_size(50)
+            .y_label_area_size(70);
+    }
+    let mut chart = builder
+        .build_cartesian_2d(
+            (x_lo * 0.7..x_hi * 1.4).log_scale(),
+            (y_lo..y_hi).log_scale(),
+        )
+        .map_err(|e| err(&e))?;
+    let mut mesh = chart.configure_mesh();
+    if text {
+        mesh.x_desc("bytes per object-second")
+            .y_desc("e_max [m] (θ_max = same number in rad)")
+            .x_label_formatter(&|v| format!("{v:.0}"))
+            .y_label_formatter(&|v| format!("{v:.0e}"));
+    } else {
+        mesh.x_labels(0).y_labels(0);
+    }
+    mesh.draw().map_err(|e| err(&e))?;
+    let colours = [&BLUE, &RED, &GREEN, &MAGENTA, &CYAN, &BLACK];
+    for (i, (scene, curve)) in curves.iter().enumerate() {
+        let c = colours[i % colours.len()];
+        let codec: Vec<(f64, f64)> = curve.iter().map(|p| (p.codec, p.e_max)).collect();
+        let zstd: Vec<(f64, f64)> = curve.iter().map(|p| (p.zstd, p.e_max)).collect();
+        let series = chart
+            .draw_series(LineSeries::new(codec.clone(), c.stroke_width(2)))
+            .map_err(|e| err(&e))?;
+        if text {
+            series
+                .label(format!("{scene}: codec"))
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2))
+                });
+        }
+        chart
+            .draw_series(codec.iter().map(|&p| Circle::new(p, 4, c.filled())))
+            .map_err(|e| err(&e))?;
+        let series = chart
+            .draw_series(DashedLineSeries::new(zstd.clone(), 6, 4, c.stroke_width(1)))
+            .map_err(|e| err(&e))?;
+        if text {
+            series
+                .label(format!("{scene}: zstd -19"))
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(1))
+                });
+        }
+        chart
+            .draw_series(zstd.iter().map(|&p| Cross::new(p, 4, c.stroke_width(1))))
+            .map_err(|e| err(&e))?;
+    }
+    if text {
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::UpperRight)
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .label_font(("sans-serif", 14))
+            .draw()
+            .map_err(|e| err(&e))?;
+    }
+    root.present().map_err(|e| err(&e))?;
+    Ok(text)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rotation_angle_of_a_known_turn() {
+        let half = 0.5f64 * 0.3;
+        let q = [0.0, half.sin(), 0.0, half.cos()];
+        let id = [0.0, 0.0, 0.0, 1.0];
+        assert!((rotation_angle(id, q) - 0.3).abs() < 1e-12);
+        assert!((rotation_angle(q.map(|v| -v), id) - 0.3).abs() < 1e-12);
+        assert_eq!(rotation_angle(q, q), 0.0);
+    }
+
+    #[test]
+    fn a_small_bench_meets_its_bounds() -> Result<()> {
+        let m = SceneMotion::sample("tumble", 1)?;
+        let b = measure(&m, Quality::Standard)?;
+        assert!(b.max_pos_err <= b.e_max && b.max_rot_err <= b.theta_max * (1.0 + 1e-9));
+        assert!(b.ratio_vs_f32 > 1.0 && b.ratio_vs_zstd > 0.0, "{b:?}");
+        assert_eq!(b.preset, "standard");
+        Ok(())
+    }
+}
