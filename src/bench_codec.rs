@@ -201,7 +201,10 @@ pub fn measure(m: &SceneMotion, quality: Quality) -> Result<CodecBench> {
             }
             for f in 0..x.len() {
                 max_pos_err = max_pos_err.max(distance(d.positions[f], x.positions[f]));
-                max_rot_err = max_rot_err.max(rotation_angle(d.rotations[f], x.rotations[f]));
+                max_rot_err = max_rot_err.max(mwb_core::frames::rotation_angle_between(
+                    d.rotations[f],
+                    x.rotations[f],
+                ));
             }
         }
         lowres_dev = encoded
@@ -275,22 +278,6 @@ pub fn rate_distortion(m: &SceneMotion) -> Result<Vec<RdPoint>> {
 
 fn distance(a: [f64; 3], b: [f64; 3]) -> f64 {
     (0..3).map(|i| (a[i] - b[i]).powi(2)).sum::<f64>().sqrt()
-}
-
-/// Angle of the rotation taking `a` to `b` (q ≡ −q): 2·atan2(‖v‖, |w|) of `conj(a)·b`.
-fn rotation_angle(a: [f64; 4], b: [f64; 4]) -> f64 {
-    let unit = |q: [f64; 4]| {
-        let n = q.iter().map(|x| x * x).sum::<f64>().sqrt();
-        q.map(|x| x / n)
-    };
-    let ([ax, ay, az, aw], [bx, by, bz, bw]) = (unit(a), unit(b));
-    let w = aw * bw + ax * bx + ay * by + az * bz;
-    let v = [
-        aw * bx - bw * ax - (ay * bz - az * by),
-        aw * by - bw * ay - (az * bx - ax * bz),
-        aw * bz - bw * az - (ax * by - ay * bx),
-    ];
-    2.0 * v.iter().map(|x| x * x).sum::<f64>().sqrt().atan2(w.abs())
 }
 
 /// Where the plot looks for a font for its labels; without one it is drawn without text.
@@ -420,9 +407,9 @@ mod tests {
         let half = 0.5f64 * 0.3;
         let q = [0.0, half.sin(), 0.0, half.cos()];
         let id = [0.0, 0.0, 0.0, 1.0];
-        assert!((rotation_angle(id, q) - 0.3).abs() < 1e-12);
-        assert!((rotation_angle(q.map(|v| -v), id) - 0.3).abs() < 1e-12);
-        assert_eq!(rotation_angle(q, q), 0.0);
+        assert!((mwb_core::frames::rotation_angle_between(id, q) - 0.3).abs() < 1e-12);
+        assert!((mwb_core::frames::rotation_angle_between(q.map(|v| -v), id) - 0.3).abs() < 1e-12);
+        assert_eq!(mwb_core::frames::rotation_angle_between(q, q), 0.0);
     }
 
     #[test]

@@ -167,14 +167,20 @@ enum BenchCommand {
 }
 
 fn main() -> Result<()> {
+    let cli = Cli::parse();
+    // Long-running nodes log what they do; one-shot commands (demo, bench, job, …) print their
+    // result and only warnings. RUST_LOG overrides both.
+    let default_filter = match cli.command {
+        Command::Store { .. } | Command::Sampler { .. } => "warn,mwb=info",
+        _ => "warn",
+    };
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn,mwb=info")),
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default_filter)),
         )
         .with_writer(std::io::stderr)
         .init();
-    let cli = Cli::parse();
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()

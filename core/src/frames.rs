@@ -170,10 +170,22 @@ pub fn decode(payload: &[u8], frames: u32, bodies: u32) -> Result<Vec<Pose>, Fra
     Ok(out)
 }
 
-/// Angle (radians) of the rotation taking unit quaternion `a` to `b`.
+/// Angle (radians) of the rotation taking quaternion `a` to `b` (q ≡ −q; inputs need not be
+/// exactly unit). Computed as 2·atan2(‖v‖, |w|) of `conj(a)·b`, which stays accurate for the
+/// small angles error bounds are about (an `acos` of the dot product loses half the digits).
 pub fn rotation_angle_between(a: [f64; 4], b: [f64; 4]) -> f64 {
-    let d: f64 = (0..4).map(|i| a[i] * b[i]).sum();
-    2.0 * d.abs().min(1.0).acos()
+    let unit = |q: [f64; 4]| {
+        let n = q.iter().map(|x| x * x).sum::<f64>().sqrt();
+        q.map(|x| x / n)
+    };
+    let ([ax, ay, az, aw], [bx, by, bz, bw]) = (unit(a), unit(b));
+    let w = aw * bw + ax * bx + ay * by + az * bz;
+    let v = [
+        aw * bx - bw * ax - (ay * bz - az * by),
+        aw * by - bw * ay - (az * bx - ax * bz),
+        aw * bz - bw * az - (ax * by - ay * bx),
+    ];
+    2.0 * v.iter().map(|x| x * x).sum::<f64>().sqrt().atan2(w.abs())
 }
 
 #[cfg(test)]

@@ -70,22 +70,6 @@ fn run_observed(
     (summary, segs, raw)
 }
 
-/// Angle of the rotation taking `a` to `b` (q ≡ −q): 2·atan2(‖v‖, |w|) of `conj(a)·b`.
-fn angle_between(a: [f64; 4], b: [f64; 4]) -> f64 {
-    let unit = |q: [f64; 4]| {
-        let n = q.iter().map(|x| x * x).sum::<f64>().sqrt();
-        q.map(|x| x / n)
-    };
-    let ([ax, ay, az, aw], [bx, by, bz, bw]) = (unit(a), unit(b));
-    let w = aw * bw + ax * bx + ay * by + az * bz;
-    let v = [
-        aw * bx - bw * ax - (ay * bz - az * by),
-        aw * by - bw * ay - (az * bx - ax * bz),
-        aw * bz - bw * az - (ax * by - ay * bx),
-    ];
-    2.0 * v.iter().map(|x| x * x).sum::<f64>().sqrt().atan2(w.abs())
-}
-
 #[test]
 fn same_scene_and_seed_give_identical_bytes() {
     let t = parse(builtin::TUMBLE);
@@ -299,7 +283,8 @@ fn decoded_motion_stays_within_the_bounds_of_the_simulation() {
                         .map(|i| (d.positions[f][i] - x.positions[f][i]).powi(2))
                         .sum::<f64>()
                         .sqrt();
-                    let a = angle_between(d.rotations[f], x.rotations[f]);
+                    let a =
+                        mwb_core::frames::rotation_angle_between(d.rotations[f], x.rotations[f]);
                     assert!(
                         e <= e_max && a <= theta_max * (1.0 + 1e-9),
                         "{quality:?} segment {} body {body} frame {f}: {e:e} m, {a:e} rad",
