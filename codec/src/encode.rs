@@ -5,7 +5,7 @@
 use crate::bits::{BitWriter, RICE_K_BITS, best_rice_k, zigzag};
 use crate::decode::{DecodeLimits, WorldReader, start_orientation};
 use crate::error::CodecError;
-use crate::fit::{CORRECTIONS, fit_position, fit_rotation};
+use crate::fit::{CORRECTIONS, RotationScratch, fit_position, fit_rotation};
 use crate::format::{
     Header, INDEX_ENTRY_LEN, S_POS_LEN, S_POS_LINEAR, S_POS_QUADRATIC, S_POS_START, S_ROT_LEN,
     S_ROT_START, S_ROT_W, STREAMS,
@@ -404,11 +404,12 @@ fn encode_rotations(
         }
     };
     let mut predictor = RotationPredictor::default();
+    let mut scratch = RotationScratch::default();
     let mut s = 0;
     while s + 1 < q.len() {
         let fit = CORRECTIONS
             .iter()
-            .filter_map(|&k| fit_rotation(q, s, q0, k, rot_step, theta_lim))
+            .filter_map(|&k| fit_rotation(q, s, q0, k, rot_step, theta_lim, &mut scratch))
             .max_by_key(|f| f.len);
         let (len, curve) = match fit {
             Some(f) => {

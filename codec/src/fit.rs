@@ -59,62 +59,151 @@ pub(crate) const CORRECTIONS: [StartCorrection; 3] = [
     StartCorrection::Horizon(4.0 * FIT_WINDOW as f64),
 ];
 
-/// Least squares `y_u ≈ Σ_j coef_j·u^{p_j}` for three right-hand sides at once, by Householder QR
-/// (the thesis fits with QR, citing Golub & Van Loan). `powers` lists the exponents (0, 1, 2) of
-/// the basis; returns one coefficient vector per power, zero where the system is rank-deficient.
-fn least_squares(rows: &[(f64, Vec3)], powers: &[i32]) -> [Vec3; 3] {
-    let cols = powers.len().min(rows.len()).min(3);
-    const RHS: usize = 3;
-    // Augmented rows [basis (3) | rhs (3)].
-    let mut m: Vec<[f64; 6]> = rows
-        .iter()
-        .map(|&(u, y)| {
-            let mut r = [0.0; 6];
+/// Most rows a least-squares fit takes: the fit window, start point included.
+const LS_ROWS: usize = FIT_WINDOW;
+
+/// The Householder QR of a basis `u^{p_j}` over sample times `u`, kept so that fits over the same
+/// times and powers (every refit inside the fit window uses one of a few dozen) only transform
+/// their right-hand sides.
+///
+/// Householder QR applies each reflection `H_j = I − 2vvᵀ/vᵀv` to every remaining column, and a
+/// column's update reads only that column and `v`. So factoring the basis columns first and
+/// applying the stored reflections to the right-hand sides later performs, on the right-hand
+/// sides, exactly the floating-point operations of the interleaved algorithm: the results are
+/// bit for bit the same.
+#[derive(Debug, Clone, Copy)]
+struct BasisQr {
+    rows: usize,
+    cols: usize,
+    /// Reflection `j` (`None`: skipped, the column was already zero); `v[j][..rows − j]`.
+    v: [Option<([f64; LS_ROWS], f64)>; 3],
+    /// Upper triangle `R` (row `j`, column `l ≥ j`).
+    r: [[f64; 3]; 3],
+}
+
+impl BasisQr {
+    /// Factors the basis over `us` (at most [`LS_ROWS`] times; more are ignored).
+    fn new(us: &[f64], powers: &[i32]) -> Self {
+        let us = &us[..us.len().min(LS_ROWS)];
+        let rows = us.len();
+        let cols = powers.len().min(rows).min(3);
+        let mut m = [[0.0; 3]; LS_ROWS];
+        for (r, &u) in m.iter_mut().zip(us) {
             for (j, &p) in powers.iter().take(cols).enumerate() {
                 r[j] = u.powi(p);
             }
-            r[RHS..].copy_from_slice(&y);
-            r
-        })
-        .collect();
-    for j in 0..cols {
-        let norm = m[j..].iter().map(|r| r[j] * r[j]).sum::<f64>().sqrt();
-        if norm == 0.0 {
-            continue;
         }
-        let alpha = if m[j][j] > 0.0 { -norm } else { norm };
-        let mut v: Vec<f64> = m[j..].iter().map(|r| r[j]).collect();
-        v[0] -= alpha;
-        let vv: f64 = v.iter().map(|x| x * x).sum();
-        if vv == 0.0 {
-            continue;
-        }
-        // Apply H = I − 2vvᵀ/vᵀv to the remaining basis columns and to all right-hand sides.
-        for col in (j..cols).chain(RHS..RHS + 3) {
-            let d: f64 = m[j..].iter().zip(&v).map(|(r, vi)| r[col] * vi).sum();
-            let f = 2.0 * d / vv;
-            for (r, vi) in m[j..].iter_mut().zip(&v) {
-                r[col] -= f * vi;
+        let m = &mut m[..rows];
+        let mut out = BasisQr {
+            rows,
+            cols,
+            v: [None; 3],
+            r: [[0.0; 3]; 3],
+        };
+        for j in 0..cols {
+            let norm = m[j..].iter().map(|r| r[j] * r[j]).sum::<f64>().sqrt();
+            if norm == 0.0 {
+                continue;
             }
+            let alpha = if m[j][j] > 0.0 { -norm } else { norm };
+            let mut v = [0.0; LS_ROWS];
+            for (vi, r) in v.iter_mut().zip(&m[j..]) {
+                *vi = r[j];
+            }
+            v[0] -= alpha;
+            let v_used = &v[..rows - j];
+            let vv: f64 = v_used.iter().map(|x| x * x).sum();
+            if vv == 0.0 {
+                continue;
+            }
+            for col in j..cols {
+                let d: f64 = m[j..].iter().zip(v_used).map(|(r, vi)| r[col] * vi).sum();
+                let f = 2.0 * d / vv;
+                for (r, vi) in m[j..].iter_mut().zip(v_used) {
+                    r[col] -= f * vi;
+                }
+            }
+            out.v[j] = Some((v, vv));
         }
+        for (j, row) in out.r.iter_mut().enumerate().take(cols) {
+            row[..cols].copy_from_slice(&m[j][..cols]);
+        }
+        out
     }
-    // Back substitution R x = Qᵀy, per right-hand side.
-    let mut out = [[0.0; 3]; 3];
-    for axis in 0..3 {
-        for j in (0..cols).rev() {
-            let mut acc = m[j][RHS + axis];
-            for l in j + 1..cols {
-                acc -= m[j][l] * out[l][axis];
-            }
-            let d = m[j][j];
-            out[j][axis] = if d.abs() > 1e-300 && acc.is_finite() {
-                acc / d
-            } else {
-                0.0
+
+    /// Least-squares coefficients for three right-hand sides (`ys[i]` at time `us[i]`).
+    fn solve(&self, ys: &[Vec3]) -> [Vec3; 3] {
+        let rows = self.rows.min(ys.len());
+        let mut y = [[0.0; 3]; LS_ROWS];
+        y[..rows].copy_from_slice(&ys[..rows]);
+        let y = &mut y[..rows];
+        for (j, reflection) in self.v.iter().enumerate().take(self.cols) {
+            let Some((v, vv)) = reflection else {
+                continue;
             };
+            let v_used = &v[..rows.saturating_sub(j)];
+            for col in 0..3 {
+                let d: f64 = y[j..].iter().zip(v_used).map(|(r, vi)| r[col] * vi).sum();
+                let f = 2.0 * d / vv;
+                for (r, vi) in y[j..].iter_mut().zip(v_used) {
+                    r[col] -= f * vi;
+                }
+            }
         }
+        // Back substitution R x = Qᵀy, per right-hand side.
+        let cols = self.cols.min(rows);
+        let mut out = [[0.0; 3]; 3];
+        for axis in 0..3 {
+            for j in (0..cols).rev() {
+                let mut acc = y[j][axis];
+                for (r_jl, out_l) in self.r[j][j + 1..cols].iter().zip(&out[j + 1..cols]) {
+                    acc -= r_jl * out_l[axis];
+                }
+                let d = self.r[j][j];
+                out[j][axis] = if d.abs() > 1e-300 && acc.is_finite() {
+                    acc / d
+                } else {
+                    0.0
+                };
+            }
+        }
+        out
     }
-    out
+}
+
+/// Least squares `y_u ≈ Σ_j coef_j·u^{p_j}` for three right-hand sides at once, by Householder QR
+/// (the thesis fits with QR, citing Golub & Van Loan). `powers` lists the exponents (0, 1, 2) of
+/// the basis; returns one coefficient vector per power, zero where the system is rank-deficient.
+/// At most [`LS_ROWS`] rows are used.
+#[cfg(test)]
+fn least_squares(rows: &[(f64, Vec3)], powers: &[i32]) -> [Vec3; 3] {
+    let us: Vec<f64> = rows.iter().map(|r| r.0).collect();
+    let ys: Vec<Vec3> = rows.iter().map(|r| r.1).collect();
+    BasisQr::new(&us, powers).solve(&ys)
+}
+
+/// The bases the position fitter uses inside its window, factored once: anchored (times
+/// `1..=n`, powers `[1]` or `[1, 2]`) and free start (times `0..n`, powers `[0, 1]` or
+/// `[0, 1, 2]`), for every row count `n ≤ LS_ROWS`.
+struct WindowBases {
+    /// `[anchored linear, anchored quadratic, free linear, free quadratic][n]`.
+    qr: [[BasisQr; LS_ROWS + 1]; 4],
+}
+
+fn window_bases() -> &'static WindowBases {
+    static BASES: std::sync::OnceLock<WindowBases> = std::sync::OnceLock::new();
+    BASES.get_or_init(|| {
+        let powers: [&[i32]; 4] = [&[1], &[1, 2], &[0, 1], &[0, 1, 2]];
+        WindowBases {
+            qr: std::array::from_fn(|variant| {
+                std::array::from_fn(|n| {
+                    let first = if variant < 2 { 1 } else { 0 };
+                    let us: Vec<f64> = (first..first + n).map(|u| u as f64).collect();
+                    BasisQr::new(&us, powers[variant])
+                })
+            }),
+        }
+    })
 }
 
 /// `(b, a)` of a position segment starting at `c` (decoded) over data frames `s..=s+len`.
@@ -133,26 +222,26 @@ fn position_coefficients(
         std::array::from_fn(|i| x[s + u][i] - gu[i])
     };
     let quadratic = g.is_none();
+    let bases = window_bases();
+    let mut ys = [[0.0; 3]; LS_ROWS];
     match correction {
         StartCorrection::Anchored => {
-            let rows: Vec<(f64, Vec3)> = (1..=len)
-                .map(|u| {
-                    let d = data(u);
-                    (u as f64, std::array::from_fn(|i| d[i] - c[i]))
-                })
-                .collect();
-            let powers: &[i32] = if quadratic && len >= 2 { &[1, 2] } else { &[1] };
-            let [b, a, _] = least_squares(&rows, powers);
+            let n = len.min(LS_ROWS);
+            for (u, y) in (1..=n).zip(&mut ys) {
+                let d = data(u);
+                *y = std::array::from_fn(|i| d[i] - c[i]);
+            }
+            let variant = if quadratic && len >= 2 { 1 } else { 0 };
+            let [b, a, _] = bases.qr[variant][n].solve(&ys[..n]);
             (b, if quadratic { a } else { g.unwrap_or([0.0; 3]) })
         }
         StartCorrection::Horizon(h) => {
-            let rows: Vec<(f64, Vec3)> = (0..=len).map(|u| (u as f64, data(u))).collect();
-            let powers: &[i32] = if quadratic && len >= 2 {
-                &[0, 1, 2]
-            } else {
-                &[0, 1]
-            };
-            let [c_fit, b, a] = least_squares(&rows, powers);
+            let n = (len + 1).min(LS_ROWS);
+            for (u, y) in (0..n).zip(&mut ys) {
+                *y = data(u);
+            }
+            let variant = if quadratic && len >= 2 { 3 } else { 2 };
+            let [c_fit, b, a] = bases.qr[variant][n].solve(&ys[..n]);
             let b = std::array::from_fn(|i| b[i] - (c[i] - c_fit[i]) / h);
             (b, if quadratic { a } else { g.unwrap_or([0.0; 3]) })
         }
@@ -229,10 +318,167 @@ pub(crate) fn fit_position(
     best
 }
 
+/// The rotation bound test `angle(exp(u·ω) ⊗ q₀, q) ≤ θ_lim`, decided without `atan2` and
+/// without normalising where that is safe — with exactly the verdict of the full computation.
+///
+/// For the residual `d = eval ⊗ q⁻¹` the angle is `2·atan2(|d_xyz|, |d_w|)`: monotone in
+/// `|d_xyz| / |d_w|` and independent of the scale of `d`, so in real arithmetic `angle ≤ θ_lim`
+/// exactly when `|d_xyz|² ≤ T²·d_w²` with `T = tan(θ_lim/2)`. The fast test compares against
+/// `T²·(1 ∓ band)` and leaves everything inside the band to the full computation (the one the
+/// decoder and the self-check perform).
+///
+/// Why the verdicts agree: both computations start from the same unit quaternions (components
+/// ≤ 1). Each Hamilton product adds at most ≈5 ulp(1) per component (Cauchy–Schwarz bounds the
+/// sum of the four products' magnitudes by 1), normalising ≈2 ulp, so the two residuals differ by
+/// at most δa ≈ 3·10⁻¹⁴ per component, of `|d_xyz|` by less than 10⁻¹³ = [`ANGLE_TEST_ABS`].
+/// Near the boundary `|d_w| ≥ cos(1) > 0.54` (θ_lim ≤ 2), so a relative band
+/// `b = 10⁻⁹ + 16·δa/T` on the squared ratio is more than twice what rounding can move it, and
+/// the angle gap it leaves (≥ 0.2·b relative) dwarfs the ulp errors of `tan` and `atan2`.
+/// Whenever the fast test decides, the full computation decides the same: same segments, same
+/// bytes, same guarantee. Bounds above 2 rad always take the full computation.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct AngleTest {
+    theta_lim: f64,
+    /// `(inside, outside)` thresholds on `|d_xyz|² / d_w²`; `None` disables the fast test.
+    ratio2: Option<(f64, f64)>,
+}
+
+/// Absolute bound used for the difference of `|d_xyz|` between the two computations.
+const ANGLE_TEST_ABS: f64 = 1e-13;
+
+impl AngleTest {
+    pub(crate) fn new(theta_lim: f64) -> Self {
+        let ratio2 = (theta_lim > 0.0 && theta_lim <= 2.0)
+            .then(|| {
+                let t = (0.5 * theta_lim).tan();
+                let band = 1e-9 + 16.0 * ANGLE_TEST_ABS / t;
+                (band < 0.25).then_some((t * t * (1.0 - band), t * t * (1.0 + band)))
+            })
+            .flatten();
+        Self { theta_lim, ratio2 }
+    }
+
+    /// `angle_between(curve.eval(q0, u), q) ≤ θ_lim`, exactly as the full computation decides.
+    pub(crate) fn within(&self, curve: &RotationCurve, q0: Quat, u: f64, q: Quat) -> bool {
+        if let (Some((inside, outside)), RotationCurve::Linear { w }) = (self.ratio2, curve)
+            && u != 0.0
+        {
+            let e = rotation::exp(rotation::scale3(*w, u));
+            let d = rotation::mul(rotation::mul(e, q0), rotation::conj(q));
+            let s2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+            let c2 = d[3] * d[3];
+            if s2 < inside * c2 {
+                return true;
+            }
+            if s2 > outside * c2 {
+                return false;
+            }
+        }
+        rotation::angle_between(curve.eval(q0, u), q) <= self.theta_lim
+    }
+}
+
+/// What the candidate rotation fits of one segment (same start frame, same decoded start
+/// orientation) share, so that each is computed once: the unwrapped logarithms of the data
+/// against each reference, the start offset, and the verdicts of the bound test per quantised
+/// curve. Every cached value is the value the uncached computation would produce, so fits and
+/// bytes are unchanged.
+#[derive(Debug, Default)]
+pub(crate) struct RotationScratch {
+    /// `(s, q₀)` the cache belongs to.
+    key: Option<(usize, Quat)>,
+    /// Unwrapped `log(q_{s+u} ⊗ ref⁻¹)` for u = 1, 2, …: `[0]` with ref = q₀ (anchored),
+    /// `[1]` with ref = q_s (horizon).
+    logs: [Vec<Vec3>; 2],
+    /// `log(q₀ ⊗ q_s⁻¹)`.
+    offset: Option<Vec3>,
+    /// Verdicts per quantised curve `(bucket, ω)`.
+    verdicts: Vec<Verdicts>,
+}
+
+/// What is known of one quantised curve: every frame in `1..=good` is within the bound, frame
+/// `bad` is not (`usize::MAX`: none known).
+#[derive(Debug, Clone, Copy)]
+struct Verdicts {
+    k: u32,
+    wq: [i64; 3],
+    good: usize,
+    bad: usize,
+}
+
+impl RotationScratch {
+    fn reset(&mut self, s: usize, q0: Quat) {
+        if self.key != Some((s, q0)) {
+            self.key = Some((s, q0));
+            self.logs.iter_mut().for_each(Vec::clear);
+            self.offset = None;
+            self.verdicts.clear();
+        }
+    }
+
+    /// The `n`-th (1-based) unwrapped logarithm against reference `which`.
+    fn log(&mut self, which: usize, q: &[Quat], s: usize, reference: Quat, n: usize) -> Vec3 {
+        let logs = &mut self.logs[which];
+        let inv_ref = rotation::conj(reference);
+        while logs.len() < n {
+            let last = logs.last().copied().unwrap_or([0.0; 3]);
+            let r = rotation::log(rotation::mul(q[s + logs.len() + 1], inv_ref));
+            logs.push(rotation::unwrap_near(r, last));
+        }
+        logs[n - 1]
+    }
+
+    fn verdicts(&mut self, k: u32, wq: [i64; 3]) -> &mut Verdicts {
+        let i = match self.verdicts.iter().position(|v| (v.k, v.wq) == (k, wq)) {
+            Some(i) => i,
+            None => {
+                self.verdicts.push(Verdicts {
+                    k,
+                    wq,
+                    good: 0,
+                    bad: usize::MAX,
+                });
+                self.verdicts.len() - 1
+            }
+        };
+        &mut self.verdicts[i]
+    }
+
+    /// Are frames `1..=len` all within the bound for curve `(k, wq)`? `within(u)` decides one
+    /// frame; it is asked only about frames not already known.
+    fn all_within(
+        &mut self,
+        k: u32,
+        wq: [i64; 3],
+        len: usize,
+        mut within: impl FnMut(usize) -> bool,
+    ) -> bool {
+        let v = self.verdicts(k, wq);
+        if len <= v.good {
+            return true;
+        }
+        if v.bad <= len {
+            return false;
+        }
+        // The newest frame first: it is where a refitted curve most often fails (the verdict
+        // does not depend on the order).
+        for u in (v.good + 1..=len).rev() {
+            if !within(u) {
+                v.bad = u;
+                return false;
+            }
+        }
+        v.good = len;
+        true
+    }
+}
+
 /// Figure 4.6 for rotations (§4.3: "essentially unchanged, except that we replace FIT-SEGMENT"):
 /// a constant angular velocity ω fitted by least squares to unwrapped logarithms
 /// `log(q_u ⊗ q_ref⁻¹) ≈ u·ω`, error = angle of the residual rotation. `q_ref` is the decoded
 /// start (anchored) or the data's own start (horizon, then corrected by the start offset / H).
+/// `scratch` carries what the candidate fits of one segment share (any scratch may be passed; it
+/// resets itself for a new segment).
 pub(crate) fn fit_rotation(
     q: &[Quat],
     s: usize,
@@ -240,20 +486,21 @@ pub(crate) fn fit_rotation(
     correction: StartCorrection,
     step: f64,
     theta_lim: f64,
+    scratch: &mut RotationScratch,
 ) -> Option<RotationFit> {
+    scratch.reset(s, q0);
     let max_len = (q.len() - 1 - s).min(MAX_SEGMENT_LEN);
-    let within = |curve: &RotationCurve, u: usize| {
-        rotation::angle_between(curve.eval(q0, u as f64), q[s + u]) <= theta_lim
-    };
-    let (reference, correction_rate) = match correction {
-        StartCorrection::Anchored => (q0, [0.0; 3]),
+    let test = AngleTest::new(theta_lim);
+    let within = |curve: &RotationCurve, u: usize| test.within(curve, q0, u as f64, q[s + u]);
+    let (which, reference, correction_rate) = match correction {
+        StartCorrection::Anchored => (0, q0, [0.0; 3]),
         StartCorrection::Horizon(h) => {
-            let offset = rotation::log(rotation::mul(q0, rotation::conj(q[s])));
-            (q[s], rotation::scale3(offset, 1.0 / h))
+            let offset = *scratch
+                .offset
+                .get_or_insert_with(|| rotation::log(rotation::mul(q0, rotation::conj(q[s]))));
+            (1, q[s], rotation::scale3(offset, 1.0 / h))
         }
     };
-    let inv_ref = rotation::conj(reference);
-    let mut last_log = [0.0; 3];
     // Running sums for ω = Σ u·r_u / Σ u².
     let (mut sur, mut suu) = ([0.0; 3], 0.0);
     let mut w = [0.0; 3];
@@ -262,9 +509,7 @@ pub(crate) fn fit_rotation(
     for len in 1..=max_len {
         let refit = len < FIT_WINDOW;
         if refit {
-            let r = rotation::log(rotation::mul(q[s + len], inv_ref));
-            let r = rotation::unwrap_near(r, last_log);
-            last_log = r;
+            let r = scratch.log(which, q, s, reference, len);
             let u = len as f64;
             sur = std::array::from_fn(|i| sur[i] + u * r[i]);
             suu += u * u;
@@ -272,28 +517,28 @@ pub(crate) fn fit_rotation(
         }
         let k = bucket(len as u32);
         let requantise = refit || current.is_none_or(|(ck, _, _)| ck != k);
-        if requantise {
+        let ok = if requantise {
             let sw = step_linear(step, k);
             let Some(wq) = quantise3(w, sw) else {
                 break;
             };
-            // As for positions: an unchanged quantised curve needs only the new point checked.
-            if let Some((_, _, curve)) = current.filter(|&(ck, cq, _)| (ck, cq) == (k, wq)) {
-                if !within(&curve, len) {
-                    break;
-                }
-            } else {
-                let curve = RotationCurve::Linear {
+            // As for positions: an unchanged quantised curve needs only the new point checked
+            // (the verdicts know 1..len−1 already).
+            let curve = match current.filter(|&(ck, cq, _)| (ck, cq) == (k, wq)) {
+                Some((_, _, curve)) => curve,
+                None => RotationCurve::Linear {
                     w: crate::segment::dequantise3(wq, sw),
-                };
-                if !(1..=len).all(|u| within(&curve, u)) {
-                    break;
-                }
-                current = Some((k, wq, curve));
+                },
+            };
+            current = Some((k, wq, curve));
+            scratch.all_within(k, wq, len, |u| within(&curve, u))
+        } else {
+            match current {
+                Some((k, wq, curve)) => scratch.all_within(k, wq, len, |u| within(&curve, u)),
+                None => false,
             }
-        } else if let Some((_, _, curve)) = &current
-            && !within(curve, len)
-        {
+        };
+        if !ok {
             break;
         }
         let (_, wq, curve) = current?;
@@ -343,6 +588,121 @@ mod tests {
         );
     }
 
+    /// The interleaved Householder QR the fitter used before the basis factorisations were kept
+    /// (reference for bit-for-bit equality).
+    fn interleaved_least_squares(rows: &[(f64, Vec3)], powers: &[i32]) -> [Vec3; 3] {
+        let cols = powers.len().min(rows.len()).min(3);
+        const RHS: usize = 3;
+        let mut m: Vec<[f64; 6]> = rows
+            .iter()
+            .map(|&(u, y)| {
+                let mut r = [0.0; 6];
+                for (j, &p) in powers.iter().take(cols).enumerate() {
+                    r[j] = u.powi(p);
+                }
+                r[RHS..].copy_from_slice(&y);
+                r
+            })
+            .collect();
+        for j in 0..cols {
+            let norm = m[j..].iter().map(|r| r[j] * r[j]).sum::<f64>().sqrt();
+            if norm == 0.0 {
+                continue;
+            }
+            let alpha = if m[j][j] > 0.0 { -norm } else { norm };
+            let mut v: Vec<f64> = m[j..].iter().map(|r| r[j]).collect();
+            v[0] -= alpha;
+            let vv: f64 = v.iter().map(|x| x * x).sum();
+            if vv == 0.0 {
+                continue;
+            }
+            for col in (j..cols).chain(RHS..RHS + 3) {
+                let d: f64 = m[j..].iter().zip(&v).map(|(r, vi)| r[col] * vi).sum();
+                let f = 2.0 * d / vv;
+                for (r, vi) in m[j..].iter_mut().zip(&v) {
+                    r[col] -= f * vi;
+                }
+            }
+        }
+        let mut out = [[0.0; 3]; 3];
+        for axis in 0..3 {
+            for j in (0..cols).rev() {
+                let mut acc = m[j][RHS + axis];
+                for (m_jl, out_l) in m[j][j + 1..cols].iter().zip(&out[j + 1..cols]) {
+                    acc -= m_jl * out_l[axis];
+                }
+                let d = m[j][j];
+                out[j][axis] = if d.abs() > 1e-300 && acc.is_finite() {
+                    acc / d
+                } else {
+                    0.0
+                };
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn kept_factorisations_solve_bit_for_bit_like_interleaved_qr() {
+        let mut seed = 0x1234_5678_9abc_def0_u64;
+        let mut rnd = || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 10f64.powi((seed % 7) as i32 - 3)
+        };
+        let powers: [&[i32]; 4] = [&[1], &[1, 2], &[0, 1], &[0, 1, 2]];
+        for (variant, p) in powers.iter().enumerate() {
+            for n in 0..=LS_ROWS {
+                for _ in 0..20 {
+                    let first = if variant < 2 { 1 } else { 0 };
+                    let rows: Vec<(f64, Vec3)> = (first..first + n)
+                        .map(|u| (u as f64, [rnd(), rnd(), rnd()]))
+                        .collect();
+                    let ys: Vec<Vec3> = rows.iter().map(|r| r.1).collect();
+                    let got = window_bases().qr[variant][n].solve(&ys);
+                    let want = interleaved_least_squares(&rows, p);
+                    let bits = |x: [Vec3; 3]| x.map(|v| v.map(f64::to_bits));
+                    assert_eq!(bits(got), bits(want), "variant {variant}, {n} rows");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn the_fast_angle_test_agrees_with_the_full_computation() {
+        let mut seed = 42u64;
+        let mut rnd = || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for theta_lim in [1e-9, 1e-6, 1e-4, 1e-3, 5e-3, 0.1, 1.0, 2.0, 3.0] {
+            let test = AngleTest::new(theta_lim);
+            for _ in 0..2000 {
+                let q0 = rotation::exp([rnd() * 6.0 - 3.0, rnd() * 6.0 - 3.0, rnd() * 6.0 - 3.0]);
+                let w = [rnd() - 0.5, rnd() - 0.5, rnd() - 0.5];
+                let u = (1 + (rnd() * 40.0) as u32) as f64;
+                let curve = RotationCurve::Linear { w };
+                let at = curve.eval(q0, u);
+                // A data point at a random angle close to the bound (either side, sometimes
+                // within a few ulp of it).
+                let axis = rotation::exp([rnd() * 6.0, rnd() * 6.0, rnd() * 6.0]);
+                let n = rotation::norm3([axis[0], axis[1], axis[2]]).max(1e-300);
+                let rel = [1e-3, 1e-9, 1e-14][(rnd() * 3.0) as usize] * (rnd() * 2.0 - 1.0);
+                let angle = theta_lim * (1.0 + rel);
+                let d = rotation::exp(rotation::scale3(
+                    [axis[0] / n, axis[1] / n, axis[2] / n],
+                    angle,
+                ));
+                let data = rotation::normalise(rotation::mul(rotation::conj(d), at)).unwrap();
+                let exact = rotation::angle_between(at, data) <= theta_lim;
+                assert_eq!(test.within(&curve, q0, u, data), exact, "θ {theta_lim}");
+            }
+        }
+    }
+
     #[test]
     fn a_gravity_parabola_is_one_segment() {
         let dt = 1.0 / 120.0;
@@ -365,7 +725,16 @@ mod tests {
         let q: Vec<Quat> = (0..200)
             .map(|i| rotation::exp(rotation::scale3(w, i as f64)))
             .collect();
-        let fit = fit_rotation(&q, 0, q[0], StartCorrection::Anchored, 1e-3, 1e-3).unwrap();
+        let fit = fit_rotation(
+            &q,
+            0,
+            q[0],
+            StartCorrection::Anchored,
+            1e-3,
+            1e-3,
+            &mut RotationScratch::default(),
+        )
+        .unwrap();
         assert_eq!(fit.len, 199);
     }
 }

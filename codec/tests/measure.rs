@@ -79,3 +79,92 @@ fn ballistic_bounce_rest_compresses_at_least_30x() {
     assert!(r100 >= 30.0, "100 objects: {r100:.1}×");
     assert!(g100 >= 30.0, "100 objects, general model: {g100:.1}×");
 }
+
+/// A tumbling box, as in the shipped `tumble` scene: thrown, bouncing with friction-like kicks to
+/// its angular velocity at every contact, an asymmetric body whose ω precesses in flight, then
+/// resting. Positions from [`ballistic`], rotations from [`common::precessing`] re-kicked.
+fn tumbling(seed: u64, frames: usize) -> Track {
+    let mut rng = Rng::new(seed);
+    let mut t = ballistic(&mut rng, frames, DT, 1e-6);
+    let spin = common::precessing(&mut rng, frames, DT);
+    // Rest where the positions rest: hold the orientation from the last flight frame on.
+    let rest = (1..frames)
+        .rev()
+        .find(|&i| (t.positions[i][1] - t.positions[i - 1][1]).abs() > 1e-5)
+        .unwrap_or(0);
+    for i in 0..frames {
+        t.rotations[i] = spin.rotations[i.min(rest)];
+    }
+    t
+}
+
+/// Encode throughput on tumbling-box-like motion, encoded per ~1 s segment as the samplers do.
+#[test]
+fn tumbling_encode_speed() {
+    let tracks: Vec<Track> = (0..200).map(|i| tumbling(7000 + i, 600)).collect();
+    for quality in [Quality::Draft, Quality::Standard, Quality::Final] {
+        let p = EncodeParams::from_quality(quality, DT, MotionModel::FreeFlightGravity { g: G });
+        let chunks: Vec<Vec<Track>> = (0..5)
+            .map(|seg| {
+                tracks
+                    .iter()
+                    .map(|t| Track {
+                        positions: t.positions[seg * 120..(seg + 1) * 120].to_vec(),
+                        rotations: t.rotations[seg * 120..(seg + 1) * 120].to_vec(),
+                    })
+                    .collect()
+            })
+            .collect();
+        let (mut bytes, mut frames) = (0usize, 0u64);
+        // Best of three (the machine is shared); `MWB_MEASURE_REPS=1` for instruction counting
+        // under `valgrind --tool=callgrind`.
+        let reps = std::env::var("MWB_MEASURE_REPS")
+            .ok()
+            .and_then(|r| r.parse().ok())
+            .unwrap_or(3);
+        let mut s = f64::INFINITY;
+        for _ in 0..reps {
+            (bytes, frames) = (0, 0);
+            let t0 = Instant::now();
+            for chunk in &chunks {
+                let w = encode_world(chunk, &p).unwrap();
+                bytes += w.bytes.len();
+                frames += w.stats.object_frames;
+            }
+            s = s.min(t0.elapsed().as_secs_f64());
+        }
+        println!(
+            "tumbling {quality:?}: {bytes} B, ratio {:.1}× vs raw f32, encode {:.3} Mframes/s \
+             ({:.0} ns per object-frame)",
+            frames as f64 * 28.0 / bytes as f64,
+            frames as f64 / s / 1e6,
+            s * 1e9 / frames as f64
+        );
+    }
+}
+
+/// FNV-1a over the encoded bytes of every generator, preset and model: a change in this number
+/// means the encoder's output changed (for checking that speed-ups are byte-identical).
+#[test]
+fn output_fingerprint() {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    let mut total = 0usize;
+    for quality in [Quality::Draft, Quality::Standard, Quality::Final] {
+        for model in [
+            MotionModel::General,
+            MotionModel::FreeFlightGravity { g: G },
+        ] {
+            let p = EncodeParams::from_quality(quality, DT, model);
+            let mut tracks: Vec<Track> = (0..60)
+                .map(|i| common::generate(i as usize, 500 + i, 240, DT))
+                .collect();
+            tracks.extend((0..20).map(|i| tumbling(9000 + i, 240)));
+            let w = encode_world(&tracks, &p).unwrap();
+            total += w.bytes.len();
+            for b in &w.bytes {
+                h = (h ^ u64::from(*b)).wrapping_mul(0x100_0000_01b3);
+            }
+        }
+    }
+    println!("output fingerprint {h:016x} over {total} B");
+}
