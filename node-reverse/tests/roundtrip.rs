@@ -147,6 +147,30 @@ fn ground(material: Material) -> StaticBody {
         .with_material(material)
 }
 
+/// Three 1 × 1 × 0.5 boxes stacked on the ground (z up), the top one moving at `top`.
+fn stack_of_three(friction: f64, top: Vector3<f64>) -> World {
+    let mat = Material {
+        friction,
+        restitution: 0.4,
+    };
+    let mut world = World::new();
+    world.add_static(ground(mat));
+    for k in 0..3 {
+        let v = if k == 2 { top } else { Vector3::zeros() };
+        world.add_body(
+            Body::cuboid(Vector3::new(0.5, 0.5, 0.25), 1.0)
+                .expect("positive extents")
+                .with_material(mat)
+                .at(
+                    Vector3::new(0.0, 0.0, 0.25 + 0.5 * k as f64),
+                    UnitQuaternion::identity(),
+                )
+                .moving(v, Vector3::zeros()),
+        );
+    }
+    world
+}
+
 fn none(_: usize) -> BackwardChoices {
     BackwardChoices::default()
 }
@@ -252,29 +276,7 @@ fn bouncing_ball_round_trips() {
 
 #[test]
 fn stack_of_three_boxes_round_trips() {
-    let mat = Material {
-        friction: 0.2,
-        restitution: 0.4,
-    };
-    let mut world = World::new();
-    world.add_static(ground(mat));
-    for k in 0..3 {
-        let v = if k == 2 {
-            Vector3::new(0.05, 0.02, 0.0)
-        } else {
-            Vector3::zeros()
-        };
-        world.add_body(
-            Body::cuboid(Vector3::new(0.5, 0.5, 0.25), 1.0)
-                .expect("positive extents")
-                .with_material(mat)
-                .at(
-                    Vector3::new(0.0, 0.0, 0.25 + 0.5 * k as f64),
-                    UnitQuaternion::identity(),
-                )
-                .moving(v, Vector3::zeros()),
-        );
-    }
+    let mut world = stack_of_three(0.2, Vector3::new(0.05, 0.02, 0.0));
     // Backward, friction speeds the top box up; at 480 Hz its 300 steps (0.625 s) end before
     // its centre of mass leaves the middle box (a tipping box is not covered, see the crate
     // docs on the prediction band).
@@ -323,29 +325,7 @@ fn tumbling_box_round_trips() {
 #[test]
 #[ignore = "known limitation: contact point sliding along a rotating body, see doc comment"]
 fn box_tipping_off_a_stack_round_trips() {
-    let mat = Material {
-        friction: 0.6,
-        restitution: 0.4,
-    };
-    let mut world = World::new();
-    world.add_static(ground(mat));
-    for k in 0..3 {
-        let v = if k == 2 {
-            Vector3::new(0.3, 0.1, 0.0)
-        } else {
-            Vector3::zeros()
-        };
-        world.add_body(
-            Body::cuboid(Vector3::new(0.5, 0.5, 0.25), 1.0)
-                .expect("positive extents")
-                .with_material(mat)
-                .at(
-                    Vector3::new(0.0, 0.0, 0.25 + 0.5 * k as f64),
-                    UnitQuaternion::identity(),
-                )
-                .moving(v, Vector3::zeros()),
-        );
-    }
+    let mut world = stack_of_three(0.6, Vector3::new(0.3, 0.1, 0.0));
     let stats = backward_run("tipping stack", &mut world, DT, 300, none);
     assert!(
         world.bodies[2].orientation.angle() > 0.1,
