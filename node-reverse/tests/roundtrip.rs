@@ -171,6 +171,30 @@ fn stack_of_three(friction: f64, top: Vector3<f64>) -> World {
     world
 }
 
+/// A box thrown spinning onto the ground, stepped forward 140 steps so it is mid-tumble.
+fn tumbling_box() -> World {
+    let mat = Material {
+        friction: 0.5,
+        restitution: 0.5,
+    };
+    let mut world = World::new();
+    world.add_static(ground(mat));
+    world.add_body(
+        Body::cuboid(Vector3::new(0.3, 0.2, 0.1), 1.0)
+            .expect("positive extents")
+            .with_material(mat)
+            .at(
+                Vector3::new(0.0, 0.0, 0.6),
+                UnitQuaternion::from_euler_angles(0.3, 0.2, 0.1),
+            )
+            .moving(Vector3::new(1.0, 0.0, 0.0), Vector3::new(1.0, 2.0, 0.0)),
+    );
+    for _ in 0..140 {
+        world.step_forward(DT);
+    }
+    world
+}
+
 fn none(_: usize) -> BackwardChoices {
     BackwardChoices::default()
 }
@@ -292,25 +316,7 @@ fn stack_of_three_boxes_round_trips() {
 
 #[test]
 fn tumbling_box_round_trips() {
-    let mat = Material {
-        friction: 0.5,
-        restitution: 0.5,
-    };
-    let mut world = World::new();
-    world.add_static(ground(mat));
-    world.add_body(
-        Body::cuboid(Vector3::new(0.3, 0.2, 0.1), 1.0)
-            .expect("positive extents")
-            .with_material(mat)
-            .at(
-                Vector3::new(0.0, 0.0, 0.6),
-                UnitQuaternion::from_euler_angles(0.3, 0.2, 0.1),
-            )
-            .moving(Vector3::new(1.0, 0.0, 0.0), Vector3::new(1.0, 2.0, 0.0)),
-    );
-    for _ in 0..140 {
-        world.step_forward(DT);
-    }
+    let mut world = tumbling_box();
     let stats = backward_run("tumbling box", &mut world, DT, 300, none);
     assert!(stats.elastic > 0 && stats.sliding > 0, "{stats:?}");
 }
@@ -338,28 +344,7 @@ fn box_tipping_off_a_stack_round_trips() {
 /// Backward stepping is deterministic too: same state, same choices, same bytes.
 #[test]
 fn backward_stepping_is_bit_deterministic() {
-    let scene = || {
-        let mat = Material {
-            friction: 0.5,
-            restitution: 0.5,
-        };
-        let mut world = World::new();
-        world.add_static(ground(mat));
-        world.add_body(
-            Body::cuboid(Vector3::new(0.3, 0.2, 0.1), 1.0)
-                .expect("positive extents")
-                .with_material(mat)
-                .at(
-                    Vector3::new(0.0, 0.0, 0.6),
-                    UnitQuaternion::from_euler_angles(0.3, 0.2, 0.1),
-                )
-                .moving(Vector3::new(1.0, 0.0, 0.0), Vector3::new(1.0, 2.0, 0.0)),
-        );
-        for _ in 0..140 {
-            world.step_forward(DT);
-        }
-        world
-    };
+    let scene = tumbling_box;
     let (mut a, mut b) = (scene(), scene());
     for step in 0..200 {
         let ra = a.step_backward(DT, &BackwardChoices::default());
