@@ -6,10 +6,25 @@ use crate::bus::{BusArgs, Mode};
 use crate::check::verify_world;
 use crate::client;
 use anyhow::{Result, bail};
+use mwb_core::browse::api::{Reply, Request};
+use mwb_core::browse::{Aggregate, Metric, Order, RankKey};
 use mwb_core::keys::Keys;
 use mwb_sampler::{SamplerConfig, run_sampler};
 use mwb_store::{StoreConfig, run_store};
-use std::time::Instant;
+use std::time::{Duration, Instant};
+
+/// Where `mwb demo --stay` listens unless --listen says otherwise (zenoh's usual port).
+pub const STAY_ENDPOINT: &str = "tcp/127.0.0.1:7447";
+
+/// Keeps the demo's nodes serving; prints where to connect.
+async fn stay_until_ctrl_c(endpoints: &[String]) {
+    eprintln!(
+        "mwb demo: serving on {} — browse with `mwb query list --connect {}` (Ctrl-C stops)",
+        endpoints.join(", "),
+        endpoints.first().map_or(STAY_ENDPOINT, String::as_str)
+    );
+    let _ = tokio::signal::ctrl_c().await;
+}
 
 #[derive(Debug, Clone)]
 pub struct DemoOptions {
@@ -19,6 +34,9 @@ pub struct DemoOptions {
     pub memory_cap_bytes: u64,
     pub show_progress: bool,
     pub motion: client::MotionArgs,
+    /// After the summary, keep the bus, store and node-query running until Ctrl-C so that
+    /// `mwb query --connect <endpoint>` can browse the worlds.
+    pub stay: bool,
 }
 
 #[derive(Debug, Clone, serde::Serialize)]
@@ -39,13 +57,33 @@ pub struct DemoSummary {
     pub rested_fraction: f64,
     pub crc_valid_worlds: u32,
     pub bodies: u32,
+    /// Worlds indexed for browsing (path trees + metrics) by the store.
+    pub browsable_worlds: u64,
+    /// The world that comes to rest soonest (node-query ranking over the bus) and its time.
+    pub soonest_rest_world: Option<u32>,
+    pub soonest_rest_s: Option<f64>,
 }
 
 pub async fn run_demo(bus: &BusArgs, opts: &DemoOptions) -> Result<DemoSummary> {
+    run_demo_with(bus, opts, |_| Ok(())).await
+}
+
+/// [`run_demo`], calling `report` with the summary before staying to be browsed.
+pub async fn run_demo_with(
+    bus: &BusArgs,
+    opts: &DemoOptions,
+    report: impl FnOnce(&DemoSummary) -> Result<()>,
+) -> Result<DemoSummary> {
     let keys = Keys::new(&bus.space)?;
     let (file, text) = client::load_scene(&opts.scene)?;
     let mut job = client::make_job(&file, &text, opts.worlds, 0, None)?;
     opts.motion.apply(&mut job);
+    // Staying to be browsed needs a known port.
+    let mut bus = bus.clone();
+    if opts.stay && bus.listen.is_empty() {
+        bus.listen = vec![STAY_ENDPOINT.to_owned()];
+    }
+    let bus = &bus;
     let session = bus.open(Mode::Peer).await?;
     let zid = session.zid().to_string();
     let store = run_store(
@@ -54,6 +92,15 @@ pub async fn run_demo(bus: &BusArgs, opts: &DemoOptions) -> Result<DemoSummary> 
             space: bus.space.clone(),
             memory_cap_bytes: opts.memory_cap_bytes,
             node_id: Some(format!("{zid}-store")),
+            ..Default::default()
+        },
+    )
+    .await?;
+    let query = mwb_query::run_query(
+        session.clone(),
+        mwb_query::QueryConfig {
+            space: bus.space.clone(),
+            node_id: Some(format!("{zid}-query")),
             ..Default::default()
         },
     )
@@ -116,6 +163,9 @@ pub async fn run_demo(bus: &BusArgs, opts: &DemoOptions) -> Result<DemoSummary> 
         rested_fraction: 0.0,
         crc_valid_worlds: 0,
         bodies: 0,
+        browsable_worlds: store.indexed_count(),
+        soonest_rest_world: None,
+        soonest_rest_s: None,
     };
     for i in 0..state.worlds_done {
         let Some(w) = client::fetch_world(&session, &keys, i).await? else {
@@ -139,6 +189,41 @@ pub async fn run_demo(bus: &BusArgs, opts: &DemoOptions) -> Result<DemoSummary> 
     summary.bytes_per_world /= n;
     summary.raw_f32_bytes_per_world /= n;
     summary.rested_fraction /= n;
+
+    // Browse once over the bus, as `mwb query rank --by time-to-rest --objects all` would.
+    let objects: Vec<u32> = (0..summary.bodies).collect();
+    let ranked = mwb_query::send(
+        &session,
+        &keys,
+        "demo",
+        &Request::Rank {
+            key: RankKey::Metric {
+                metric: Metric::TimeToRest,
+                objects,
+                aggregate: Aggregate::Max,
+            },
+            order: Order::Ascending,
+            k: 1,
+            all_worlds: false,
+        },
+        Duration::from_secs(10),
+    )
+    .await?;
+    match ranked {
+        Reply::Ranking { rows, .. } => {
+            if let Some(best) = rows.first() {
+                summary.soonest_rest_world = Some(best.world);
+                summary.soonest_rest_s = best.score;
+            }
+        }
+        Reply::Error { message } => bail!("browsing the demo worlds: {message}"),
+        other => bail!("browsing the demo worlds: unexpected reply {other:?}"),
+    }
+    report(&summary)?;
+    if opts.stay {
+        stay_until_ctrl_c(&bus.listen).await;
+    }
+    query.stop();
     store.stop();
     crate::bus::close(session).await;
     Ok(summary)

@@ -3,7 +3,9 @@
 
 pub mod bench;
 pub mod bench_codec;
+pub mod bench_query;
 pub mod bus;
 pub mod check;
 pub mod client;
 pub mod demo;
+pub mod query;

@@ -37,6 +37,9 @@ enum Command {
         /// Print the summary as one JSON line.
         #[arg(long)]
         json: bool,
+        /// Keep serving after the summary (store + node-query) so `mwb query` can browse.
+        #[arg(long)]
+        stay: bool,
         #[command(flatten)]
         motion: client::MotionArgs,
     },
@@ -47,6 +50,19 @@ enum Command {
         /// Refuse new worlds past this many MiB in memory.
         #[arg(long, default_value_t = 4096)]
         memory_cap_mib: u64,
+        /// This store's shard when several split the worlds: INDEX/COUNT, e.g. 1/3. Start every
+        /// shard before submitting jobs; shard 0 answers job states.
+        #[arg(long, default_value = "0/1")]
+        shard: String,
+        /// Do not run the browsing coordinator (node-query) in this process. By default shard 0
+        /// runs it; with `mwb query serve` elsewhere, pass this.
+        #[arg(long)]
+        no_query: bool,
+    },
+    /// Browse: constraints, results, rankings (talks to node-query); `serve` runs node-query.
+    Query {
+        #[command(subcommand)]
+        command: mwb::query::QueryCommand,
     },
     /// Run a sampler node; it joins open jobs at any time.
     Sampler {
@@ -149,6 +165,23 @@ enum BenchCommand {
         #[command(flatten)]
         motion: client::MotionArgs,
     },
+    /// Browsing over one store shard: add/remove a constraint, OBB tree vs brute force, rank.
+    Query {
+        /// Scene whose sampled paths the synthetic worlds are made of.
+        #[arg(long, default_value = "tumble")]
+        scene: String,
+        #[arg(long, default_value_t = 10_000)]
+        worlds: u32,
+        /// Objects per world.
+        #[arg(long, default_value_t = 10)]
+        objects: u32,
+        /// Random constraints to time.
+        #[arg(long, default_value_t = 60)]
+        constraints: usize,
+        /// (Output is always one JSON line.)
+        #[arg(long)]
+        json: bool,
+    },
     /// The motion codec on sampled worlds: one JSON line per (scene, preset).
     Codec {
         /// Scene files or shipped scene names [default: every shipped scene].
@@ -171,7 +204,11 @@ fn main() -> Result<()> {
     // Long-running nodes log what they do; one-shot commands (demo, bench, job, …) print their
     // result and only warnings. RUST_LOG overrides both.
     let default_filter = match cli.command {
-        Command::Store { .. } | Command::Sampler { .. } => "warn,mwb=info",
+        Command::Store { .. }
+        | Command::Sampler { .. }
+        | Command::Query {
+            command: mwb::query::QueryCommand::Serve { .. },
+        } => "warn,mwb=info",
         _ => "warn",
     };
     tracing_subscriber::fmt()
@@ -242,8 +279,10 @@ async fn run(cli: Cli) -> Result<()> {
             memory_cap_mib,
             motion,
             json,
+            stay,
         } => {
             let opts = mwb::demo::DemoOptions {
+                stay,
                 scene,
                 worlds,
                 samplers,
@@ -257,9 +296,9 @@ async fn run(cli: Cli) -> Result<()> {
                     opts.worlds, opts.scene, opts.samplers
                 );
             }
-            let s = mwb::demo::run_demo(&bus, &opts).await?;
+            mwb::demo::run_demo_with(&bus, &opts, |s| {
             if json {
-                print_json(&s)?;
+                print_json(s)?;
             } else {
                 println!("scene            {}", s.scene);
                 println!(
@@ -281,27 +320,62 @@ async fn run(cli: Cli) -> Result<()> {
                     s.raw_f32_bytes_per_world / s.bytes_per_world.max(1.0)
                 );
                 println!("came to rest     {:.0} %", s.rested_fraction * 100.0);
+                println!("browsable        {} worlds indexed", s.browsable_worlds);
+                if let (Some(w), Some(t)) = (s.soonest_rest_world, s.soonest_rest_s) {
+                    println!("rests soonest    world {w} ({t:.2} s; `mwb query show {w}`)");
+                }
             }
+            Ok(())
+            })
+            .await?;
         }
         Command::Store {
             bus,
             memory_cap_mib,
+            shard,
+            no_query,
         } => {
+            let shard = mwb_store::ShardSpec::parse(&shard).map_err(|e| anyhow::anyhow!(e))?;
             let session = bus.open(Mode::Router).await?;
             let store = mwb_store::run_store(
                 session.clone(),
                 mwb_store::StoreConfig {
                     space: bus.space.clone(),
                     memory_cap_bytes: memory_cap_mib << 20,
+                    shard,
                     ..Default::default()
                 },
             )
             .await?;
-            tracing::info!(node = store.node_id(), "store running; Ctrl-C stops it");
+            let query = if shard.is_authority() && !no_query {
+                Some(
+                    mwb_query::run_query(
+                        session.clone(),
+                        mwb_query::QueryConfig {
+                            space: bus.space.clone(),
+                            node_id: Some(format!("{}-query", store.node_id())),
+                            ..Default::default()
+                        },
+                    )
+                    .await?,
+                )
+            } else {
+                None
+            };
+            tracing::info!(
+                node = store.node_id(),
+                shard = %format!("{}/{}", shard.index, shard.count),
+                query = query.is_some(),
+                "store running; Ctrl-C stops it"
+            );
             until_ctrl_c().await;
+            if let Some(q) = query {
+                q.stop();
+            }
             store.stop();
             mwb::bus::close(session).await;
         }
+        Command::Query { command } => mwb::query::run(command).await?,
         Command::Sampler { bus, workers } => {
             let session = bus.open(bus.client_default()).await?;
             let mut cfg = mwb_sampler::SamplerConfig {
@@ -393,6 +467,8 @@ async fn run(cli: Cli) -> Result<()> {
                     "backward_step_us": b.backward_step_us,
                     "ratio": b.ratio,
                     "roundtrip_max_rel_err": b.roundtrip_max_rel_err,
+                    "roundtrip_p50_rel_err": b.roundtrip_p50_rel_err,
+                    "roundtrip_departed_fraction": b.roundtrip_departed_fraction,
                     "energy_growth_p50": b.energy_growth_p50,
                     "angular_speed_peak_p50": b.angular_speed_peak_p50,
                     "balls": b.balls,
@@ -401,6 +477,19 @@ async fn run(cli: Cli) -> Result<()> {
                     "balls_learn_seconds": b.balls_learn_seconds,
                     "balls_energy_growth": b.balls_energy_growth,
                 }))?;
+            }
+            BenchCommand::Query {
+                scene,
+                worlds,
+                objects,
+                constraints,
+                json: _,
+            } => {
+                let b = tokio::task::spawn_blocking(move || {
+                    mwb::bench_query::bench_query(&scene, worlds, objects, constraints)
+                })
+                .await??;
+                print_json(&b)?;
             }
             BenchCommand::Sampler {
                 scene,

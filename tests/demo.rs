@@ -21,6 +21,7 @@ async fn demo_samples_and_verifies_every_world() {
         memory_cap_bytes: 256 << 20,
         show_progress: false,
         motion: Default::default(),
+        stay: false,
     };
     let s = tokio::time::timeout(Duration::from_secs(120), run_demo(&bus, &opts))
         .await

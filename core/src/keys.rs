@@ -96,6 +96,26 @@ impl Keys {
     pub fn worlds(&self) -> String {
         format!("{}/q/world/*", self.prefix)
     }
+    /// One store shard's browsing queryable for one session (node-query → shard).
+    pub fn shard_browse(&self, node: &str, session: &str) -> String {
+        format!("{}/q/browse/{node}/{session}", self.prefix)
+    }
+    /// What a shard declares: every session addressed to it.
+    pub fn shard_browse_all(&self, node: &str) -> String {
+        format!("{}/q/browse/{node}/*", self.prefix)
+    }
+    /// Every shard's queryable for one session (node-query's fan-out).
+    pub fn shards_browse(&self, session: &str) -> String {
+        format!("{}/q/browse/*/{session}", self.prefix)
+    }
+    /// node-query's browsing API for one session (viewer, `mwb query`).
+    pub fn browse(&self, session: &str) -> String {
+        format!("{}/browse/{session}", self.prefix)
+    }
+    /// What node-query declares.
+    pub fn browse_all(&self) -> String {
+        format!("{}/browse/*", self.prefix)
+    }
     /// Store statistics query.
     pub fn store_stats(&self) -> String {
         format!("{}/q/stats", self.prefix)

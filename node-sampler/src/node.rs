@@ -549,6 +549,8 @@ fn worker(shared: &Shared, tx: &mpsc::Sender<Outgoing>, keys: &Keys, node: &str)
                     frame_dt: summary.frame_dt,
                     rested: summary.rested,
                     impacts: summary.impacts,
+                    rest_time_s: summary.rest_time_s,
+                    body_rested: summary.body_rested,
                     perturbations: summary.perturbations,
                     sim_steps: summary.steps,
                     cpu_seconds: cpu_time() - started,

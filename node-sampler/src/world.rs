@@ -102,6 +102,11 @@ pub struct WorldSummary {
     pub rested: bool,
     /// Impacts per body (onsets of ‖Δv‖ > C_v or ‖Δω‖ > C_ω).
     pub impacts: Vec<u32>,
+    /// Per body, the time of the first frame from which it stayed below the rest thresholds
+    /// (from the simulator's exact velocities; 0 if it never moved). For a body still moving
+    /// at the end, the end time, and `body_rested` is false.
+    pub rest_time_s: Vec<f64>,
+    pub body_rested: Vec<bool>,
     pub perturbations: u32,
     pub steps: u64,
     pub payload_bytes: u64,
@@ -365,6 +370,9 @@ impl SimWorld {
 struct Tracker {
     in_impact: bool,
     impacts: u32,
+    /// The last step after which the body was above the rest thresholds.
+    last_moving_step: Option<u64>,
+    resting: bool,
 }
 
 /// Runs one world of `template` from `seed`: instantiate, build, step with perturbations until
@@ -405,6 +413,8 @@ pub fn run_world_observed(
         .map(|_| Tracker {
             in_impact: false,
             impacts: 0,
+            last_moving_step: None,
+            resting: false,
         })
         .collect();
     let params = EncodeParams::from_quality(opts.quality, dt, motion_model(&scene));
@@ -422,6 +432,8 @@ pub fn run_world_observed(
         frame_dt: dt,
         rested: false,
         impacts: Vec::new(),
+        rest_time_s: Vec::new(),
+        body_rested: Vec::new(),
         perturbations: 0,
         steps: 0,
         payload_bytes: 0,
@@ -533,6 +545,10 @@ pub fn run_world_observed(
             }
             let resting = rb.is_sleeping()
                 || (perturb::norm(v) < s.rest_linear && perturb::norm(w) < s.rest_angular);
+            if !resting {
+                trackers[i].last_moving_step = Some(summary.steps);
+            }
+            trackers[i].resting = resting;
             all_rest &= resting;
         }
 
@@ -553,5 +569,15 @@ pub fn run_world_observed(
         flush(&mut pending, &mut summary)?;
     }
     summary.impacts = trackers.iter().map(|t| t.impacts).collect();
+    // Frame k is recorded after step k: a body last moving after step k rests from frame k + 1.
+    summary.rest_time_s = trackers
+        .iter()
+        .map(|t| match t.last_moving_step {
+            None => 0.0,
+            Some(k) if t.resting => (k + 1) as f64 * dt,
+            Some(_) => summary.steps as f64 * dt,
+        })
+        .collect();
+    summary.body_rested = trackers.iter().map(|t| t.resting).collect();
     Ok(summary)
 }

@@ -4,6 +4,7 @@
 //! unit-tested: CRC checks, completeness, duplicate seeds, the memory cap, job closure, and
 //! discarding the partial worlds of samplers that left.
 
+use crate::browse::ShardSpec;
 use mwb_proto::v1::{Job, JobState, Message, MotionSegment, WorldDone};
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::sync::Arc;
@@ -11,7 +12,8 @@ use std::sync::Arc;
 /// A complete world held in memory.
 #[derive(Debug, Clone, PartialEq)]
 pub struct StoredWorld {
-    /// Dense index (bitsets in the browsing layer are over these).
+    /// Global index: dense per shard, `local × shard count + shard index` (bitsets in the
+    /// browsing layer are over these).
     pub index: u32,
     pub job_id: String,
     pub done: WorldDone,
@@ -41,6 +43,9 @@ pub enum Outcome {
     Pending,
     /// A world was stored; the job's new state.
     Stored { index: u32, state: JobState },
+    /// A complete, verified world that belongs to another shard: counted towards its job, not
+    /// kept here.
+    Counted { state: JobState },
     /// A world was refused; the job's new state if it counts rejections.
     Rejected {
         reason: Rejection,
@@ -90,12 +95,19 @@ pub struct Assembler {
     stored_bytes: u64,
     partial_bytes: u64,
     cap_bytes: u64,
+    shard: ShardSpec,
     pub counters: Counters,
 }
 
 impl Assembler {
     /// `cap_bytes`: complete worlds past this total are refused.
     pub fn new(cap_bytes: u64) -> Self {
+        Self::sharded(cap_bytes, ShardSpec::default())
+    }
+
+    /// A table that keeps only the worlds of `shard` but counts every complete world towards
+    /// its job, so that every shard closes a job at the same count.
+    pub fn sharded(cap_bytes: u64, shard: ShardSpec) -> Self {
         Self {
             jobs: BTreeMap::new(),
             partial: HashMap::new(),
@@ -103,15 +115,27 @@ impl Assembler {
             stored_bytes: 0,
             partial_bytes: 0,
             cap_bytes,
+            shard,
             counters: Counters::default(),
         }
+    }
+
+    pub fn shard(&self) -> ShardSpec {
+        self.shard
     }
 
     pub fn world_count(&self) -> usize {
         self.worlds.len()
     }
+    /// A stored world by global index.
     pub fn world(&self, index: u32) -> Option<Arc<StoredWorld>> {
-        self.worlds.get(index as usize).cloned()
+        let local = self.shard.local(index)?;
+        self.worlds.get(local as usize).cloned()
+    }
+
+    /// Every stored world, in index order.
+    pub fn stored(&self) -> impl Iterator<Item = &Arc<StoredWorld>> {
+        self.worlds.iter()
     }
     /// Bytes held: stored worlds plus partial worlds in flight.
     pub fn memory_bytes(&self) -> u64 {
@@ -168,6 +192,23 @@ impl Assembler {
                 );
                 Some(state)
             }
+        }
+    }
+
+    /// The authority's view of a job (another shard): its count is adopted when higher (this
+    /// shard joined late and missed worlds), and its closure is followed, so that worlds the
+    /// authority counts as late are not kept here.
+    pub fn adopt_state(&mut self, theirs: &JobState) {
+        let Some(rec) = self.jobs.get_mut(&theirs.job_id) else {
+            return;
+        };
+        let st = &mut rec.state;
+        let before = (st.worlds_done, st.closed);
+        st.worlds_done = st.worlds_done.max(theirs.worlds_done);
+        st.closed |= theirs.closed;
+        st.cancelled |= theirs.cancelled;
+        if (st.worlds_done, st.closed) != before {
+            st.revision += 1;
         }
     }
 
@@ -288,23 +329,26 @@ impl Assembler {
             return self.reject(&key, Rejection::DuplicateSeed);
         }
         let world_bytes = p.bytes + done.encoded_len() as u64;
-        if self.stored_bytes + world_bytes > self.cap_bytes {
+        let owned = self.shard.owns(&job_id, done.seed);
+        if owned && self.stored_bytes + world_bytes > self.cap_bytes {
             return self.reject(&key, Rejection::MemoryCap);
         }
+        let Some(index) = self.shard.global(self.worlds.len() as u32) else {
+            return self.reject(&key, Rejection::MemoryCap);
+        };
         let Some(p) = self.drop_partial(&key) else {
             return Outcome::Pending;
         };
         let Some(done) = p.done else {
             return Outcome::Pending;
         };
-        let index = self.worlds.len() as u32;
-        self.stored_bytes += world_bytes;
         let Some(rec) = self.jobs.get_mut(&job_id) else {
             return Outcome::Pending;
         };
         rec.seeds.insert(done.seed);
         let st = &mut rec.state;
         st.worlds_done += 1;
+        // The job's bytes over all shards (each counts every world the same way).
         st.bytes_stored += world_bytes;
         if st.first_world_unix_ms == 0 {
             st.first_world_unix_ms = now_ms;
@@ -315,6 +359,10 @@ impl Assembler {
         }
         st.revision += 1;
         let state = st.clone();
+        if !owned {
+            return Outcome::Counted { state };
+        }
+        self.stored_bytes += world_bytes;
         self.worlds.push(Arc::new(StoredWorld {
             index,
             job_id,
@@ -447,6 +495,92 @@ mod tests {
                 ..
             }
         ));
+    }
+
+    #[test]
+    fn a_shard_keeps_its_worlds_and_counts_all() {
+        let spec = ShardSpec { index: 1, count: 2 };
+        let mut a = Assembler::sharded(1 << 20, spec);
+        a.submit_job(job("j", 6));
+        let mut kept = Vec::new();
+        let mut counted = 0;
+        for seed in 0..6u64 {
+            let (s, d) = world("j", "n", seed, 100 + seed, 2);
+            match feed(&mut a, s, d) {
+                Outcome::Stored { index, state } => {
+                    assert!(spec.owns("j", 100 + seed));
+                    assert_eq!(index % 2, 1, "shard 1 numbers odd");
+                    kept.push(index);
+                    assert_eq!(state.worlds_done as usize, kept.len() + counted);
+                }
+                Outcome::Counted { state } => {
+                    assert!(!spec.owns("j", 100 + seed));
+                    counted += 1;
+                    assert_eq!(state.worlds_done as usize, kept.len() + counted);
+                }
+                other => panic!("{other:?}"),
+            }
+        }
+        assert!(
+            !kept.is_empty() && counted > 0,
+            "seeds 100..106 all on one shard"
+        );
+        assert_eq!(
+            kept,
+            (0..kept.len() as u32)
+                .map(|i| 2 * i + 1)
+                .collect::<Vec<_>>()
+        );
+        assert_eq!(a.world_count(), kept.len());
+        assert!(
+            a.job_state("j")
+                .is_some_and(|st| st.closed && st.worlds_done == 6)
+        );
+        for &i in &kept {
+            assert_eq!(a.world(i).map(|w| w.index), Some(i));
+        }
+        assert!(a.world(0).is_none());
+        // Only kept worlds take memory.
+        let stored: u64 = a.stored().map(|w| w.bytes).sum();
+        assert_eq!(a.memory_bytes(), stored);
+    }
+
+    #[test]
+    fn a_late_shard_adopts_the_authority_count_and_closure() {
+        let mut a = Assembler::sharded(1 << 20, ShardSpec { index: 1, count: 2 });
+        a.submit_job(job("j", 10));
+        let theirs = JobState {
+            job_id: "j".into(),
+            worlds_done: 7,
+            target_worlds: 10,
+            ..Default::default()
+        };
+        a.adopt_state(&theirs);
+        assert_eq!(a.job_state("j").map(|s| s.worlds_done), Some(7));
+        // A lower count never lowers ours.
+        a.adopt_state(&JobState {
+            worlds_done: 2,
+            ..theirs.clone()
+        });
+        assert_eq!(a.job_state("j").map(|s| s.worlds_done), Some(7));
+        a.adopt_state(&JobState {
+            closed: true,
+            ..theirs
+        });
+        let (s, d) = world("j", "n", 0, 5, 1);
+        assert!(matches!(
+            feed(&mut a, s, d),
+            Outcome::Rejected {
+                reason: Rejection::Late,
+                ..
+            }
+        ));
+        // Unknown jobs are ignored.
+        a.adopt_state(&JobState {
+            job_id: "other".into(),
+            ..Default::default()
+        });
+        assert!(a.job_state("other").is_none());
     }
 
     #[test]

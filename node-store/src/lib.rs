@@ -1,10 +1,17 @@
 //! The in-memory world store (DESIGN.md "Store and queries").
 //!
 //! * [`assembly`] — pure: segments + summaries → complete, CRC-verified, indexed worlds.
-//! * [`node`] — the bus node around it.
+//! * [`index`] — pure: a stored world → per-object path trees (OBB, depth ≤ 3) and metrics.
+//! * [`browse`] — pure: one shard's worlds and per-session constraint bitsets; answers
+//!   node-query's requests.
+//! * [`node`] — the bus node around them.
 
 pub mod assembly;
+pub mod browse;
+pub mod index;
 pub mod node;
 
 pub use assembly::{Assembler, Outcome, Rejection, StoredWorld};
+pub use browse::{Shard, ShardSpec};
+pub use index::{IndexError, IndexedWorld, index_world};
 pub use node::{StoreConfig, StoreHandle, run_store};

@@ -2,8 +2,13 @@
 //! states, worlds by index and statistics as queryables; publishes job states and stats.
 
 use crate::assembly::{Assembler, Outcome};
+use crate::browse::{Shard, ShardSpec};
+use crate::index::index_world;
+use mwb_core::browse::RestThresholds;
+use mwb_core::browse::api::{Reply, ShardReply, ShardRequest};
 use mwb_core::keys::{Keys, role};
 use mwb_proto::v1::{Job, JobState, Message, MotionSegment, NodeStats, World, WorldDone};
+use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use tokio::sync::mpsc;
@@ -24,6 +29,11 @@ pub struct StoreConfig {
     /// Partial worlds that receive nothing for this long are discarded.
     pub partial_idle: Duration,
     pub node_id: Option<String>,
+    /// Which worlds this store keeps when several split them (default: all, `0/1`).
+    pub shard: ShardSpec,
+    /// Largest distance between an indexed polyline and the decoded path, metres (query boxes
+    /// are widened by this plus the codec's e_max).
+    pub path_tolerance_m: f64,
 }
 
 impl Default for StoreConfig {
@@ -34,6 +44,8 @@ impl Default for StoreConfig {
             orphan_grace: Duration::from_secs(1),
             partial_idle: Duration::from_secs(120),
             node_id: None,
+            shard: ShardSpec::default(),
+            path_tolerance_m: crate::index::DEFAULT_PATH_TOLERANCE_M,
         }
     }
 }
@@ -58,6 +70,10 @@ fn now_ms() -> u64 {
 
 struct Shared {
     table: Mutex<Assembler>,
+    /// The browsing index and sessions (a separate lock: evaluating a constraint over every
+    /// world must not stall ingest of segments).
+    browse: Mutex<Shard>,
+    index_failures: std::sync::atomic::AtomicU64,
     start: Instant,
     node_id: String,
     revision: std::sync::atomic::AtomicU64,
@@ -68,7 +84,15 @@ impl Shared {
         self.table.lock().unwrap_or_else(|p| p.into_inner())
     }
 
+    fn browse(&self) -> std::sync::MutexGuard<'_, Shard> {
+        self.browse.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
     fn stats(&self, worlds_per_s: f64) -> NodeStats {
+        let (index_bytes, spec) = {
+            let b = self.browse();
+            (b.heap_bytes() as u64, b.spec())
+        };
         let t = self.lock();
         let c = t.counters;
         NodeStats {
@@ -90,6 +114,12 @@ impl Shared {
             duplicates: c.duplicates,
             pid: std::process::id(),
             hostname: hostname(),
+            index_bytes,
+            index_failures: self
+                .index_failures
+                .load(std::sync::atomic::Ordering::Relaxed),
+            shard_index: spec.index,
+            shard_count: spec.count,
             ..Default::default()
         }
     }
@@ -117,6 +147,14 @@ impl StoreHandle {
     pub fn world(&self, index: u32) -> Option<Arc<crate::StoredWorld>> {
         self.shared.lock().world(index)
     }
+    /// Answers a browsing request in-process (what the bus queryable does).
+    pub fn browse(&self, req: &ShardRequest) -> ShardReply {
+        self.shared.browse().handle(req)
+    }
+    /// Worlds indexed for browsing.
+    pub fn indexed_count(&self) -> u64 {
+        self.shared.browse().world_count()
+    }
     pub fn stop(self) {
         for t in self.tasks {
             t.abort();
@@ -126,6 +164,8 @@ impl StoreHandle {
 
 enum Incoming {
     Segment(MotionSegment),
+    /// A job state from the authority (non-authority shards only).
+    State(JobState),
     Done(WorldDone),
     Job(Job),
     Left(String),
@@ -141,7 +181,9 @@ pub async fn run_store(session: Session, cfg: StoreConfig) -> Result<StoreHandle
         .unwrap_or_else(|| session.zid().to_string());
     mwb_core::keys::check_identifier("node id", &node_id)?;
     let shared = Arc::new(Shared {
-        table: Mutex::new(Assembler::new(cfg.memory_cap_bytes)),
+        table: Mutex::new(Assembler::sharded(cfg.memory_cap_bytes, cfg.shard)),
+        browse: Mutex::new(Shard::new(cfg.shard, node_id.clone())),
+        index_failures: std::sync::atomic::AtomicU64::new(0),
         start: Instant::now(),
         node_id: node_id.clone(),
         revision: std::sync::atomic::AtomicU64::new(1),
@@ -168,9 +210,26 @@ pub async fn run_store(session: Session, cfg: StoreConfig) -> Result<StoreHandle
         .declare_subscriber(keys.alive_role(role::SAMPLER))
         .await
         .map_err(zerr)?;
-    let jobs_q = session.declare_queryable(keys.jobs()).await.map_err(zerr)?;
-    let states_q = session
-        .declare_queryable(keys.job_states())
+    // Job-level answers come from one shard only (shard 0, the authority), so that a client
+    // never mixes job states of different shards.
+    let authority = cfg.shard.is_authority();
+    let jobs_q = if authority {
+        Some(session.declare_queryable(keys.jobs()).await.map_err(zerr)?)
+    } else {
+        None
+    };
+    let states_q = if authority {
+        Some(
+            session
+                .declare_queryable(keys.job_states())
+                .await
+                .map_err(zerr)?,
+        )
+    } else {
+        None
+    };
+    let browse_q = session
+        .declare_queryable(keys.shard_browse_all(&node_id))
         .await
         .map_err(zerr)?;
     let world_q = session
@@ -263,24 +322,89 @@ pub async fn run_store(session: Session, cfg: StoreConfig) -> Result<StoreHandle
             }
         }));
     }
-    // The applier: the only writer of the table; publishes job states as they change.
+    // A store that starts while jobs are under way (a restart, or a shard joining late) learns
+    // them from the authority; a non-authority shard also follows the authority's job states.
+    {
+        let tx = tx.clone();
+        let session = session.clone();
+        let keys = keys.clone();
+        let shared = shared.clone();
+        tasks.push(tokio::spawn(async move {
+            let states_sub = if authority {
+                None
+            } else {
+                session.declare_subscriber(keys.job_states()).await.ok()
+            };
+            for (key, is_state) in [(keys.jobs(), false), (keys.job_states(), true)] {
+                if is_state && authority {
+                    continue;
+                }
+                let Ok(replies) = session.get(key).timeout(Duration::from_secs(2)).await else {
+                    continue;
+                };
+                while let Ok(r) = replies.recv_async().await {
+                    let Ok(sample) = r.result() else { continue };
+                    let bytes = sample.payload().to_bytes();
+                    let msg = if is_state {
+                        JobState::decode(bytes.as_ref()).ok().map(Incoming::State)
+                    } else {
+                        Job::decode(bytes.as_ref())
+                            .ok()
+                            .filter(|j| mwb_core::keys::check_identifier("job id", &j.id).is_ok())
+                            .map(Incoming::Job)
+                    };
+                    match msg {
+                        Some(m) => {
+                            if tx.send(m).await.is_err() {
+                                return;
+                            }
+                        }
+                        None => malformed(&shared),
+                    }
+                }
+            }
+            if let Some(sub) = states_sub {
+                while let Ok(s) = sub.recv_async().await {
+                    match JobState::decode(s.payload().to_bytes().as_ref()) {
+                        Ok(st) => {
+                            if tx.send(Incoming::State(st)).await.is_err() {
+                                break;
+                            }
+                        }
+                        Err(_) => malformed(&shared),
+                    }
+                }
+            }
+        }));
+    }
+    // The applier: the only writer of the table; publishes job states as they change and
+    // indexes every stored world for browsing.
     {
         let shared = shared.clone();
         let session = session.clone();
         let keys = keys.clone();
         let grace = cfg.orphan_grace.as_millis() as u64;
         let idle = cfg.partial_idle.as_millis() as u64;
+        let mut rest: HashMap<String, RestThresholds> = HashMap::new();
+        let path_tolerance = cfg.path_tolerance_m;
         tasks.push(tokio::spawn(async move {
             while let Some(msg) = rx.recv().await {
                 let now = now_ms();
+                let mut stored = None;
                 let state = {
                     let mut t = shared.lock();
                     match msg {
-                        Incoming::Segment(m) => outcome_state(t.on_segment(m, now)),
-                        Incoming::Done(m) => outcome_state(t.on_done(m, now)),
+                        Incoming::Segment(m) => outcome_state(t.on_segment(m, now), &mut stored),
+                        Incoming::Done(m) => outcome_state(t.on_done(m, now), &mut stored),
                         Incoming::Job(j) => {
                             info!(job = %j.id, target = j.target_worlds, cancelled = j.cancelled, "job");
+                            rest.entry(j.id.clone())
+                                .or_insert_with(|| rest_thresholds(&j));
                             t.submit_job(j)
+                        }
+                        Incoming::State(st) => {
+                            t.adopt_state(&st);
+                            None
                         }
                         Incoming::Left(node) => {
                             debug!(%node, "sampler left");
@@ -295,8 +419,29 @@ pub async fn run_store(session: Session, cfg: StoreConfig) -> Result<StoreHandle
                             None
                         }
                     }
+                    .map(|st| (st, stored.and_then(|i| t.world(i))))
                 };
-                if let Some(st) = state
+                let (state, world) = match state {
+                    Some((st, w)) => (Some(st), w),
+                    None => (None, None),
+                };
+                if let Some(w) = world {
+                    let thresholds = rest
+                        .get(&w.job_id)
+                        .copied()
+                        .unwrap_or_else(default_rest);
+                    match index_world(&w, w.index, thresholds, path_tolerance) {
+                        Ok(indexed) => shared.browse().insert(indexed),
+                        Err(e) => {
+                            shared
+                                .index_failures
+                                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                            warn!(world = w.index, error = %e, "world stored but not browsable");
+                        }
+                    }
+                }
+                if authority
+                    && let Some(st) = state
                     && let Err(e) = session
                         .put(keys.job_state(&st.job_id), st.encode_to_vec())
                         .congestion_control(CongestionControl::Block)
@@ -307,8 +452,69 @@ pub async fn run_store(session: Session, cfg: StoreConfig) -> Result<StoreHandle
             }
         }));
     }
-    // Queryables.
+    // Browsing requests from node-query (JSON `ShardRequest` → `ShardReply`). Evaluating a new
+    // constraint runs on every core; it is done on a blocking thread so the runtime stays free.
     {
+        let shared = shared.clone();
+        let keys = keys.clone();
+        let node_id = node_id.clone();
+        tasks.push(tokio::spawn(async move {
+            while let Ok(q) = browse_q.recv_async().await {
+                let session = q
+                    .key_expr()
+                    .as_str()
+                    .rsplit('/')
+                    .next()
+                    .unwrap_or("")
+                    .to_owned();
+                let request = q
+                    .payload()
+                    .ok_or_else(|| "empty request".to_owned())
+                    .and_then(|p| {
+                        serde_json::from_slice::<ShardRequest>(&p.to_bytes())
+                            .map_err(|e| format!("malformed request: {e}"))
+                    })
+                    .and_then(|r| {
+                        if r.session == session {
+                            Ok(r)
+                        } else {
+                            Err(format!(
+                                "request names session {:?} but was sent to {session:?}",
+                                r.session
+                            ))
+                        }
+                    });
+                let reply = match request {
+                    Ok(req) => {
+                        let shared = shared.clone();
+                        tokio::task::spawn_blocking(move || shared.browse().handle(&req))
+                            .await
+                            .unwrap_or_else(|e| ShardReply::Ok {
+                                edits: 0,
+                                reply: Reply::Error {
+                                    message: format!("shard task failed: {e}"),
+                                },
+                            })
+                    }
+                    Err(message) => {
+                        shared.lock().counters.malformed += 1;
+                        ShardReply::Ok {
+                            edits: 0,
+                            reply: Reply::Error { message },
+                        }
+                    }
+                };
+                match serde_json::to_vec(&reply) {
+                    Ok(bytes) => {
+                        let _ = q.reply(keys.shard_browse(&node_id, &session), bytes).await;
+                    }
+                    Err(e) => warn!(error = %e, "serialising a browse reply"),
+                }
+            }
+        }));
+    }
+    // Queryables.
+    if let Some(jobs_q) = jobs_q {
         let shared = shared.clone();
         let keys = keys.clone();
         tasks.push(tokio::spawn(async move {
@@ -328,7 +534,7 @@ pub async fn run_store(session: Session, cfg: StoreConfig) -> Result<StoreHandle
             }
         }));
     }
-    {
+    if let Some(states_q) = states_q {
         let shared = shared.clone();
         let keys = keys.clone();
         tasks.push(tokio::spawn(async move {
@@ -405,15 +611,33 @@ pub async fn run_store(session: Session, cfg: StoreConfig) -> Result<StoreHandle
     Ok(StoreHandle { shared, tasks })
 }
 
-fn outcome_state(o: Outcome) -> Option<JobState> {
+/// The job state to publish after an outcome; `stored` receives the index of a stored world.
+fn outcome_state(o: Outcome, stored: &mut Option<u32>) -> Option<JobState> {
     match o {
         Outcome::Pending => None,
-        Outcome::Stored { state, .. } => Some(state),
+        Outcome::Stored { state, index } => {
+            *stored = Some(index);
+            Some(state)
+        }
+        Outcome::Counted { state } => Some(state),
         Outcome::Rejected { reason, state } => {
             debug!(?reason, "world rejected");
             state
         }
     }
+}
+
+/// The rest thresholds of a job's scene (the ones its sampler ends a world with), for the
+/// time-to-rest metric; the scene defaults if the scene does not parse here.
+fn rest_thresholds(job: &Job) -> RestThresholds {
+    job.scene
+        .as_ref()
+        .and_then(|s| mwb_core::scene::SceneTemplate::parse(&s.toml, &s.name).ok())
+        .map_or_else(default_rest, |t| RestThresholds::from(t.settings()))
+}
+
+fn default_rest() -> RestThresholds {
+    RestThresholds::from(&mwb_core::scene::Settings::default())
 }
 
 fn intersects(query: &KeyExpr<'_>, key: &str) -> bool {

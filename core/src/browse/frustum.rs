@@ -9,7 +9,8 @@
 use serde::{Deserialize, Serialize};
 
 use super::geom::{
-    Quat, Vec3, add, cross, dot, normalize, quat_conj, quat_normalize, quat_rotate, scale, sub,
+    Quat, Vec3, add, cross, dot, norm, normalize, quat_conj, quat_normalize, quat_rotate, scale,
+    sub,
 };
 use super::{BrowseError, finite};
 
@@ -261,24 +262,22 @@ impl Projection {
         };
         let f = self.forward();
         let along = dot(f, self.position);
-        Ok(Frustum {
-            planes: [
-                side(top_left, bottom_left)?,
-                side(top_right, bottom_right)?,
-                side(bottom_left, bottom_right)?,
-                side(top_left, top_right)?,
-                // Inside: f·(x − p) ≥ near, i.e. −f·x − (−f·p − near) ≤ 0.
-                Plane {
-                    normal: scale(f, -1.0),
-                    offset: -along - self.near,
-                },
-                // Inside: f·(x − p) ≤ far.
-                Plane {
-                    normal: f,
-                    offset: along + self.far,
-                },
-            ],
-        })
+        Ok(Frustum::with_hull([
+            side(top_left, bottom_left)?,
+            side(top_right, bottom_right)?,
+            side(bottom_left, bottom_right)?,
+            side(top_left, top_right)?,
+            // Inside: f·(x − p) ≥ near, i.e. −f·x − (−f·p − near) ≤ 0.
+            Plane {
+                normal: scale(f, -1.0),
+                offset: -along - self.near,
+            },
+            // Inside: f·(x − p) ≤ far.
+            Plane {
+                normal: f,
+                offset: along + self.far,
+            },
+        ]))
     }
 }
 
@@ -305,6 +304,88 @@ impl Plane {
 #[serde(try_from = "RawFrustum")]
 pub struct Frustum {
     planes: [Plane; 6],
+    /// The region's vertices when it is provably bounded (see [`Frustum::hull`]); recomputed
+    /// from the planes on every construction, never sent.
+    #[serde(skip)]
+    hull: Option<Hull>,
+}
+
+/// The vertices of a bounded six-plane region (a convex polyhedron with six faces has at most
+/// eight vertices).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Hull {
+    points: [Vec3; 8],
+    len: u8,
+}
+
+/// Finds the vertices of the region, or `None` when that cannot be done safely: the region may
+/// be unbounded, or there seem to be more than eight vertices (numerical trouble).
+/// A returned set always spans a hull that *contains* the region (feasibility is tested with a
+/// generous tolerance, so a borderline point is kept rather than lost), which is what makes a
+/// separating-axis test against it never reject a box that overlaps the region.
+fn compute_hull(planes: &[Plane; 6]) -> Option<Hull> {
+    // Bounded ⟺ no direction d ≠ 0 with n_i·d ≤ 0 for every plane. Such a recession cone, if
+    // any, has an extreme ray on two of its facets: along ±(n_i × n_j).
+    let mut any_cross = false;
+    for i in 0..6 {
+        for j in i + 1..6 {
+            let c = cross(planes[i].normal, planes[j].normal);
+            let Some(d) = normalize(c) else { continue };
+            any_cross = true;
+            for s in [1.0, -1.0] {
+                if planes.iter().all(|p| s * dot(p.normal, d) <= 1e-9) {
+                    return None;
+                }
+            }
+        }
+    }
+    if !any_cross {
+        return None;
+    }
+    let scale_m = planes.iter().fold(1.0f64, |m, p| m.max(p.offset.abs()));
+    let tol = 1e-7 * scale_m;
+    let mut hull = Hull {
+        points: [[0.0; 3]; 8],
+        len: 0,
+    };
+    for i in 0..6 {
+        for j in i + 1..6 {
+            for k in j + 1..6 {
+                let (a, b, c) = (planes[i], planes[j], planes[k]);
+                let bc = cross(b.normal, c.normal);
+                let det = dot(a.normal, bc);
+                if det.abs() < 1e-14 {
+                    // Normals in one plane: the three planes share a direction and meet in a
+                    // line or nowhere, never in an isolated vertex.
+                    continue;
+                }
+                let x = scale(
+                    add(
+                        add(
+                            scale(bc, a.offset),
+                            scale(cross(c.normal, a.normal), b.offset),
+                        ),
+                        scale(cross(a.normal, b.normal), c.offset),
+                    ),
+                    1.0 / det,
+                );
+                // An ill-conditioned vertex is known only to about ε·|x|/|det|: allow for it,
+                // so that a true vertex is kept (a slightly outside point only grows the hull).
+                let slack = tol + 1e-12 * norm(x) / det.abs();
+                let known = hull.points[..usize::from(hull.len)]
+                    .iter()
+                    .any(|v| norm(sub(*v, x)) <= tol);
+                if !known && planes.iter().all(|p| p.distance(x) <= slack) {
+                    if usize::from(hull.len) == hull.points.len() {
+                        return None;
+                    }
+                    hull.points[usize::from(hull.len)] = x;
+                    hull.len += 1;
+                }
+            }
+        }
+    }
+    (hull.len >= 4).then_some(hull)
 }
 
 #[derive(Deserialize)]
@@ -337,11 +418,72 @@ impl Frustum {
                 offset: p.offset / len,
             };
         }
-        Ok(Self { planes: out })
+        Ok(Self::with_hull(out))
+    }
+
+    /// A frustum from planes already unit-length and finite.
+    fn with_hull(planes: [Plane; 6]) -> Self {
+        Self {
+            planes,
+            hull: compute_hull(&planes),
+        }
+    }
+
+    /// The vertices of the region when it is provably bounded (camera frusta and boxes are), for
+    /// separating-axis tests; `None` otherwise (then only the plane test applies).
+    pub fn hull(&self) -> Option<&[Vec3]> {
+        self.hull.as_ref().map(|h| &h.points[..usize::from(h.len)])
     }
 
     pub fn planes(&self) -> &[Plane; 6] {
         &self.planes
+    }
+
+    /// An axis-aligned world-space box `min..max` as six planes (for scripts that think in
+    /// world coordinates rather than screen rectangles).
+    pub fn aabb(min: Vec3, max: Vec3) -> Result<Self, BrowseError> {
+        for i in 0..3 {
+            finite("box.min", min[i])?;
+            finite("box.max", max[i])?;
+            if min[i] > max[i] {
+                return Err(BrowseError::OutOfRange {
+                    field: "box.max",
+                    value: max[i],
+                    expected: "max ≥ min on every axis",
+                });
+            }
+        }
+        let axis = |i: usize, sign: f64| {
+            let mut n = [0.0; 3];
+            n[i] = sign;
+            n
+        };
+        Frustum::from_planes([
+            Plane {
+                normal: axis(0, -1.0),
+                offset: -min[0],
+            },
+            Plane {
+                normal: axis(0, 1.0),
+                offset: max[0],
+            },
+            Plane {
+                normal: axis(1, -1.0),
+                offset: -min[1],
+            },
+            Plane {
+                normal: axis(1, 1.0),
+                offset: max[1],
+            },
+            Plane {
+                normal: axis(2, -1.0),
+                offset: -min[2],
+            },
+            Plane {
+                normal: axis(2, 1.0),
+                offset: max[2],
+            },
+        ])
     }
 
     /// The frustum with every plane moved outward by `r` metres. The result contains every point
@@ -359,7 +501,22 @@ impl Frustum {
         for p in &mut planes {
             p.offset += r;
         }
-        Frustum { planes }
+        Frustum::with_hull(planes)
+    }
+
+    /// [`inflated`](Self::inflated) without recomputing the vertices (for segment clipping,
+    /// which needs only the planes).
+    pub(crate) fn inflated_planes(&self, r: f64) -> Frustum {
+        let r = if r.is_nan() {
+            f64::INFINITY
+        } else {
+            r.max(0.0)
+        };
+        let mut planes = self.planes;
+        for p in &mut planes {
+            p.offset += r;
+        }
+        Frustum { planes, hull: None }
     }
 
     /// Whether `x` is inside or on the boundary.
@@ -446,6 +603,76 @@ mod tests {
     use super::*;
     use crate::browse::geom::norm;
     use proptest::prelude::*;
+
+    #[test]
+    fn hull_only_for_bounded_regions() {
+        let b = Frustum::aabb([-1.0, 0.0, 2.0], [1.0, 0.5, 3.0]).expect("valid box");
+        let hull = b.hull().expect("a box is bounded");
+        assert_eq!(hull.len(), 8);
+        for v in hull {
+            assert!(b.inflated(1e-9).contains(*v), "{v:?}");
+        }
+        let cam = camera(
+            [0.0, 1.0, 8.0],
+            [0.0, 0.0, 0.0, 1.0],
+            Intrinsics::VerticalFov { fov_y_rad: 0.9 },
+        );
+        let f = cam
+            .frustum(&ScreenRect {
+                x0: 300.0,
+                y0: 200.0,
+                x1: 310.0,
+                y1: 212.0,
+            })
+            .expect("valid");
+        assert_eq!(f.hull().map(<[Vec3]>::len), Some(8));
+        assert_eq!(f.inflated(0.05).hull().map(<[Vec3]>::len), Some(8));
+        // Flip the far plane: the region beyond it is unbounded.
+        let mut planes = *f.planes();
+        planes[5].normal = scale(planes[5].normal, -1.0);
+        planes[5].offset = -planes[5].offset;
+        assert!(
+            Frustum::from_planes(planes)
+                .expect("valid")
+                .hull()
+                .is_none()
+        );
+        // Six planes all facing +x: a half-space.
+        let half = Plane {
+            normal: [1.0, 0.0, 0.0],
+            offset: 1.0,
+        };
+        assert!(
+            Frustum::from_planes([half; 6])
+                .expect("valid")
+                .hull()
+                .is_none()
+        );
+        // Never sent: JSON has the planes only, and the hull comes back on the way in.
+        let text = serde_json::to_string(&f).expect("serialises");
+        assert!(!text.contains("hull"), "{text}");
+        let back: Frustum = serde_json::from_str(&text).expect("parses");
+        assert_eq!(back.hull().map(<[Vec3]>::len), Some(8));
+    }
+
+    #[test]
+    fn aabb_contains_exactly_the_box() {
+        let b = Frustum::aabb([-1.0, 0.0, 2.0], [1.0, 0.5, 3.0]).expect("valid box");
+        assert!(b.contains([0.0, 0.25, 2.5]));
+        assert!(b.contains([1.0, 0.5, 3.0]));
+        assert!(!b.contains([1.01, 0.25, 2.5]));
+        assert!(!b.contains([0.0, -0.01, 2.5]));
+        assert!(!b.contains([0.0, 0.25, 3.01]));
+        assert!(b.inflated(0.02).contains([1.01, 0.25, 2.5]));
+        assert!(matches!(
+            Frustum::aabb([0.0, 0.0, 0.0], [1.0, -1.0, 1.0]),
+            Err(BrowseError::OutOfRange {
+                field: "box.max",
+                ..
+            })
+        ));
+        assert!(Frustum::aabb([f64::NAN, 0.0, 0.0], [1.0, 1.0, 1.0]).is_err());
+    }
 
     fn axis_angle(axis: Vec3, angle: f64) -> Quat {
         let (s, c) = (angle / 2.0).sin_cos();

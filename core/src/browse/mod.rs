@@ -67,6 +67,7 @@
 //! # Ok::<(), mwb_core::browse::BrowseError>(())
 //! ```
 
+pub mod api;
 mod bitset;
 mod constraint;
 mod frustum;

@@ -25,7 +25,7 @@ use super::{BrowseError, finite};
 pub const MAX_TREE_DEPTH: usize = 3;
 /// A node with fewer segments than this stays a leaf: splitting tiny runs costs more in boxes
 /// than it saves in segment tests.
-pub const MIN_SPLIT_SEGMENTS: usize = 4;
+pub const MIN_SPLIT_SEGMENTS: usize = 8;
 
 /// A timed polyline: positions of one object's centre of mass at strictly increasing times,
 /// linearly interpolated in between.
@@ -83,6 +83,90 @@ impl Polyline {
             .map(|i| start + i as f64 * frame_dt)
             .collect();
         Self::new(times, points)
+    }
+
+    /// An error-bounded simplification of a full-rate path (frame `i` at `start + i·frame_dt`):
+    /// vertices are kept where needed so that every frame's position lies within `tolerance` of
+    /// the polyline point *at the same time*. Returns the polyline and its largest measured
+    /// deviation (≤ `tolerance`; 0 for an exact copy), which is what a never-miss test must add
+    /// to its radius.
+    ///
+    /// Greedy from the first frame: each run is grown by doubling, then narrowed by bisection to
+    /// the longest run found to fit (every accepted run is checked frame by frame, so the bound
+    /// holds whatever the motion), O(n log n) per object. Resting stretches collapse to one
+    /// segment; a 4 Hz sub-sample of a bouncing box strays by decimetres, this by `tolerance`.
+    pub fn simplify(
+        start: f64,
+        frame_dt: f64,
+        points: &[Vec3],
+        tolerance: f64,
+    ) -> Result<(Polyline, f64), BrowseError> {
+        finite("start", start)?;
+        if finite("frame_dt", frame_dt)? <= 0.0 {
+            return Err(BrowseError::OutOfRange {
+                field: "frame_dt",
+                value: frame_dt,
+                expected: "a positive frame interval",
+            });
+        }
+        let tol = finite("tolerance", tolerance)?.max(0.0);
+        if points.is_empty() {
+            return Err(BrowseError::Empty {
+                field: "path.points",
+            });
+        }
+        for p in points {
+            for &v in p {
+                finite("path.points", v)?;
+            }
+        }
+        // Largest same-time distance of frames a..=b from the chord a→b.
+        let chord_error = |a: usize, b: usize| -> f64 {
+            let (pa, pb) = (points[a], points[b]);
+            let span = (b - a) as f64;
+            (a + 1..b)
+                .map(|f| norm(sub(points[f], lerp(pa, pb, (f - a) as f64 / span))))
+                .fold(0.0, f64::max)
+        };
+        let last = points.len() - 1;
+        let mut keep = vec![0usize];
+        let mut max_dev = 0.0f64;
+        let mut a = 0;
+        while a < last {
+            // Grow: a+1 always fits (no frame in between).
+            let mut good = a + 1;
+            let mut step = 1;
+            let mut bad = None;
+            while good < last {
+                let b = (a + 2 * step).min(last);
+                if chord_error(a, b) <= tol {
+                    good = b;
+                    step *= 2;
+                } else {
+                    bad = Some(b);
+                    break;
+                }
+            }
+            // Narrow between the longest fitting and the first failing end.
+            if let Some(mut hi) = bad {
+                let mut lo = good;
+                while hi - lo > 1 {
+                    let mid = lo + (hi - lo) / 2;
+                    if chord_error(a, mid) <= tol {
+                        lo = mid;
+                    } else {
+                        hi = mid;
+                    }
+                }
+                good = lo;
+            }
+            max_dev = max_dev.max(chord_error(a, good));
+            keep.push(good);
+            a = good;
+        }
+        let times = keep.iter().map(|&f| start + f as f64 * frame_dt).collect();
+        let verts = keep.iter().map(|&f| points[f]).collect();
+        Ok((Polyline::new(times, verts)?, max_dev))
     }
 
     pub fn times(&self) -> &[f64] {
@@ -262,6 +346,39 @@ impl Obb {
         })
     }
 
+    /// Whether the box, grown by `r` on every side, is provably apart from `frustum`: some
+    /// frustum plane has it all outside (the plane test above, with `r` added to the reach), or
+    /// some box axis separates it from the frustum's vertices (a separating-axis test that
+    /// catches the big boxes beside a thin frustum which no single plane rejects). Both tests
+    /// only ever answer "apart" when it is true, so pruning by them loses no hits. The grown box
+    /// contains every point within `r` of the box, so this also decides for the frustum
+    /// inflated by `r` without inflating it (its vertices would have to be recomputed).
+    pub fn apart(&self, frustum: &Frustum, r: f64) -> bool {
+        let planes = frustum.planes().iter().any(|p| {
+            let reach: f64 = (0..3)
+                .map(|k| dot(p.normal, self.axes[k]).abs() * self.half[k])
+                .sum();
+            p.distance(self.center) > reach + r
+        });
+        if planes {
+            return true;
+        }
+        let Some(hull) = frustum.hull() else {
+            return false;
+        };
+        (0..3).any(|k| {
+            let c = dot(self.axes[k], self.center);
+            let h = self.half[k] + r;
+            let (lo, hi) = hull
+                .iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
+                    let x = dot(self.axes[k], *v) - c;
+                    (lo.min(x), hi.max(x))
+                });
+            lo > h || hi < -h
+        })
+    }
+
     /// Whether `x` is inside the box enlarged by `tol`.
     pub fn contains(&self, x: Vec3, tol: f64) -> bool {
         let d = sub(x, self.center);
@@ -354,33 +471,49 @@ impl PathTree {
     /// polyline; equal to [`Polyline::first_entry`]). Subtrees whose box is outside a plane, or
     /// whose time span misses the window, are skipped.
     pub fn first_entry(&self, frustum: &Frustum, window: Option<TimeWindow>) -> Option<f64> {
-        self.visit(0, frustum, window)
+        self.visit(0, frustum, frustum, 0.0, window)
     }
 
     /// Never-miss test: does the polyline come within the frustum inflated by `radius` (codec
     /// e_max + the polyline's deviation from the full-rate path) during `window`?
     pub fn intersects(&self, frustum: &Frustum, window: Option<TimeWindow>, radius: f64) -> bool {
-        self.first_entry(&frustum.inflated(radius), window)
+        let r = if radius.is_nan() {
+            f64::INFINITY
+        } else {
+            radius.max(0.0)
+        };
+        // Boxes are tested against the frustum with `r` added to them; segments against the
+        // inflated planes.
+        self.visit(0, frustum, &frustum.inflated_planes(r), r, window)
             .is_some()
     }
 
-    fn visit(&self, i: u32, frustum: &Frustum, window: Option<TimeWindow>) -> Option<f64> {
+    /// `frustum` prunes boxes (grown by `r`); `clip` (= `frustum` inflated by `r`) clips the
+    /// segments of the leaves.
+    fn visit(
+        &self,
+        i: u32,
+        frustum: &Frustum,
+        clip: &Frustum,
+        r: f64,
+        window: Option<TimeWindow>,
+    ) -> Option<f64> {
         let node = &self.nodes[i as usize];
         if let Some(w) = window
             && (node.t_end < w.start() || node.t_start > w.end())
         {
             return None;
         }
-        if node.obb.outside(frustum) {
+        if node.obb.apart(frustum, r) {
             return None;
         }
         match node.children {
             // Left first: it covers earlier times, so its hit (if any) is the first entry.
-            Some([l, r]) => self
-                .visit(l, frustum, window)
-                .or_else(|| self.visit(r, frustum, window)),
+            Some([left, right]) => self
+                .visit(left, frustum, clip, r, window)
+                .or_else(|| self.visit(right, frustum, clip, r, window)),
             None => (node.first as usize..node.end as usize)
-                .find_map(|s| self.path.segment_entry(s, frustum, window)),
+                .find_map(|s| self.path.segment_entry(s, clip, window)),
         }
     }
 

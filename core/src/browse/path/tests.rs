@@ -417,3 +417,103 @@ fn polyline_validation_names_the_field() {
         Err(BrowseError::NonFinite { .. })
     ));
 }
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 200, ..ProptestConfig::default() })]
+
+    /// The error-bounded simplification the store indexes: every full-rate frame lies within the
+    /// tolerance of the polyline at the same time, the reported deviation is the true one, and
+    /// the never-miss test over the simplified path (radius e_max + deviation) finds every hit.
+    #[test]
+    fn simplified_path_is_bounded_and_never_misses(seed in any::<u64>(), tol in 0.0f64..0.05) {
+        let c = case(seed);
+        let (simple, dev) = Polyline::simplify(0.0, FULL_RATE_DT, c.decoded.points(), tol)
+            .expect("valid path");
+        prop_assert!(dev <= tol + 1e-12, "deviation {dev} above tolerance {tol}");
+        let measured = simple.max_deviation_from(&c.decoded);
+        prop_assert!((measured - dev).abs() < 1e-9, "reported {dev}, measured {measured}");
+        prop_assert_eq!(simple.times()[0], 0.0);
+        prop_assert_eq!(simple.times().last(), c.decoded.times().last());
+        if tol == 0.0 {
+            prop_assert!(simple.len() <= c.decoded.len());
+        }
+        let tree = PathTree::build(simple);
+        if c.decoded.first_entry(&c.frustum, c.window).is_some() {
+            // The decoded path itself is the reference here, so only the simplification error
+            // needs covering.
+            prop_assert!(tree.intersects(&c.frustum, c.window, dev));
+        }
+    }
+}
+
+#[test]
+fn simplify_collapses_rest_and_keeps_corners() {
+    // 1 s at rest, then a straight slide, then rest: three segments suffice at any tolerance.
+    let mut pts = vec![[0.0, 0.0, 0.0]; 120];
+    pts.extend((1..=120).map(|i| [f64::from(i) / 120.0, 0.0, 0.0]));
+    pts.extend(std::iter::repeat_n([1.0, 0.0, 0.0], 120));
+    let (p, dev) = Polyline::simplify(0.0, FULL_RATE_DT, &pts, 1e-6).expect("valid");
+    assert_eq!(p.len(), 4, "{:?}", p.times());
+    assert!(dev < 1e-12);
+    // A parabola needs more vertices at a tighter tolerance.
+    let arc: Vec<Vec3> = (0..=360)
+        .map(|i| {
+            let t = f64::from(i) * FULL_RATE_DT;
+            [t, -0.5 * 9.81 * t * t, 0.0]
+        })
+        .collect();
+    let (coarse, d1) = Polyline::simplify(0.0, FULL_RATE_DT, &arc, 0.05).expect("valid");
+    let (fine, d2) = Polyline::simplify(0.0, FULL_RATE_DT, &arc, 0.005).expect("valid");
+    assert!(fine.len() > coarse.len() && d1 <= 0.05 && d2 <= 0.005);
+    // Chord error of g h²/8 ≤ tol gives h ≈ √(8·tol/g): about 0.2 s at 5 cm.
+    assert!(coarse.len() >= 12 && coarse.len() <= 20, "{}", coarse.len());
+    assert!(matches!(
+        Polyline::simplify(0.0, 0.0, &arc, 0.01),
+        Err(BrowseError::OutOfRange {
+            field: "frame_dt",
+            ..
+        })
+    ));
+    assert!(matches!(
+        Polyline::simplify(0.0, FULL_RATE_DT, &[], 0.01),
+        Err(BrowseError::Empty { .. })
+    ));
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 300, ..ProptestConfig::default() })]
+
+    /// `Obb::apart` (plane + separating-axis test on the frustum's vertices) never separates a
+    /// box from a frustum it overlaps: points of the grown box inside the frustum are searched
+    /// by sampling, and whenever one is found the test must say "not apart".
+    #[test]
+    fn apart_never_separates_overlapping_boxes(seed in any::<u64>(), r in 0.0f64..0.2) {
+        let c = case(seed);
+        let mut rng = Rng(seed ^ 0xA5A5);
+        let pts: Vec<Vec3> = (0..rng.range(1.0, 12.0) as usize)
+            .map(|_| {
+                let k = (rng.unit() * c.decoded.len() as f64) as usize % c.decoded.len();
+                add(c.decoded.points()[k], rng.vec3(-0.5, 0.5))
+            })
+            .collect();
+        let obb = Obb::fit(&pts);
+        let mut overlap = false;
+        for _ in 0..2000 {
+            let mut x = obb.center;
+            for k in 0..3 {
+                x = add(x, scale(obb.axes[k], rng.range(-1.0, 1.0) * (obb.half[k] + r)));
+            }
+            if c.frustum.contains(x) {
+                overlap = true;
+                break;
+            }
+        }
+        if overlap {
+            prop_assert!(!obb.apart(&c.frustum, r));
+        }
+        // Growing by r only ever makes "apart" harder.
+        if !obb.apart(&c.frustum, 0.0) {
+            prop_assert!(!obb.apart(&c.frustum, r));
+        }
+    }
+}

@@ -1,0 +1,700 @@
+//! One store shard's browsing state (§4.4): the indexed worlds it holds and, per browsing
+//! session, a [`ConstraintSet`] of bitsets over them. Pure: the node feeds it worlds as they are
+//! stored and [`ShardRequest`]s from node-query, and sends back the [`ShardReply`].
+
+use crate::index::IndexedWorld;
+use mwb_core::browse::api::{
+    ConstraintStatus, Reply, Request, SessionStatus, ShardReply, ShardRequest, WorldSummary,
+};
+use mwb_core::browse::{Constraint, ConstraintSet, RankKey, WorldSet, top_k};
+use std::collections::HashMap;
+
+/// Which worlds a store keeps when several split them (DESIGN.md: world → shard by hash).
+///
+/// A world `(job, seed)` belongs to shard `hash(job, seed) mod count`. Shard `s` numbers its
+/// worlds `s, s + count, s + 2·count, …`, so global indices never collide and a world fetch by
+/// index reaches exactly one shard.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ShardSpec {
+    pub index: u32,
+    pub count: u32,
+}
+
+impl Default for ShardSpec {
+    fn default() -> Self {
+        Self { index: 0, count: 1 }
+    }
+}
+
+impl ShardSpec {
+    /// `index/count`, e.g. `1/2`; validated.
+    pub fn parse(text: &str) -> Result<Self, String> {
+        let (i, n) = text
+            .split_once('/')
+            .ok_or_else(|| format!("shard {text:?}: expected INDEX/COUNT, e.g. 0/2"))?;
+        let index: u32 = i
+            .trim()
+            .parse()
+            .map_err(|_| format!("shard {text:?}: index {i:?} is not a number"))?;
+        let count: u32 = n
+            .trim()
+            .parse()
+            .map_err(|_| format!("shard {text:?}: count {n:?} is not a number"))?;
+        Self::new(index, count)
+    }
+
+    pub fn new(index: u32, count: u32) -> Result<Self, String> {
+        if count == 0 || index >= count {
+            return Err(format!(
+                "shard {index}/{count}: need 0 ≤ index < count and count ≥ 1"
+            ));
+        }
+        Ok(Self { index, count })
+    }
+
+    /// The shard a world belongs to. FNV-1a over the job id and the seed: stable across builds
+    /// and machines (unlike `std`'s randomly keyed hasher).
+    pub fn shard_of(job: &str, seed: u64, count: u32) -> u32 {
+        let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+        for b in job.bytes().chain([0xff]).chain(seed.to_le_bytes()) {
+            h ^= u64::from(b);
+            h = h.wrapping_mul(0x0000_0100_0000_01b3);
+        }
+        (h % u64::from(count.max(1))) as u32
+    }
+
+    pub fn owns(&self, job: &str, seed: u64) -> bool {
+        Self::shard_of(job, seed, self.count) == self.index
+    }
+
+    /// The global index of this shard's `local`-th world.
+    pub fn global(&self, local: u32) -> Option<u32> {
+        local.checked_mul(self.count)?.checked_add(self.index)
+    }
+
+    /// This shard's local index of a global one, if the shard numbers it.
+    pub fn local(&self, global: u32) -> Option<u32> {
+        (global % self.count == self.index).then_some(global / self.count)
+    }
+
+    /// The shard that answers the job-level questions (job states, open jobs): shard 0.
+    pub fn is_authority(&self) -> bool {
+        self.index == 0
+    }
+}
+
+#[derive(Debug, Default)]
+struct Session {
+    set: ConstraintSet,
+    edits: u64,
+}
+
+/// A shard's worlds and browsing sessions.
+#[derive(Debug)]
+pub struct Shard {
+    spec: ShardSpec,
+    name: String,
+    /// By local index; `None` for a world that could not be indexed.
+    worlds: Vec<Option<IndexedWorld>>,
+    indexed: u64,
+    sessions: HashMap<String, Session>,
+    threads: usize,
+}
+
+/// Sessions a shard keeps at most (each holds one bitset per constraint).
+pub const MAX_SESSIONS: usize = 256;
+
+impl Shard {
+    /// `name` identifies the shard in world summaries (its node id).
+    pub fn new(spec: ShardSpec, name: impl Into<String>) -> Self {
+        Self {
+            spec,
+            name: name.into(),
+            worlds: Vec::new(),
+            indexed: 0,
+            sessions: HashMap::new(),
+            threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
+        }
+    }
+
+    /// Threads used to evaluate a new constraint over all worlds (default: every core).
+    pub fn set_threads(&mut self, threads: usize) {
+        self.threads = threads.max(1);
+    }
+
+    pub fn spec(&self) -> ShardSpec {
+        self.spec
+    }
+
+    /// Worlds indexed (and so browsable).
+    pub fn world_count(&self) -> u64 {
+        self.indexed
+    }
+
+    pub fn world(&self, global: u32) -> Option<&IndexedWorld> {
+        let local = self.spec.local(global)?;
+        self.worlds.get(local as usize)?.as_ref()
+    }
+
+    /// Heap bytes of the path index and metrics, plus every session's bitsets.
+    pub fn heap_bytes(&self) -> usize {
+        self.worlds
+            .iter()
+            .flatten()
+            .map(|w| w.heap_bytes() + std::mem::size_of::<IndexedWorld>())
+            .sum::<usize>()
+            + self.worlds.capacity() * std::mem::size_of::<Option<IndexedWorld>>()
+            + self
+                .sessions
+                .values()
+                .map(|s| {
+                    s.set
+                        .constraints()
+                        .filter_map(|c| s.set.satisfied(c.id))
+                        .map(WorldSet::heap_bytes)
+                        .sum::<usize>()
+                        + s.set.result().heap_bytes()
+                        + s.set.worlds().heap_bytes()
+                })
+                .sum::<usize>()
+    }
+
+    /// Stores an indexed world under its global index and evaluates it against every live
+    /// constraint of every session (§4.4: results update as worlds stream in).
+    pub fn insert(&mut self, world: IndexedWorld) {
+        let Some(local) = self.spec.local(world.world) else {
+            return;
+        };
+        let slot = local as usize;
+        if self.worlds.len() <= slot {
+            self.worlds.resize_with(slot + 1, || None);
+        }
+        let global = world.world;
+        for s in self.sessions.values_mut() {
+            s.set.on_new_world(global, |c, _| evaluate(c, Some(&world)));
+        }
+        if self.worlds[slot].replace(world).is_none() {
+            self.indexed += 1;
+        }
+    }
+
+    /// Answers one request from node-query.
+    pub fn handle(&mut self, req: &ShardRequest) -> ShardReply {
+        if req.request == Request::Close {
+            self.sessions.remove(&req.session);
+            return ShardReply::Ok {
+                edits: 0,
+                reply: Reply::Closed,
+            };
+        }
+        if !self.sessions.contains_key(&req.session) {
+            if self.sessions.len() >= MAX_SESSIONS {
+                return ShardReply::Ok {
+                    edits: 0,
+                    reply: Reply::Error {
+                        message: format!(
+                            "shard {} already holds {MAX_SESSIONS} sessions; close some",
+                            self.name
+                        ),
+                    },
+                };
+            }
+            let mut session = Session::default();
+            for w in self.worlds.iter().flatten() {
+                session.set.on_new_world(w.world, |_, _| true);
+            }
+            self.sessions.insert(req.session.clone(), session);
+        }
+        let Some(mut session) = self.sessions.remove(&req.session) else {
+            return ShardReply::OutOfSync { edits: 0 };
+        };
+        let reply = if req.request.is_edit() {
+            match req.seq {
+                Some(seq) if seq == session.edits + 1 => {
+                    let r = self.edit(&mut session.set, &req.request);
+                    // A refused edit (e.g. unknown id) still uses up its number, so that every
+                    // shard keeps counting the same way.
+                    session.edits = seq;
+                    ShardReply::Ok {
+                        edits: session.edits,
+                        reply: match r {
+                            Ok(()) => self.status(&session),
+                            Err(message) => Reply::Error { message },
+                        },
+                    }
+                }
+                Some(seq) if seq <= session.edits => ShardReply::Ok {
+                    edits: session.edits,
+                    reply: self.status(&session),
+                },
+                _ => ShardReply::OutOfSync {
+                    edits: session.edits,
+                },
+            }
+        } else {
+            ShardReply::Ok {
+                edits: session.edits,
+                reply: self.read(&session, &req.request),
+            }
+        };
+        self.sessions.insert(req.session.clone(), session);
+        reply
+    }
+
+    fn edit(&self, set: &mut ConstraintSet, request: &Request) -> Result<(), String> {
+        let worlds = &self.worlds;
+        let spec = self.spec;
+        let lookup = |w: u32| {
+            spec.local(w)
+                .and_then(|l| worlds.get(l as usize))
+                .and_then(Option::as_ref)
+        };
+        match request {
+            Request::Add { constraint } => {
+                if set.get(constraint.id).is_some() {
+                    Err(format!("constraint {} is already live", constraint.id))
+                } else {
+                    let satisfied = self.evaluate_all(constraint);
+                    set.add_evaluated((**constraint).clone(), satisfied)
+                        .map_err(|e| e.to_string())
+                }
+            }
+            Request::Remove { id } => set.remove(*id).map_err(|e| e.to_string()),
+            Request::Undo => {
+                set.undo(|c, w| evaluate(c, lookup(w)));
+                Ok(())
+            }
+            Request::Redo => {
+                set.redo(|c, w| evaluate(c, lookup(w)));
+                Ok(())
+            }
+            _ => Err("not an edit".to_owned()),
+        }
+    }
+
+    /// The worlds satisfying `constraint`, evaluated on `threads` threads.
+    pub fn evaluate_all(&self, constraint: &Constraint) -> WorldSet {
+        let worlds: Vec<&IndexedWorld> = self.worlds.iter().flatten().collect();
+        let threads = self.threads.min(worlds.len() / 256).max(1);
+        if threads == 1 {
+            return worlds
+                .iter()
+                .filter(|w| evaluate(constraint, Some(w)))
+                .map(|w| w.world)
+                .collect();
+        }
+        let chunk = worlds.len().div_ceil(threads);
+        let parts: Vec<Vec<u32>> = std::thread::scope(|s| {
+            let handles: Vec<_> = worlds
+                .chunks(chunk)
+                .map(|part| {
+                    s.spawn(move || {
+                        part.iter()
+                            .filter(|w| evaluate(constraint, Some(w)))
+                            .map(|w| w.world)
+                            .collect::<Vec<u32>>()
+                    })
+                })
+                .collect();
+            handles
+                .into_iter()
+                .map(|h| h.join().unwrap_or_default())
+                .collect()
+        });
+        parts.into_iter().flatten().collect()
+    }
+
+    fn status(&self, session: &Session) -> Reply {
+        Reply::Status(status_of(&session.set, session.edits))
+    }
+
+    fn read(&self, session: &Session, request: &Request) -> Reply {
+        let set = &session.set;
+        match request {
+            Request::Status => self.status(session),
+            Request::Result { limit } => Reply::Worlds {
+                result: set.result().len() as u64,
+                worlds: set
+                    .result()
+                    .iter()
+                    .take(limit.unwrap_or(usize::MAX))
+                    .collect(),
+            },
+            Request::Rank {
+                key,
+                order,
+                k,
+                all_worlds,
+            } => {
+                let candidates = if *all_worlds {
+                    set.worlds()
+                } else {
+                    set.result()
+                };
+                let rows = top_k(candidates.iter(), *k, *order, |w| {
+                    let world = self.world(w)?;
+                    score(key, world, set.satisfied_count(w))
+                });
+                Reply::Ranking {
+                    candidates: candidates.len() as u64,
+                    rows,
+                }
+            }
+            Request::Summary { world } => match self.world(*world) {
+                None => Reply::NoSuchWorld { world: *world },
+                Some(w) => Reply::Summary(Box::new(WorldSummary {
+                    world: w.world,
+                    job: w.job_id.clone(),
+                    seed: w.seed,
+                    frames: w.frames,
+                    frame_dt: w.frame_dt,
+                    rested: w.rested,
+                    objects: w.metrics.clone(),
+                    path_radius: w.objects.iter().map(|o| o.radius).collect(),
+                    constraints_satisfied: set.satisfied_count(w.world),
+                    in_result: set.result().contains(w.world),
+                    shard: self.name.clone(),
+                })),
+            },
+            _ => Reply::Error {
+                message: "not a read".to_owned(),
+            },
+        }
+    }
+}
+
+fn score(key: &RankKey, world: &IndexedWorld, satisfied: u32) -> Option<f64> {
+    key.score(&world.metrics, satisfied)
+}
+
+/// Whether a world satisfies a constraint; a world that could not be indexed satisfies none.
+fn evaluate(c: &Constraint, world: Option<&IndexedWorld>) -> bool {
+    world.is_some_and(|w| {
+        c.evaluate(|o| w.objects.get(o as usize).map(|obj| (&obj.tree, obj.radius)))
+    })
+}
+
+fn status_of(set: &ConstraintSet, edits: u64) -> SessionStatus {
+    SessionStatus {
+        worlds: set.worlds().len() as u64,
+        result: set.result().len() as u64,
+        constraints: set
+            .constraints()
+            .map(|c| ConstraintStatus {
+                id: c.id,
+                polarity: c.polarity,
+                objects: c.objects.clone(),
+                window: c.window,
+                satisfied: set.satisfied(c.id).map_or(0, |s| s.len() as u64),
+            })
+            .collect(),
+        can_undo: set.can_undo(),
+        can_redo: set.can_redo(),
+        edits,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::index::IndexedObject;
+    use mwb_core::browse::api::merge;
+    use mwb_core::browse::{
+        Aggregate, ConstraintId, Frustum, Metric, ObjectMetrics, Order, PathTree, Polarity,
+        Polyline,
+    };
+
+    /// A one-object world whose object slides along x at height `y` from t = 0 to 1.
+    fn world(global: u32, y: f64, spin: f64) -> IndexedWorld {
+        let path = Polyline::new(vec![0.0, 1.0], vec![[-2.0, y, 0.0], [2.0, y, 0.0]])
+            .unwrap_or_else(|e| panic!("{e}"));
+        IndexedWorld {
+            world: global,
+            job_id: "j".into(),
+            seed: u64::from(global) * 7 + 1,
+            frames: 121,
+            frame_dt: 1.0 / 120.0,
+            rested: true,
+            objects: vec![IndexedObject {
+                tree: PathTree::build(path),
+                radius: 0.001,
+            }],
+            metrics: vec![ObjectMetrics {
+                angular_travel_rad: spin,
+                time_to_rest_s: 1.0,
+                came_to_rest: true,
+                impacts: 0,
+                orientation_error_rad: 0.0,
+            }],
+        }
+    }
+
+    fn through_origin(id: u64, polarity: Polarity) -> Constraint {
+        Constraint {
+            id: ConstraintId(id),
+            polarity,
+            frustum: Frustum::aabb([-0.1, -0.1, -0.1], [0.1, 0.1, 0.1])
+                .unwrap_or_else(|e| panic!("{e}")),
+            objects: vec![0],
+            window: None,
+        }
+    }
+
+    fn edit(shard: &mut Shard, seq: u64, request: Request) -> ShardReply {
+        shard.handle(&ShardRequest {
+            session: "s".into(),
+            seq: Some(seq),
+            request,
+        })
+    }
+
+    fn read(shard: &mut Shard, request: Request) -> Reply {
+        match shard.handle(&ShardRequest {
+            session: "s".into(),
+            seq: None,
+            request,
+        }) {
+            ShardReply::Ok { reply, .. } => reply,
+            other => panic!("{other:?}"),
+        }
+    }
+
+    fn result(shard: &mut Shard) -> Vec<u32> {
+        match read(shard, Request::Result { limit: None }) {
+            Reply::Worlds { worlds, .. } => worlds,
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn shard_spec_parses_splits_and_numbers() {
+        assert_eq!(
+            ShardSpec::parse("1/3"),
+            Ok(ShardSpec { index: 1, count: 3 })
+        );
+        for bad in ["3/3", "0/0", "x/2", "1", "1/y"] {
+            assert!(ShardSpec::parse(bad).is_err(), "{bad}");
+        }
+        let s = ShardSpec::new(1, 3).unwrap_or_default();
+        assert_eq!(s.global(0), Some(1));
+        assert_eq!(s.global(2), Some(7));
+        assert_eq!(s.local(7), Some(2));
+        assert_eq!(s.local(6), None);
+        assert_eq!(s.global(u32::MAX), None);
+        // Every world has exactly one owner, and the split is roughly even.
+        let mut per = [0u32; 3];
+        for seed in 0..3000u64 {
+            let owners: Vec<u32> = (0..3)
+                .filter(|&i| ShardSpec { index: i, count: 3 }.owns("job", seed))
+                .collect();
+            assert_eq!(owners.len(), 1);
+            per[owners[0] as usize] += 1;
+        }
+        assert!(per.iter().all(|&n| (900..1100).contains(&n)), "{per:?}");
+        // Stable across builds: pinned values.
+        assert_eq!(
+            ShardSpec::shard_of("job", 42, 1000),
+            ShardSpec::shard_of("job", 42, 1000)
+        );
+        assert_ne!(
+            (0..64)
+                .map(|s| ShardSpec::shard_of("a", s, 2))
+                .collect::<Vec<_>>(),
+            (0..64)
+                .map(|s| ShardSpec::shard_of("b", s, 2))
+                .collect::<Vec<_>>()
+        );
+    }
+
+    #[test]
+    fn edits_apply_in_order_and_new_worlds_are_evaluated_live() {
+        let mut shard = Shard::new(ShardSpec::default(), "a");
+        shard.insert(world(0, 0.0, 1.0));
+        shard.insert(world(1, 3.0, 2.0));
+        // Edit 2 before edit 1: refused with the count it has.
+        assert_eq!(
+            edit(&mut shard, 2, Request::Undo),
+            ShardReply::OutOfSync { edits: 0 }
+        );
+        let r = edit(
+            &mut shard,
+            1,
+            Request::Add {
+                constraint: Box::new(through_origin(1, Polarity::Positive)),
+            },
+        );
+        assert!(matches!(r, ShardReply::Ok { edits: 1, .. }), "{r:?}");
+        assert_eq!(result(&mut shard), vec![0]);
+        // A repeated edit number is not applied twice.
+        let again = edit(
+            &mut shard,
+            1,
+            Request::Add {
+                constraint: Box::new(through_origin(1, Polarity::Positive)),
+            },
+        );
+        assert!(matches!(
+            again,
+            ShardReply::Ok {
+                edits: 1,
+                reply: Reply::Status(_)
+            }
+        ));
+        // Live: a new world through the origin joins the result, one beside it does not.
+        shard.insert(world(2, 0.05, 3.0));
+        shard.insert(world(3, -4.0, 4.0));
+        assert_eq!(result(&mut shard), vec![0, 2]);
+        // A negative constraint on the same box keeps the complement; together: nothing.
+        edit(
+            &mut shard,
+            2,
+            Request::Add {
+                constraint: Box::new(through_origin(2, Polarity::Negative)),
+            },
+        );
+        assert_eq!(result(&mut shard), Vec::<u32>::new());
+        // Removing the *first* constraint leaves the second's bits.
+        edit(
+            &mut shard,
+            3,
+            Request::Remove {
+                id: ConstraintId(1),
+            },
+        );
+        assert_eq!(result(&mut shard), vec![1, 3]);
+        // Undo brings it back; a world arriving while it was off is evaluated on return.
+        shard.insert(world(4, 0.0, 5.0));
+        edit(&mut shard, 4, Request::Undo);
+        assert_eq!(result(&mut shard), Vec::<u32>::new());
+        edit(
+            &mut shard,
+            5,
+            Request::Remove {
+                id: ConstraintId(2),
+            },
+        );
+        assert_eq!(result(&mut shard), vec![0, 2, 4]);
+        // Unknown ids are refused but use up their number.
+        let r = edit(
+            &mut shard,
+            6,
+            Request::Remove {
+                id: ConstraintId(9),
+            },
+        );
+        assert!(
+            matches!(&r, ShardReply::Ok { edits: 6, reply: Reply::Error { message } } if message.contains('9')),
+            "{r:?}"
+        );
+        // Ranking: survivors by spin, descending; ties by index; constraints over all worlds.
+        match read(
+            &mut shard,
+            Request::Rank {
+                key: RankKey::Metric {
+                    metric: Metric::AngularTravel,
+                    objects: vec![0],
+                    aggregate: Aggregate::Sum,
+                },
+                order: Order::Descending,
+                k: 2,
+                all_worlds: false,
+            },
+        ) {
+            Reply::Ranking { candidates, rows } => {
+                assert_eq!(candidates, 3);
+                assert_eq!(rows.iter().map(|r| r.world).collect::<Vec<_>>(), vec![4, 2]);
+            }
+            other => panic!("{other:?}"),
+        }
+        match read(&mut shard, Request::Summary { world: 4 }) {
+            Reply::Summary(s) => {
+                assert_eq!((s.world, s.seed, s.constraints_satisfied), (4, 29, 1));
+                assert!(s.in_result && s.shard == "a");
+            }
+            other => panic!("{other:?}"),
+        }
+        assert_eq!(
+            read(&mut shard, Request::Summary { world: 40 }),
+            Reply::NoSuchWorld { world: 40 }
+        );
+        assert!(shard.heap_bytes() > 0);
+        assert_eq!(read(&mut shard, Request::Close), Reply::Closed);
+        // A closed session starts afresh.
+        match read(&mut shard, Request::Status) {
+            Reply::Status(st) => assert_eq!((st.edits, st.constraints.len(), st.result), (0, 0, 5)),
+            other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn two_shards_merged_equal_one_and_threads_do_not_matter() {
+        let worlds: Vec<(f64, f64)> = (0..700)
+            .map(|i| {
+                let y = f64::from(i % 13) * 0.04 - 0.2;
+                (y, f64::from((i * 37) % 101))
+            })
+            .collect();
+        let mut one = Shard::new(ShardSpec::default(), "one");
+        let mut two = [
+            Shard::new(ShardSpec { index: 0, count: 2 }, "a"),
+            Shard::new(ShardSpec { index: 1, count: 2 }, "b"),
+        ];
+        two[1].set_threads(1);
+        // Same worlds: global index i in `one`, split by parity in `two` (index = i as well).
+        for (i, &(y, spin)) in worlds.iter().enumerate() {
+            one.insert(world(i as u32, y, spin));
+            two[i % 2].insert(world(i as u32, y, spin));
+        }
+        let requests = [
+            Request::Add {
+                constraint: Box::new(through_origin(1, Polarity::Positive)),
+            },
+            Request::Result { limit: Some(50) },
+            Request::Add {
+                constraint: Box::new(through_origin(2, Polarity::Negative)),
+            },
+            Request::Undo,
+            Request::Status,
+            Request::Rank {
+                key: RankKey::Metric {
+                    metric: Metric::AngularTravel,
+                    objects: vec![0],
+                    aggregate: Aggregate::Max,
+                },
+                order: Order::Descending,
+                k: 9,
+                all_worlds: false,
+            },
+            Request::Rank {
+                key: RankKey::ConstraintsSatisfied,
+                order: Order::Descending,
+                k: 20,
+                all_worlds: true,
+            },
+            Request::Summary { world: 11 },
+        ];
+        let mut seq = 0;
+        for req in requests {
+            let seq_now = req.is_edit().then(|| {
+                seq += 1;
+                seq
+            });
+            let ask = |s: &mut Shard| match s.handle(&ShardRequest {
+                session: "s".into(),
+                seq: seq_now,
+                request: req.clone(),
+            }) {
+                ShardReply::Ok { reply, .. } => reply,
+                other => panic!("{other:?}"),
+            };
+            let single = ask(&mut one);
+            let parts: Vec<Reply> = two.iter_mut().map(ask).collect();
+            let mut merged = merge(&req, parts).unwrap_or_else(|e| panic!("{e}"));
+            // The summary names its shard; everything else must match exactly.
+            if let (Reply::Summary(a), Reply::Summary(b)) = (&single, &mut merged) {
+                b.shard.clone_from(&a.shard);
+            }
+            assert_eq!(single, merged, "{req:?}");
+        }
+    }
+}

@@ -1,0 +1,361 @@
+//! `mwb bench query`: browsing speed over a store shard (§4.4.2), one JSON line.
+//!
+//! Worlds are synthetic but their paths are real: a few worlds of a shipped scene are sampled
+//! and indexed exactly as the store does (decode, error-bounded polyline, OBB tree, metrics);
+//! each synthetic world takes `objects` of those object paths, each shifted sideways by up to a
+//! metre so that no two worlds are alike. Constraints are screen rectangles (2–20 % of the image
+//! side) drawn through a camera looking at the scene from a random direction, aimed at a random
+//! point of a random path, over that object and up to two others, a fifth of them negative, with
+//! a time window in a third of them.
+//!
+//! * add: a new constraint over every world (`Shard::handle`, every core), including the AND;
+//! * remove: removing one of four live constraints (AND of the other bitsets, no geometry);
+//! * brute: the same constraint tested segment by segment on every polyline without the tree,
+//!   on the same threads; obb_speedup = brute ÷ tree evaluation (medians);
+//! * rank: top 10 by angular travel summed over all objects, over every world.
+
+use anyhow::{Result, bail};
+use mwb_core::browse::api::{Reply, Request, ShardReply, ShardRequest};
+use mwb_core::browse::{
+    Aggregate, Camera, Constraint, ConstraintId, Frustum, Intrinsics, Metric, Order, PathTree,
+    Polarity, Polyline, RankKey, RestThresholds, ScreenRect, TimeWindow, Viewport,
+};
+use mwb_core::scene::SceneTemplate;
+use mwb_proto::v1::{Message, WorldDone};
+use mwb_sampler::{RunOptions, run_world, segment_message};
+use mwb_store::index::{DEFAULT_PATH_TOLERANCE_M, IndexedObject};
+use mwb_store::{IndexedWorld, Shard, ShardSpec, StoredWorld, index_world};
+use std::ops::ControlFlow;
+use std::time::Instant;
+
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct QueryBench {
+    pub scene: String,
+    pub worlds: u32,
+    pub objects: u32,
+    pub threads: usize,
+    pub constraints: usize,
+    /// Fraction of worlds a constraint kept, median (how selective the boxes were).
+    pub kept_fraction_p50: f64,
+    pub add_p50_ms: f64,
+    pub add_p95_ms: f64,
+    pub remove_p50_ms: f64,
+    pub tree_p50_ms: f64,
+    pub brute_p50_ms: f64,
+    pub obb_speedup: f64,
+    pub rank_p50_ms: f64,
+    pub memory_bytes_per_world: f64,
+    /// Polyline vertices per object, mean (the index's size driver).
+    pub vertices_per_object: f64,
+    pub path_radius_mm_p50: f64,
+}
+
+struct Rng(u64);
+
+impl Rng {
+    fn unit(&mut self) -> f64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+    }
+    fn range(&mut self, lo: f64, hi: f64) -> f64 {
+        lo + (hi - lo) * self.unit()
+    }
+    fn index(&mut self, n: usize) -> usize {
+        ((self.unit() * n as f64) as usize).min(n.saturating_sub(1))
+    }
+}
+
+fn percentile(v: &mut [f64], p: f64) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    v[((v.len() - 1) as f64 * p).round() as usize]
+}
+
+/// Real indexed worlds of `scene`, as the store builds them.
+fn sample_pool(file: &str, text: &str, worlds: u32) -> Result<Vec<IndexedWorld>> {
+    let template = SceneTemplate::parse(text, file)?;
+    let rest = RestThresholds::from(template.settings());
+    let mut out = Vec::new();
+    for i in 0..worlds {
+        let seed = mwb_core::rng::world_seed("bench-query", "local", u64::from(i));
+        let mut segments = Vec::new();
+        let summary = run_world(&template, seed, RunOptions::default(), &mut |seg| {
+            segments.push(segment_message("q", "n", u64::from(i), seed, seg));
+            ControlFlow::Continue(())
+        })?;
+        let done = WorldDone {
+            seed,
+            frame_count: summary.frame_count,
+            segment_count: summary.segment_count,
+            frame_dt: summary.frame_dt,
+            rested: summary.rested,
+            impacts: summary.impacts,
+            rest_time_s: summary.rest_time_s,
+            body_rested: summary.body_rested,
+            ..Default::default()
+        };
+        let bytes = segments.iter().map(|s| s.encoded_len() as u64).sum();
+        let stored = StoredWorld {
+            index: i,
+            job_id: "q".into(),
+            done,
+            segments,
+            bytes,
+        };
+        out.push(index_world(&stored, i, rest, DEFAULT_PATH_TOLERANCE_M)?);
+    }
+    Ok(out)
+}
+
+fn shifted(obj: &IndexedObject, d: [f64; 3]) -> Result<IndexedObject> {
+    let p = obj.tree.path();
+    let points = p
+        .points()
+        .iter()
+        .map(|x| [x[0] + d[0], x[1] + d[1], x[2] + d[2]])
+        .collect();
+    Ok(IndexedObject {
+        tree: PathTree::build(Polyline::new(p.times().to_vec(), points)?),
+        radius: obj.radius,
+    })
+}
+
+fn random_constraint(rng: &mut Rng, id: u64, worlds: &[IndexedWorld]) -> Result<Constraint> {
+    let w = &worlds[rng.index(worlds.len())];
+    let o = rng.index(w.objects.len());
+    let pts = w.objects[o].tree.path().points();
+    let target = pts[rng.index(pts.len())];
+    let (yaw, pitch) = (rng.range(0.0, std::f64::consts::TAU), rng.range(0.2, 1.2));
+    let dist = rng.range(4.0, 12.0);
+    let dir = [
+        pitch.cos() * yaw.sin(),
+        pitch.sin(),
+        pitch.cos() * yaw.cos(),
+    ];
+    let eye = [
+        target[0] + dist * dir[0],
+        target[1] + dist * dir[1],
+        target[2] + dist * dir[2],
+    ];
+    // Camera −z looks along −dir: yaw about y, then pitch down about x.
+    let (sy, cy) = (0.5 * yaw).sin_cos();
+    let (sp, cp) = (-0.5 * pitch).sin_cos();
+    let qy = [0.0, sy, 0.0, cy];
+    let qx = [sp, 0.0, 0.0, cp];
+    let rotation = [
+        qy[3] * qx[0] + qy[0] * qx[3] + qy[1] * qx[2] - qy[2] * qx[1],
+        qy[3] * qx[1] - qy[0] * qx[2] + qy[1] * qx[3] + qy[2] * qx[0],
+        qy[3] * qx[2] + qy[0] * qx[1] - qy[1] * qx[0] + qy[2] * qx[3],
+        qy[3] * qx[3] - qy[0] * qx[0] - qy[1] * qx[1] - qy[2] * qx[2],
+    ];
+    let camera = Camera {
+        position: eye,
+        rotation,
+        intrinsics: Intrinsics::VerticalFov { fov_y_rad: 0.9 },
+        viewport: Viewport {
+            width: 1280,
+            height: 720,
+        },
+        near: 0.1,
+        far: 50.0,
+    };
+    let proj = camera.projection()?;
+    let (centre, _) = proj.project(target).unwrap_or(([640.0, 360.0], 1.0));
+    let side = rng.range(0.02, 0.2) * 720.0;
+    let rect = ScreenRect {
+        x0: centre[0] - 0.5 * side,
+        y0: centre[1] - 0.5 * side,
+        x1: centre[0] + 0.5 * side,
+        y1: centre[1] + 0.5 * side,
+    };
+    let window = if rng.unit() < 1.0 / 3.0 {
+        let a = rng.range(0.0, 2.0);
+        Some(TimeWindow::new(a, a + rng.range(0.3, 1.5))?)
+    } else {
+        None
+    };
+    // "This rock", sometimes "any of these two or three".
+    let n = w.objects.len();
+    let mut objects = vec![o as u32];
+    for _ in 0..rng.index(3) {
+        objects.push(rng.index(n) as u32);
+    }
+    objects.sort_unstable();
+    objects.dedup();
+    Ok(Constraint {
+        id: ConstraintId(id),
+        polarity: if rng.unit() < 0.8 {
+            Polarity::Positive
+        } else {
+            Polarity::Negative
+        },
+        frustum: proj.frustum(&rect)?,
+        objects,
+        window,
+    })
+}
+
+/// The constraint evaluated without the tree: every segment of every chosen polyline.
+fn brute(worlds: &[&IndexedWorld], c: &Constraint, threads: usize) -> usize {
+    let eval = |w: &&IndexedWorld| {
+        let touched = c.objects.iter().any(|&o| {
+            w.objects.get(o as usize).is_some_and(|obj| {
+                let f: Frustum = c.frustum.inflated(obj.radius);
+                obj.tree.path().first_entry(&f, c.window).is_some()
+            })
+        });
+        c.satisfied_given(touched)
+    };
+    let chunk = worlds.len().div_ceil(threads.max(1)).max(1);
+    std::thread::scope(|s| {
+        let handles: Vec<_> = worlds
+            .chunks(chunk)
+            .map(|part| s.spawn(move || part.iter().filter(|w| eval(w)).count()))
+            .collect();
+        handles.into_iter().map(|h| h.join().unwrap_or(0)).sum()
+    })
+}
+
+pub fn bench_query(
+    scene: &str,
+    worlds: u32,
+    objects: u32,
+    constraints: usize,
+) -> Result<QueryBench> {
+    if worlds == 0 || objects == 0 || constraints == 0 {
+        bail!("--worlds, --objects and --constraints must be positive");
+    }
+    let (file, text) = crate::client::load_scene(scene)?;
+    let pool = sample_pool(&file, &text, 24)?;
+    let pool_objects: Vec<(&IndexedObject, mwb_core::browse::ObjectMetrics)> = pool
+        .iter()
+        .flat_map(|w| w.objects.iter().zip(w.metrics.iter().copied()))
+        .collect();
+    if pool_objects.is_empty() {
+        bail!("{file}: no dynamic bodies to take paths from");
+    }
+    let mut rng = Rng(0x5EED);
+    let mut shard = Shard::new(ShardSpec::default(), "bench");
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let mut synthetic = Vec::with_capacity(worlds as usize);
+    let mut vertices = 0usize;
+    let mut radii = Vec::new();
+    for i in 0..worlds {
+        let mut objs = Vec::with_capacity(objects as usize);
+        let mut metrics = Vec::with_capacity(objects as usize);
+        for _ in 0..objects {
+            let (obj, m) = pool_objects[rng.index(pool_objects.len())];
+            let d = [rng.range(-1.0, 1.0), 0.0, rng.range(-1.0, 1.0)];
+            let o = shifted(obj, d)?;
+            vertices += o.tree.path().len();
+            radii.push(o.radius * 1000.0);
+            objs.push(o);
+            metrics.push(m);
+        }
+        let w = IndexedWorld {
+            world: i,
+            job_id: "synthetic".into(),
+            seed: u64::from(i),
+            frames: 0,
+            frame_dt: pool[0].frame_dt,
+            rested: true,
+            objects: objs,
+            metrics,
+        };
+        synthetic.push(w.clone());
+        shard.insert(w);
+    }
+    let refs: Vec<&IndexedWorld> = synthetic.iter().collect();
+    let mut seq = 0u64;
+    let mut send = |shard: &mut Shard, request: Request| -> Result<Reply> {
+        let edit = request.is_edit();
+        if edit {
+            seq += 1;
+        }
+        match shard.handle(&ShardRequest {
+            session: "bench".into(),
+            seq: edit.then_some(seq),
+            request,
+        }) {
+            ShardReply::Ok {
+                reply: Reply::Error { message },
+                ..
+            } => bail!("{message}"),
+            ShardReply::Ok { reply, .. } => Ok(reply),
+            ShardReply::OutOfSync { edits } => bail!("bench session out of sync at {edits}"),
+        }
+    };
+    let (mut add, mut remove, mut tree, mut brute_ms, mut rank, mut kept) =
+        (vec![], vec![], vec![], vec![], vec![], vec![]);
+    let key = RankKey::Metric {
+        metric: Metric::AngularTravel,
+        objects: (0..objects).collect(),
+        aggregate: Aggregate::Sum,
+    };
+    for round in 0..constraints {
+        let c = random_constraint(&mut rng, round as u64 + 1, &synthetic)?;
+        // Tree vs brute force on the same threads, same constraint.
+        let t = Instant::now();
+        let by_tree = shard.evaluate_all(&c).len();
+        tree.push(t.elapsed().as_secs_f64() * 1e3);
+        let t = Instant::now();
+        let by_brute = brute(&refs, &c, threads);
+        brute_ms.push(t.elapsed().as_secs_f64() * 1e3);
+        if by_tree != by_brute {
+            bail!("constraint {round}: tree kept {by_tree} worlds, brute force {by_brute}");
+        }
+        kept.push(by_tree as f64 / f64::from(worlds));
+        // Add it to the session (evaluation + AND), keeping at most four live.
+        let t = Instant::now();
+        send(
+            &mut shard,
+            Request::Add {
+                constraint: Box::new(c),
+            },
+        )?;
+        add.push(t.elapsed().as_secs_f64() * 1e3);
+        if round >= 3 {
+            // Remove one of the older ones (not the newest): AND of the rest only.
+            let id = ConstraintId((round - 3) as u64 + 1);
+            let t = Instant::now();
+            send(&mut shard, Request::Remove { id })?;
+            remove.push(t.elapsed().as_secs_f64() * 1e3);
+        }
+        let t = Instant::now();
+        send(
+            &mut shard,
+            Request::Rank {
+                key: key.clone(),
+                order: Order::Descending,
+                k: 10,
+                all_worlds: true,
+            },
+        )?;
+        rank.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    let tree_p50 = percentile(&mut tree, 0.5);
+    let brute_p50 = percentile(&mut brute_ms, 0.5);
+    Ok(QueryBench {
+        scene: file,
+        worlds,
+        objects,
+        threads,
+        constraints,
+        kept_fraction_p50: percentile(&mut kept, 0.5),
+        add_p50_ms: percentile(&mut add, 0.5),
+        add_p95_ms: percentile(&mut add, 0.95),
+        remove_p50_ms: percentile(&mut remove, 0.5),
+        tree_p50_ms: tree_p50,
+        brute_p50_ms: brute_p50,
+        obb_speedup: brute_p50 / tree_p50.max(1e-9),
+        rank_p50_ms: percentile(&mut rank, 0.5),
+        memory_bytes_per_world: shard.heap_bytes() as f64 / f64::from(worlds),
+        vertices_per_object: vertices as f64 / (f64::from(worlds) * f64::from(objects)),
+        path_radius_mm_p50: percentile(&mut radii, 0.5),
+    })
+}
