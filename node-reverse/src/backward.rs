@@ -29,9 +29,33 @@
 //! * `|v_T| ≤ δ`: friction is free inside its bounds and drives the earlier tangential velocity
 //!   towards a chosen goal (5.7)–(5.8), along a chosen direction; zero by default.
 //!
-//! These choices make any solution of the backward LCP a solution of the forward one (the
-//! round-trip of §5.2), except where an impulse-free contact ends up approaching faster than `ε`
-//! because of its neighbours; [`BackwardReport::forward_residual`] measures that every step.
+//! * Round bodies (§5.3.5): three rolling-friction rows (5.15)–(5.17) per contact, bounded by
+//!   the rolling arm times the normal impulse. While the pair rotates relative to each other the
+//!   first axis is aligned with the rotation and its torque impulse is maximal against it (5.18),
+//!   folded into the normal's column exactly like sliding friction; otherwise the rows are free
+//!   and keep the earlier relative rotation at zero.
+//!
+//! # Repairs that keep the step forward-valid
+//!
+//! Figure 5.5 alone leaves two ways for the result to be a state no forward step produces, and
+//! the step repairs both before it returns (at most a few re-solves of the affected islands):
+//!
+//! * **Look-ahead.** The next backward step takes its Jacobian at `x − Δt v⁻`, not at `x`. When a
+//!   body rotates (a box pivoting on an edge, tipping, rocking), its contact points and normals
+//!   move between the two poses, so "no approach at `x`" becomes an approach (or a creep below
+//!   `δ`) at `x − Δt v⁻`, which no forward step ends with. The step predicts the next poses,
+//!   asks the narrow phase for those contacts (on copies of its manifolds), and shifts the
+//!   goals of its pushing resting contacts and sticking friction by the difference, so that the
+//!   next step sees exactly zero normal and tangential velocity there. The shift is a tiny
+//!   incoming speed (positive or negative, far below `ε`), which is what a forward step of a
+//!   pivoting body has too. Islands where no body turns by more than round-off, or only balls
+//!   turn (a ball's contacts do not move when it spins), skip all of this, so a resting scene
+//!   costs what a forward step costs.
+//! * **Cutoffs.** A resting contact must arrive slower than `ε` and an elastic one exactly at
+//!   `v_N / α`, or the forward step would bounce it; an impulse-free neighbour can break either
+//!   (see `repair_cutoffs`).
+//!
+//! What is left unexplained is measured every step: [`BackwardReport::forward_residual`].
 //! None of the plausibility heuristics of §5.3 (reverse damping, restitution pushed to 1,
 //! sticky stacks) are applied here.
 
@@ -39,9 +63,10 @@ use std::collections::BTreeMap;
 
 use nalgebra::{DVector, Vector3};
 
-use crate::contact::{ContactSet, JacobianRow, Partner};
+use crate::body::Body;
+use crate::contact::{Contact, ContactSet, Island, JacobianRow, Partner};
 use crate::lcp::{self, LcpProblem, LcpStatus, RowKind};
-use crate::step::{contact_rows, disable_non_finite};
+use crate::step::{contact_rows, disable_non_finite, rolling_rows};
 use crate::world::{
     ContactImpulse, InvMass, IslandSolve, Response, World, delassus, rotate, row_velocity,
     store_velocities, velocity6,
@@ -86,6 +111,12 @@ pub struct BackwardChoices {
     /// §5.3.1 pushes it to 1 after an elastic contact. The contact set keeps the material's
     /// value, so [`BackwardReport::forward_residual`] measures the departure.
     pub restitution: BTreeMap<(usize, Partner), f64>,
+    /// Scale in `[0, 1]` of the friction coefficient used *by the backward decision* for a
+    /// pair, as [`Self::restitution`] (absent: 1). The rattling heuristic lowers it after an
+    /// elastic contact: reversed sliding friction at a bounce adds `μ f_N |v_T|` of energy
+    /// (§5.3.1 advises small friction coefficients for reversibility). The contact set keeps
+    /// the material's value, so [`BackwardReport::forward_residual`] measures the departure.
+    pub friction_scale: BTreeMap<(usize, Partner), f64>,
     /// The stacking heuristic of §5.3.3: a resting contact between two bodies that are not
     /// free to bounce (or between such a body and static geometry) is held, allowing the
     /// normal impulse to pull, so a stack does not fly apart when stepped backward. `None`:
@@ -153,6 +184,9 @@ pub struct ContactChoice {
     pub normal_goal: f64,
     /// Goal earlier tangential velocity along `tangent_u` (sticking contacts).
     pub tangent_goal: f64,
+    /// Friction coefficient the decision used: the contact's, times
+    /// [`BackwardChoices::friction_scale`].
+    pub mu: f64,
 }
 
 /// What a backward step did; enough to replay it forward.
@@ -171,9 +205,10 @@ pub struct BackwardReport {
     pub forward_residual: f64,
     /// Contacts whose normal velocity at `t` approaches faster than `δ`. No forward step ends
     /// like that (it stops every approach in its contact set), so such a state has no exact
-    /// forward-valid predecessor and `forward_residual` will be about that speed. It happens
-    /// when a body rotates while its contact point slides along it (a box tipping over an
-    /// edge): the previous backward step zeroed the normal velocity at the old material point.
+    /// forward-valid predecessor and `forward_residual` will be about that speed. The previous
+    /// step's look-ahead removes the approach at contacts it knew; what remains are contacts
+    /// that appear only at the earlier poses (a new feature pair of a penetrating, rotating
+    /// box).
     pub approaching_contacts: usize,
     /// Shape pairs parry could not handle.
     pub unsupported_pairs: usize,
@@ -196,6 +231,17 @@ const LIFT_ROUNDS: usize = 4;
 const LIFT_CLEARANCE: f64 = 2.0;
 /// Approach speeds below this (m/s) are round-off, not landings.
 const LIFT_NOISE: f64 = 1e-9;
+/// Rounds of look-ahead and cutoff repairs per backward step (each re-solves the islands it
+/// changed).
+const CORRECTION_ROUNDS: usize = 6;
+/// Look-ahead corrections below this (m/s) are round-off.
+const LOOKAHEAD_TOL: f64 = 1e-13;
+/// Islands whose bodies all turn less than this per step (rad) need no look-ahead.
+const LOOKAHEAD_ANGLE: f64 = 1e-12;
+/// Resting contacts must arrive slower than this fraction of `ε`.
+const CUTOFF_MARGIN: f64 = 0.99;
+/// Extra shrink of lift-off goals when a neighbour broke the cutoff.
+const LIFT_SCALE: f64 = 0.95;
 
 fn fold(normal: &JacobianRow, tangent: &JacobianRow, mu: f64) -> JacobianRow {
     let mix = |n: &[f64; 6], t: &[f64; 6]| std::array::from_fn(|k| n[k] - mu * t[k]);
@@ -214,6 +260,7 @@ enum Var {
     Normal(usize),
     U(usize),
     W(usize),
+    Roll(usize, usize),
 }
 
 impl World {
@@ -265,6 +312,7 @@ impl World {
 
         // Figure 5.5, per contact.
         let mut decisions = Vec::with_capacity(set.contacts.len());
+        let mut rolling_slip = Vec::with_capacity(set.contacts.len());
         let mut approaching = 0;
         for k in 0..set.contacts.len() {
             let rel = self.relative_velocity(&set.contacts[k]);
@@ -292,6 +340,11 @@ impl World {
             } else {
                 (FrictionCase::Sticking, 0.0)
             };
+            // §5.3.5: rolling friction is maximal against a relative rotation, like sliding
+            // friction against a slip (the "goal ±∞" of (5.7) on (5.15)–(5.18)).
+            let spin = self.relative_angular_velocity(&set.contacts[k]);
+            let c = &mut set.contacts[k];
+            rolling_slip.push(c.rolling > 0.0 && c.align_rolling(&spin, delta));
             let alpha = choices
                 .restitution
                 .get(&(c.body, c.partner))
@@ -331,182 +384,117 @@ impl World {
                     (NormalCase::Resting, lift)
                 }
             };
+            let mu = c.friction
+                * choices
+                    .friction_scale
+                    .get(&(c.body, c.partner))
+                    .copied()
+                    .filter(|s| s.is_finite())
+                    .map_or(1.0, |s| s.clamp(0.0, 1.0));
             decisions.push(ContactChoice {
                 normal,
                 friction,
                 normal_goal,
                 tangent_goal,
+                mu,
             });
         }
+
+        let n_contacts = set.contacts.len();
+        // Goals that ask a contact to leave (lift-offs, landings), as opposed to rest goals.
+        let mut lifting: Vec<bool> = decisions
+            .iter()
+            .map(|d| d.normal == NormalCase::Resting && d.normal_goal > 0.0)
+            .collect();
+        // A user's slide goal is kept as given; zero tangent goals get the look-ahead.
+        let slide_goal: Vec<bool> = decisions.iter().map(|d| d.tangent_goal != 0.0).collect();
+        let mut w_goals = vec![0.0; n_contacts];
+        // Elastic contacts held to (5.2) with equality (see `repair_cutoffs`).
+        let mut exact = vec![false; n_contacts];
 
         let inv: Vec<InvMass> = self.bodies.iter().map(InvMass::of).collect();
         let gdt = self.gravity * dt;
         // v_t − Δt M⁻¹ f_ext: the earlier velocity before contact impulses are undone.
-        let mut vel: Vec<[f64; 6]> = v_plus.clone();
-        for (b, v) in self.bodies.iter().zip(vel.iter_mut()) {
+        let mut free_vel: Vec<[f64; 6]> = v_plus;
+        for (b, v) in self.bodies.iter().zip(free_vel.iter_mut()) {
             if b.enabled {
                 v[0] -= gdt.x;
                 v[1] -= gdt.y;
                 v[2] -= gdt.z;
             }
         }
-        let free_vel = vel.clone();
-        let mut impulses = vec![ContactImpulse::default(); set.contacts.len()];
-        let mut islands = Vec::with_capacity(set.islands.len());
-        for island in &set.islands {
-            let mut rows = Vec::new();
-            let mut dirs = Vec::new();
-            let mut kinds = Vec::new();
-            let mut b = Vec::new();
-            let mut vars = Vec::new();
-            for &k in &island.contacts {
-                let d = decisions[k];
-                if d.normal == NormalCase::Separating {
+        let mut vel = free_vel.clone();
+        let mut solutions: Vec<IslandOutcome> = Vec::with_capacity(set.islands.len());
+        let mut dirty = vec![true; set.islands.len()];
+        let mut impulses = vec![ContactImpulse::default(); n_contacts];
+        for round in 0..=CORRECTION_ROUNDS {
+            for (i, island) in set.islands.iter().enumerate() {
+                if !dirty[i] {
                     continue;
                 }
-                let c = &set.contacts[k];
-                let [rn, ru, rw] = contact_rows(c, &self.bodies);
-                let normal = kinds.len();
-                let mu = c.friction;
-                if d.normal == NormalCase::Held {
-                    // §5.3.3: hold the contact, w = 0 while the impulses stay inside ±cap.
-                    let weight = self.gravity.norm() * dt / self.bodies[c.body].inv_mass;
-                    let cap = choices.stacking_glue.unwrap_or(0.0).max(0.0) * weight;
-                    for (row, var, hi) in [
-                        (rn, Var::Normal(k), f64::INFINITY),
-                        (ru, Var::U(k), cap),
-                        (rw, Var::W(k), cap),
-                    ] {
-                        rows.push(row);
-                        dirs.push(row);
-                        kinds.push(RowKind::Bounded { lo: -cap, hi });
-                        b.push(-row_velocity(&row, &free_vel));
-                        vars.push(var);
-                    }
-                    continue;
+                for &b in &island.bodies {
+                    vel[b] = free_vel[b];
                 }
-                // Normal: w = −v⁻_N − goal (5.3)/(5.5).
-                rows.push(rn);
-                dirs.push(match d.friction {
-                    FrictionCase::Sliding => fold(&rn, &ru, mu),
-                    FrictionCase::Sticking => rn,
-                });
-                kinds.push(RowKind::Normal);
-                b.push(-row_velocity(&rn, &free_vel) - d.normal_goal);
-                vars.push(Var::Normal(k));
-                // Friction: w = −(v⁻_T − goal_T) (5.7); interior impulse ⇒ the goal is met.
-                if d.friction == FrictionCase::Sticking {
-                    rows.push(ru);
-                    dirs.push(ru);
-                    kinds.push(RowKind::Friction { normal, mu });
-                    b.push(-row_velocity(&ru, &free_vel) + d.tangent_goal);
-                    vars.push(Var::U(k));
-                }
-                rows.push(rw);
-                dirs.push(rw);
-                kinds.push(RowKind::Friction { normal, mu });
-                b.push(-row_velocity(&rw, &free_vel));
-                vars.push(Var::W(k));
-            }
-            if rows.is_empty() {
-                islands.push(IslandSolve {
-                    status: LcpStatus::Solved,
-                    residual: 0.0,
-                    rows: 0,
-                    pivots: 0,
-                });
-                continue;
-            }
-            let responses: Vec<Response> = dirs.iter().map(|r| Response::new(r, &inv)).collect();
-            let a = delassus(&rows, &responses);
-            let n = rows.len();
-            let problem = LcpProblem::new(a, DVector::from_vec(b), kinds);
-            let Ok(mut problem) = problem else {
-                islands.push(IslandSolve {
-                    status: LcpStatus::Degenerate,
-                    residual: f64::NAN,
-                    rows: n,
-                    pivots: 0,
-                });
-                continue;
-            };
-            let mut solved = lcp::solve(&problem, &self.params.lcp);
-            // A contact left approaching (forward in time) too slowly to leave the prediction
-            // band within one step would still be in the next backward step's contact set with
-            // an approaching post-step velocity, which no forward step produces: the forward
-            // step stops every approach it sees. Such a landing is re-explained as an inelastic
-            // impact at a speed that clears the band, a lift-off goal below ε (5.5).
-            for _ in 0..LIFT_ROUNDS {
-                let Ok(sol) = &solved else { break };
-                if !sol.x.iter().all(|v| v.is_finite()) {
-                    break;
-                }
-                // J v⁻ after undoing the impulses is J v − A x (A = J M⁻¹ Gᵀ): no need to
-                // touch the velocities of bodies outside the island.
-                let undone = &problem.a * &sol.x;
-                let mut changed = false;
-                for (j, var) in vars.iter().enumerate() {
-                    let Var::Normal(k) = *var else { continue };
-                    if decisions[k].normal != NormalCase::Resting {
-                        continue;
-                    }
-                    let incoming = -(row_velocity(&rows[j], &vel) - undone[j]);
-                    let clearance = (self.params.prediction - set.contacts[k].dist).max(0.0);
-                    let needed = LIFT_CLEARANCE * clearance / dt + delta;
-                    if incoming > LIFT_NOISE
-                        && incoming < needed
-                        && needed < 0.99 * eps
-                        && decisions[k].normal_goal < needed
-                    {
-                        problem.b[j] -= needed - decisions[k].normal_goal;
-                        decisions[k].normal_goal = needed;
-                        changed = true;
+                let outcome = self.solve_backward_island(
+                    &set,
+                    island,
+                    &mut decisions,
+                    &mut lifting,
+                    (&w_goals, &exact, &rolling_slip),
+                    choices,
+                    &inv,
+                    &vel,
+                    dt,
+                );
+                if let Some(x) = &outcome.x {
+                    for (j, resp) in outcome.responses.iter().enumerate() {
+                        // v⁻ = (v_t − Δt M⁻¹ f_ext) − M⁻¹ Gᵀ f  (5.9)–(5.11).
+                        resp.add_to(-x[j], &mut vel);
                     }
                 }
-                if !changed {
-                    break;
+                for &k in &island.contacts {
+                    impulses[k] = ContactImpulse::default();
                 }
-                solved = lcp::solve(&problem, &self.params.lcp);
-            }
-            let Ok(sol) = solved else {
-                islands.push(IslandSolve {
-                    status: LcpStatus::Degenerate,
-                    residual: f64::NAN,
-                    rows: n,
-                    pivots: 0,
-                });
-                continue;
-            };
-            let finite = sol.x.iter().all(|v| v.is_finite());
-            if finite {
-                for (j, resp) in responses.iter().enumerate() {
-                    // v⁻ = (v_t − Δt M⁻¹ f_ext) − M⁻¹ Gᵀ f  (5.9)–(5.11).
-                    resp.add_to(-sol.x[j], &mut vel);
-                }
-                for (j, var) in vars.iter().enumerate() {
-                    match *var {
-                        Var::Normal(k) => {
-                            impulses[k].normal = sol.x[j];
-                            if decisions[k].friction == FrictionCase::Sliding {
-                                impulses[k].tangent_u = -set.contacts[k].friction * sol.x[j];
-                            }
-                        }
-                        Var::U(k) => impulses[k].tangent_u = sol.x[j],
-                        Var::W(k) => impulses[k].tangent_w = sol.x[j],
-                    }
-                }
-            }
-            islands.push(IslandSolve {
-                status: if finite {
-                    sol.status
+                outcome.write_impulses(&set, (&decisions, &rolling_slip), &mut impulses);
+                if i < solutions.len() {
+                    solutions[i] = outcome;
                 } else {
-                    LcpStatus::Degenerate
-                },
-                residual: sol.residual,
-                rows: n,
-                pivots: sol.pivots,
-            });
+                    solutions.push(outcome);
+                }
+            }
+            if round == CORRECTION_ROUNDS {
+                break;
+            }
+            dirty.fill(false);
+            for (i, island) in set.islands.iter().enumerate() {
+                if solutions[i].x.is_some()
+                    && self.repair_cutoffs(
+                        &set,
+                        island,
+                        (&mut decisions, &mut exact),
+                        &lifting,
+                        &impulses,
+                        &vel,
+                    )
+                {
+                    dirty[i] = true;
+                }
+            }
+            self.look_ahead(
+                &set,
+                &solutions,
+                &mut dirty,
+                (&mut decisions, &mut w_goals),
+                (&lifting, &slide_goal),
+                &impulses,
+                &vel,
+                dt,
+            );
+            if !dirty.iter().any(|d| *d) {
+                break;
+            }
         }
+        let islands = solutions.iter().map(|o| o.solve).collect();
         store_velocities(&mut self.bodies, &vel);
         let disabled = disable_non_finite(&mut self.bodies, &before);
         let forward_residual = self.forward_residual(&set, &impulses, dt);
@@ -519,6 +507,447 @@ impl World {
             approaching_contacts: approaching,
             unsupported_pairs: unsupported,
             disabled,
+        }
+    }
+
+    /// Builds and solves the backward LCP of one island with the current decisions and goals.
+    /// `vel` holds the free velocities of the island's bodies. Landings too slow to leave the
+    /// prediction band get raised goals here (and become `lifting`).
+    #[allow(clippy::too_many_arguments)]
+    fn solve_backward_island(
+        &self,
+        set: &ContactSet,
+        island: &Island,
+        decisions: &mut [ContactChoice],
+        lifting: &mut [bool],
+        (w_goals, exact, rolling_slip): (&[f64], &[bool], &[bool]),
+        choices: &BackwardChoices,
+        inv: &[InvMass],
+        vel: &[[f64; 6]],
+        dt: f64,
+    ) -> IslandOutcome {
+        let eps = self.params.restitution_cutoff;
+        let delta = self.params.rest_threshold;
+        let mut rows = Vec::new();
+        let mut dirs = Vec::new();
+        let mut kinds = Vec::new();
+        let mut b = Vec::new();
+        let mut vars = Vec::new();
+        for &k in &island.contacts {
+            let d = decisions[k];
+            if d.normal == NormalCase::Separating {
+                continue;
+            }
+            let c = &set.contacts[k];
+            let [rn, ru, rw] = contact_rows(c, &self.bodies);
+            let normal = kinds.len();
+            let mu = d.mu;
+            if d.normal == NormalCase::Held {
+                // §5.3.3: hold the contact, w = 0 while the impulses stay inside ±cap.
+                let weight = self.gravity.norm() * dt / self.bodies[c.body].inv_mass;
+                let cap = choices.stacking_glue.unwrap_or(0.0).max(0.0) * weight;
+                for (row, var, hi, goal) in [
+                    (rn, Var::Normal(k), f64::INFINITY, -d.normal_goal),
+                    (ru, Var::U(k), cap, d.tangent_goal),
+                    (rw, Var::W(k), cap, w_goals[k]),
+                ] {
+                    rows.push(row);
+                    dirs.push(row);
+                    kinds.push(RowKind::Bounded { lo: -cap, hi });
+                    b.push(-row_velocity(&row, vel) + goal);
+                    vars.push(var);
+                }
+                continue;
+            }
+            let rolling = rolling_rows(c);
+            let normal_dir = {
+                let slid = match d.friction {
+                    FrictionCase::Sliding => fold(&rn, &ru, mu),
+                    FrictionCase::Sticking => rn,
+                };
+                match &rolling {
+                    Some([r0, _, _]) if rolling_slip[k] => fold(&slid, r0, c.rolling),
+                    _ => slid,
+                }
+            };
+            if exact[k] && d.normal == NormalCase::Elastic {
+                // (5.2) with equality; friction only through the folds of a sliding or
+                // rolling contact (the free rows would need a normal row that cannot pull).
+                rows.push(rn);
+                dirs.push(normal_dir);
+                kinds.push(RowKind::Equality);
+                b.push(-row_velocity(&rn, vel) - d.normal_goal);
+                vars.push(Var::Normal(k));
+                continue;
+            }
+            // Normal: w = −v⁻_N − goal (5.3)/(5.5).
+            rows.push(rn);
+            dirs.push(normal_dir);
+            kinds.push(RowKind::Normal);
+            b.push(-row_velocity(&rn, vel) - d.normal_goal);
+            vars.push(Var::Normal(k));
+            // Friction: w = −(v⁻_T − goal_T) (5.7); interior impulse ⇒ the goal is met.
+            if d.friction == FrictionCase::Sticking {
+                rows.push(ru);
+                dirs.push(ru);
+                kinds.push(RowKind::Friction { normal, mu });
+                b.push(-row_velocity(&ru, vel) + d.tangent_goal);
+                vars.push(Var::U(k));
+            }
+            rows.push(rw);
+            dirs.push(rw);
+            kinds.push(RowKind::Friction { normal, mu });
+            b.push(-row_velocity(&rw, vel) + w_goals[k]);
+            vars.push(Var::W(k));
+            // Rolling rows (5.15)–(5.17): the first axis is folded into the normal while the
+            // contact rolls; free rows keep the earlier relative rotation at zero otherwise.
+            let skip = usize::from(rolling_slip[k]);
+            for (axis, row) in rolling.into_iter().flatten().enumerate().skip(skip) {
+                rows.push(row);
+                dirs.push(row);
+                kinds.push(RowKind::Friction {
+                    normal,
+                    mu: c.rolling,
+                });
+                b.push(-row_velocity(&row, vel));
+                vars.push(Var::Roll(k, axis));
+            }
+        }
+        let n = rows.len();
+        let failed = |responses: Vec<Response>, vars: Vec<Var>| IslandOutcome {
+            solve: IslandSolve {
+                status: LcpStatus::Degenerate,
+                residual: f64::NAN,
+                rows: n,
+                pivots: 0,
+            },
+            x: None,
+            responses,
+            vars,
+        };
+        if rows.is_empty() {
+            return IslandOutcome {
+                solve: IslandSolve {
+                    status: LcpStatus::Solved,
+                    residual: 0.0,
+                    rows: 0,
+                    pivots: 0,
+                },
+                x: None,
+                responses: Vec::new(),
+                vars,
+            };
+        }
+        let responses: Vec<Response> = dirs.iter().map(|r| Response::new(r, inv)).collect();
+        let a = delassus(&rows, &responses);
+        let Ok(mut problem) = LcpProblem::new(a, DVector::from_vec(b), kinds) else {
+            return failed(responses, vars);
+        };
+        let mut solved = lcp::solve(&problem, &self.params.lcp);
+        // A contact left approaching (forward in time) too slowly to leave the prediction
+        // band within one step would still be in the next backward step's contact set with
+        // an approaching post-step velocity, which no forward step produces: the forward
+        // step stops every approach it sees. Such a landing is re-explained as an inelastic
+        // impact at a speed that clears the band, a lift-off goal below ε (5.5).
+        for _ in 0..LIFT_ROUNDS {
+            let Ok(sol) = &solved else { break };
+            if !sol.x.iter().all(|v| v.is_finite()) {
+                break;
+            }
+            // J v⁻ after undoing the impulses is J v − A x (A = J M⁻¹ Gᵀ): no need to
+            // touch the velocities of bodies outside the island.
+            let undone = &problem.a * &sol.x;
+            let mut changed = false;
+            for (j, var) in vars.iter().enumerate() {
+                let Var::Normal(k) = *var else { continue };
+                if decisions[k].normal != NormalCase::Resting {
+                    continue;
+                }
+                let incoming = -(row_velocity(&rows[j], vel) - undone[j]);
+                // A resting contact meeting a small look-ahead goal is not landing.
+                if !lifting[k] && incoming - decisions[k].normal_goal <= LIFT_NOISE {
+                    continue;
+                }
+                let clearance = (self.params.prediction - set.contacts[k].dist).max(0.0);
+                let needed = LIFT_CLEARANCE * clearance / dt + delta;
+                if incoming > LIFT_NOISE
+                    && incoming < needed
+                    && needed < 0.99 * eps
+                    && decisions[k].normal_goal < needed
+                {
+                    problem.b[j] -= needed - decisions[k].normal_goal;
+                    decisions[k].normal_goal = needed;
+                    lifting[k] = true;
+                    changed = true;
+                }
+            }
+            if !changed {
+                break;
+            }
+            solved = lcp::solve(&problem, &self.params.lcp);
+        }
+        let Ok(sol) = solved else {
+            return failed(responses, vars);
+        };
+        let finite = sol.x.iter().all(|v| v.is_finite());
+        IslandOutcome {
+            solve: IslandSolve {
+                status: if finite {
+                    sol.status
+                } else {
+                    LcpStatus::Degenerate
+                },
+                residual: sol.residual,
+                rows: n,
+                pivots: sol.pivots,
+            },
+            x: finite.then_some(sol.x),
+            responses,
+            vars,
+        }
+    }
+
+    /// The restitution cutoff seen from the forward step (§3.5): a contact whose earlier
+    /// incoming speed exceeds `ε` bounces, so the backward solution must not leave one there
+    /// unless it explains the bounce. Two repairs, each followed by a re-solve:
+    ///
+    /// * a resting contact that arrives faster than `ε` without pushing, because lift-offs of
+    ///   its neighbours rotated the body (lifting three corners of a box at one speed drives
+    ///   the fourth at twice that speed): the island's lift-off goals are scaled down;
+    /// * an elastic contact (5.3) that ended up not pushing while arriving faster than its
+    ///   goal (the relaxation of (5.2)): a forward step would bounce it harder than `v_N`, so
+    ///   (5.2) is imposed with equality, which makes its neighbours push less; if even then
+    ///   it would have to pull, it is re-explained as case 2 of Figure 5.1 (no impulse).
+    ///
+    /// Returns whether anything changed.
+    fn repair_cutoffs(
+        &self,
+        set: &ContactSet,
+        island: &Island,
+        (decisions, exact): (&mut [ContactChoice], &mut [bool]),
+        lifting: &[bool],
+        impulses: &[ContactImpulse],
+        vel: &[[f64; 6]],
+    ) -> bool {
+        let eps = self.params.restitution_cutoff;
+        let mut worst = 0.0f64;
+        let mut changed = false;
+        for &k in &island.contacts {
+            let c = &set.contacts[k];
+            if c.restitution <= 0.0 {
+                continue;
+            }
+            let incoming = -row_velocity(&JacobianRow::new(c, &c.normal, &self.bodies), vel);
+            let d = decisions[k];
+            match d.normal {
+                NormalCase::Resting if incoming > CUTOFF_MARGIN * eps => {
+                    worst = worst.max(incoming);
+                }
+                NormalCase::Elastic if exact[k] && impulses[k].normal < 0.0 => {
+                    // Even with equality the contact would have to pull: no bounce explains
+                    // it, so it did not push (case 2 of Figure 5.1), and stays invalid unless
+                    // it arrives below ε.
+                    exact[k] = false;
+                    decisions[k].normal = NormalCase::Separating;
+                    decisions[k].normal_goal = 0.0;
+                    changed = true;
+                }
+                NormalCase::Elastic
+                    if !exact[k]
+                        && impulses[k].normal <= 0.0
+                        && incoming > eps
+                        && incoming - d.normal_goal > 1e-9 * d.normal_goal.max(1.0) =>
+                {
+                    exact[k] = true;
+                    changed = true;
+                }
+                _ => {}
+            }
+        }
+        if worst > 0.0 {
+            let scale = LIFT_SCALE * CUTOFF_MARGIN * eps / worst;
+            for &k in &island.contacts {
+                if lifting[k] && decisions[k].normal_goal > 0.0 {
+                    decisions[k].normal_goal *= scale;
+                    changed = true;
+                }
+            }
+        }
+        changed
+    }
+
+    /// Looks one step further back (see the [module docs](self)): at the poses the next
+    /// backward step will start from, `x − Δt v⁻`, the contacts that rest now must still rest
+    /// (`J' v⁻ = 0` along the normal, no slip when friction sticks), or the next step starts
+    /// from a state no forward step produces (approaching, or creeping below `δ`). Where the
+    /// next Jacobian `J'` differs from this step's `J` (a body rotates, so its contact points
+    /// and normals move), the goals are shifted by the difference and the island is marked
+    /// for a re-solve. Only islands with a rotating body can differ.
+    #[allow(clippy::too_many_arguments)]
+    fn look_ahead(
+        &self,
+        set: &ContactSet,
+        solutions: &[IslandOutcome],
+        dirty: &mut [bool],
+        (decisions, w_goals): (&mut [ContactChoice], &mut [f64]),
+        (lifting, slide_goal): (&[bool], &[bool]),
+        impulses: &[ContactImpulse],
+        vel: &[[f64; 6]],
+        dt: f64,
+    ) {
+        let eps = self.params.restitution_cutoff;
+        // Round-off leaves resting bodies with |ω| ~ 1e-16 rad/s; a turn of LOOKAHEAD_ANGLE
+        // per step moves no contact point or normal enough to change the next step's
+        // velocities by LOOKAHEAD_TOL, so such islands are not looked at. A ball turning
+        // about its centre moves neither its contact points nor its normals.
+        let rotating = |b: usize| {
+            let [.., wx, wy, wz] = vel[b];
+            let body = &self.bodies[b];
+            body.enabled
+                && body.shape.as_ball().is_none()
+                && Vector3::new(wx, wy, wz).norm() * dt > LOOKAHEAD_ANGLE
+        };
+        let look: Vec<usize> = set
+            .islands
+            .iter()
+            .enumerate()
+            .filter(|(i, island)| {
+                solutions[*i].x.is_some() && island.bodies.iter().any(|&b| rotating(b))
+            })
+            .map(|(i, _)| i)
+            .collect();
+        if look.is_empty() {
+            return;
+        }
+        // Only the bodies of the looked-at islands move to their next poses (partners of
+        // their contacts are in the same island or static).
+        let mut ahead: BTreeMap<usize, Body> = BTreeMap::new();
+        for &i in &look {
+            for &b in &set.islands[i].bodies {
+                let mut body = self.bodies[b].clone();
+                let [vx, vy, vz, wx, wy, wz] = vel[b];
+                body.linvel = Vector3::new(vx, vy, vz);
+                body.angvel = Vector3::new(wx, wy, wz);
+                if body.enabled {
+                    body.position -= body.linvel * dt;
+                    body.orientation = rotate(&body.orientation, &body.angvel, -dt);
+                }
+                ahead.insert(b, body);
+            }
+        }
+        let mut keys: Vec<(usize, Partner)> = look
+            .iter()
+            .flat_map(|&i| set.islands[i].contacts.iter())
+            .map(|&k| (set.contacts[k].body, set.contacts[k].partner))
+            .collect();
+        keys.sort_unstable();
+        keys.dedup();
+        let predicted = self.narrow_phase.predict(
+            &keys,
+            |b| ahead.get(&b),
+            &self.statics,
+            self.params.prediction,
+        );
+        let by_feature: BTreeMap<(usize, Partner, (u32, u32)), &Contact> = predicted
+            .iter()
+            .rev() // the first of duplicates wins, as a linear search would pick it
+            .map(|p| ((p.body, p.partner, p.features), p))
+            .collect();
+        let point_velocity = |b: usize, c: &Contact| {
+            ahead
+                .get(&b)
+                .map_or(Vector3::zeros(), |body| body.point_velocity(&c.point))
+        };
+        let relative = |c: &Contact| {
+            let va = point_velocity(c.body, c);
+            match c.partner {
+                Partner::Body(p) => va - point_velocity(p, c),
+                Partner::Static(_) => va,
+            }
+        };
+        for &i in &look {
+            let mut changed = false;
+            for &k in &set.islands[i].contacts {
+                let c = &set.contacts[k];
+                let d = decisions[k];
+                if !matches!(d.normal, NormalCase::Resting | NormalCase::Held) {
+                    continue;
+                }
+                let Some(&next) = by_feature.get(&(c.body, c.partner, c.features)) else {
+                    continue;
+                };
+                let rel = relative(next);
+                let v_n = next.normal.dot(&rel);
+                let f = impulses[k];
+                let pushing = d.normal == NormalCase::Held || f.normal > 0.0;
+                if pushing {
+                    // Pushing contacts meet their goal with equality, so the next step's
+                    // normal velocity moves one for one with the goal.
+                    let shift = if lifting[k] { v_n.min(0.0) } else { v_n };
+                    if shift.abs() > LOOKAHEAD_TOL {
+                        decisions[k].normal_goal = (d.normal_goal + shift).min(CUTOFF_MARGIN * eps);
+                        changed = true;
+                    }
+                }
+                let interior = match d.normal {
+                    NormalCase::Held => true,
+                    _ => {
+                        let bound = d.mu * f.normal * (1.0 - 1e-9);
+                        f.normal > 0.0 && f.tangent_u.abs() < bound && f.tangent_w.abs() < bound
+                    }
+                };
+                if d.friction == FrictionCase::Sticking && !slide_goal[k] && interior {
+                    let slip = rel - next.normal * v_n;
+                    let (du, dw) = (slip.dot(&c.tangent_u), slip.dot(&c.tangent_w));
+                    if du.abs() > LOOKAHEAD_TOL || dw.abs() > LOOKAHEAD_TOL {
+                        decisions[k].tangent_goal -= du;
+                        w_goals[k] -= dw;
+                        changed = true;
+                    }
+                }
+            }
+            if changed {
+                dirty[i] = true;
+            }
+        }
+    }
+}
+
+/// One island's backward solve.
+struct IslandOutcome {
+    solve: IslandSolve,
+    /// The impulses (`None`: no finite solution; velocities keep their free values).
+    x: Option<DVector<f64>>,
+    responses: Vec<Response>,
+    vars: Vec<Var>,
+}
+
+impl IslandOutcome {
+    /// Writes the island's impulses, in the forward sense, into `impulses`.
+    fn write_impulses(
+        &self,
+        set: &ContactSet,
+        (decisions, rolling_slip): (&[ContactChoice], &[bool]),
+        impulses: &mut [ContactImpulse],
+    ) {
+        let Some(x) = &self.x else { return };
+        for (j, var) in self.vars.iter().enumerate() {
+            match *var {
+                Var::Normal(k) => {
+                    impulses[k].normal = x[j];
+                    if decisions[k].friction == FrictionCase::Sliding
+                        && decisions[k].normal != NormalCase::Held
+                    {
+                        impulses[k].tangent_u = -decisions[k].mu * x[j];
+                    }
+                    if rolling_slip[k] && decisions[k].normal != NormalCase::Held {
+                        impulses[k].rolling[0] = -set.contacts[k].rolling * x[j];
+                    }
+                }
+                Var::Roll(k, axis) => impulses[k].rolling[axis] = x[j],
+                Var::U(k) => impulses[k].tangent_u = x[j],
+                Var::W(k) => impulses[k].tangent_w = x[j],
+            }
         }
     }
 }

@@ -64,7 +64,17 @@ pub struct Body {
     /// False once a step produced a non-finite state for this body: it is then frozen and left
     /// out of contact handling instead of poisoning its island.
     pub enabled: bool,
+    /// Rolling resistance arm `b` (m) of a round body (§5.3.5): a contact may resist the
+    /// relative rotation with a torque impulse of at most `b` times its normal impulse about
+    /// each of three axes, (5.15)–(5.18). Zero (no rolling rows) for bodies that do not roll;
+    /// [`Body::ball`], [`Body::capsule`] and [`Body::cylinder`] start at
+    /// [`DEFAULT_ROLLING_RESISTANCE`] times their radius.
+    pub rolling_resistance: f64,
 }
+
+/// Default rolling-resistance coefficient of round bodies: the resistance arm is this fraction
+/// of the radius (a hard ball on a hard floor is 0.001–0.01, on cloth or grass a few 0.01).
+pub const DEFAULT_ROLLING_RESISTANCE: f64 = 0.01;
 
 fn check_positive(what: &'static str, value: f64) -> Result<(), BodyError> {
     if value.is_finite() && value > 0.0 {
@@ -97,6 +107,7 @@ impl Body {
             shape,
             material: Material::default(),
             enabled: true,
+            rolling_resistance: 0.0,
         })
     }
 
@@ -131,6 +142,7 @@ impl Body {
             m,
             Matrix3::from_diagonal_element(i),
         )
+        .map(|b| b.with_rolling_resistance(DEFAULT_ROLLING_RESISTANCE * radius))
     }
 
     /// A solid cylinder whose axis is the body's y axis.
@@ -147,6 +159,7 @@ impl Body {
             m,
             inertia,
         )
+        .map(|b| b.with_rolling_resistance(DEFAULT_ROLLING_RESISTANCE * radius))
     }
 
     /// A capsule whose axis is the body's y axis (segment of half length `half_height`).
@@ -170,6 +183,7 @@ impl Body {
             m,
             Matrix3::from_diagonal(&Vector3::new(ix, iy, ix)),
         )
+        .map(|b| b.with_rolling_resistance(DEFAULT_ROLLING_RESISTANCE * radius))
     }
 
     /// The convex hull of `points` (body frame), recentred on its centre of mass: the returned
@@ -198,6 +212,17 @@ impl Body {
     pub fn at(mut self, position: Vector3<f64>, orientation: UnitQuaternion<f64>) -> Self {
         self.position = position;
         self.orientation = orientation;
+        self
+    }
+
+    /// Builder: set the rolling resistance arm (m, see [`Body::rolling_resistance`]); values
+    /// that are not finite and positive turn rolling resistance off.
+    pub fn with_rolling_resistance(mut self, arm: f64) -> Self {
+        self.rolling_resistance = if arm.is_finite() && arm > 0.0 {
+            arm
+        } else {
+            0.0
+        };
         self
     }
 

@@ -54,6 +54,12 @@ pub struct Contact {
     pub restitution: f64,
     /// parry feature ids of the two shapes (identify a contact between steps).
     pub features: (u32, u32),
+    /// Rolling resistance arm (m) of the pair, the larger of the two bodies'
+    /// [`Body::rolling_resistance`]; zero: the contact has no rolling rows (§5.3.5).
+    pub rolling: f64,
+    /// First rolling-friction axis, unit; the stepper aligns it with the relative angular
+    /// velocity like `tangent_u` with the slip. See [`Contact::rolling_axes`].
+    pub roll_axis: Vector3<f64>,
 }
 
 impl Contact {
@@ -71,6 +77,28 @@ impl Contact {
             let (u, w) = default_tangents(&self.normal);
             self.tangent_u = u;
             self.tangent_w = w;
+            false
+        }
+    }
+}
+
+impl Contact {
+    /// The three axes of the rolling-friction rows (5.15)–(5.17): `roll_axis` and a
+    /// deterministic orthonormal completion.
+    pub fn rolling_axes(&self) -> [Vector3<f64>; 3] {
+        let (a, b) = default_tangents(&self.roll_axis);
+        [self.roll_axis, a, b]
+    }
+
+    /// Aligns `roll_axis` with `omega` (the relative angular velocity) when it is longer than
+    /// `min_norm`, else resets it to the normal. Returns whether `omega` was used.
+    pub fn align_rolling(&mut self, omega: &Vector3<f64>, min_norm: f64) -> bool {
+        let norm = omega.norm();
+        if norm > min_norm && norm.is_finite() {
+            self.roll_axis = omega / norm;
+            true
+        } else {
+            self.roll_axis = self.normal;
             false
         }
     }
@@ -209,6 +237,24 @@ impl JacobianRow {
         }
     }
 
+    /// The row of a rolling-friction direction (5.15)–(5.17): relative angular velocity about
+    /// `axis`, no linear part.
+    pub fn angular(contact: &Contact, axis: &Vector3<f64>) -> Self {
+        let half = |body: usize, sign: f64| {
+            (
+                body,
+                [0.0, 0.0, 0.0, sign * axis.x, sign * axis.y, sign * axis.z],
+            )
+        };
+        Self {
+            a: half(contact.body, 1.0),
+            b: match contact.partner {
+                Partner::Body(b) => Some(half(b, -1.0)),
+                Partner::Static(_) => None,
+            },
+        }
+    }
+
     /// `J v`: relative velocity along the row's direction.
     pub fn velocity(&self, bodies: &[Body]) -> f64 {
         let dot = |(i, j): &(usize, [f64; 6])| {
@@ -281,12 +327,30 @@ impl NarrowPhase {
                 Partner::Static(s) => {
                     let st = &statics[s];
                     let mat = bi.material.combine(st.material);
-                    self.pair(key, bi, &st.shape, st.pose(), mat, pred, &mut contacts)
+                    let rolling = bi.rolling_resistance;
+                    self.pair(
+                        key,
+                        bi,
+                        &st.shape,
+                        st.pose(),
+                        (mat, rolling),
+                        pred,
+                        &mut contacts,
+                    )
                 }
                 Partner::Body(j) => {
                     let bj = &bodies[j];
                     let mat = bi.material.combine(bj.material);
-                    self.pair(key, bi, &bj.shape, bj.pose(), mat, pred, &mut contacts)
+                    let rolling = bi.rolling_resistance.max(bj.rolling_resistance);
+                    self.pair(
+                        key,
+                        bi,
+                        &bj.shape,
+                        bj.pose(),
+                        (mat, rolling),
+                        pred,
+                        &mut contacts,
+                    )
                 }
             };
             if !ok {
@@ -300,6 +364,53 @@ impl NarrowPhase {
         (contacts, unsupported)
     }
 
+    /// The contacts of the pairs `keys` at the given (predicted) poses, computed on copies of
+    /// the cached manifolds so that the narrow phase itself is untouched: exactly what
+    /// [`NarrowPhase::detect`] would return for those pairs if the bodies were where `body`
+    /// puts them now. `body(i)` is body `i` at its predicted pose (`None`: skip the pairs that
+    /// name it), so a caller predicting a few bodies of a large world copies only those. Used
+    /// by the backward step to look one step ahead (see [`crate::backward`]). Pairs without a
+    /// cache are computed from scratch.
+    pub fn predict<'a>(
+        &self,
+        keys: &[(usize, Partner)],
+        body: impl Fn(usize) -> Option<&'a Body>,
+        statics: &[StaticBody],
+        prediction: f64,
+    ) -> Vec<Contact> {
+        let pred = prediction.max(0.0) as f32;
+        let mut out = Vec::new();
+        for &key in keys {
+            let Some(bi) = body(key.0) else {
+                continue;
+            };
+            let mut cache = self.pairs.get(&key).cloned().unwrap_or_default();
+            let (shape, pose, mat) = match key.1 {
+                Partner::Static(s) => match statics.get(s) {
+                    Some(st) => (
+                        &st.shape,
+                        st.pose(),
+                        (bi.material.combine(st.material), bi.rolling_resistance),
+                    ),
+                    None => continue,
+                },
+                Partner::Body(j) => match body(j) {
+                    Some(bj) => (
+                        &bj.shape,
+                        bj.pose(),
+                        (
+                            bi.material.combine(bj.material),
+                            bi.rolling_resistance.max(bj.rolling_resistance),
+                        ),
+                    ),
+                    None => continue,
+                },
+            };
+            pair_contacts(key, bi, shape, pose, mat, pred, &mut cache, &mut out);
+        }
+        out
+    }
+
     #[allow(clippy::too_many_arguments)]
     fn pair(
         &mut self,
@@ -307,71 +418,98 @@ impl NarrowPhase {
         body: &Body,
         other_shape: &parry3d::shape::SharedShape,
         other_pose: parry3d::math::Pose,
-        material: Material,
+        material: (Material, f64),
         prediction: f32,
         out: &mut Vec<Contact>,
     ) -> bool {
-        let pose1 = body.pose();
-        let pos12 = pose1.inverse() * other_pose;
         let cache = self.pairs.entry(key).or_default();
-        let ok = DefaultQueryDispatcher
-            .contact_manifolds(
-                &pos12,
-                body.shape.as_ref(),
-                other_shape.as_ref(),
-                prediction,
-                &mut cache.manifolds,
-                &mut cache.workspace,
-            )
-            .is_ok();
-        if !ok {
-            return false;
-        }
-        let first = out.len();
-        for m in &cache.manifolds {
-            let sub1 = m.subshape_pos1().copied();
-            let sub2 = m.subshape_pos2().copied();
-            let n1_local = sub1.map_or(m.local_n1, |p| p.transform_vector(m.local_n1));
-            let n1 = from_vec3(pose1.transform_vector(n1_local));
-            let Some(n1) = n1.try_normalize(1e-6) else {
-                continue;
-            };
-            for p in &m.points {
-                if p.dist > prediction {
-                    continue;
-                }
-                let l1 = sub1.map_or(p.local_p1, |s| s.transform_point(p.local_p1));
-                let l2 = sub2.map_or(p.local_p2, |s| s.transform_point(p.local_p2));
-                let w1 = from_vec3(pose1.transform_point(l1));
-                let w2 = from_vec3(other_pose.transform_point(l2));
-                // parry's n1 points out of shape 1 towards shape 2; the impulse on body 1
-                // pushes it the other way.
-                let normal = -n1;
-                let point = 0.5 * (w1 + w2);
-                // Coincident faces can come back as two manifolds repeating the same corners;
-                // a repeated row would only make the LCP degenerate.
-                let duplicate = out[first..].iter().any(|c| {
-                    (c.point - point).norm() <= DUPLICATE_DISTANCE
-                        && c.normal.dot(&normal) >= 1.0 - 1e-6
-                });
-                if duplicate {
-                    continue;
-                }
-                let (tangent_u, tangent_w) = default_tangents(&normal);
-                out.push(Contact {
-                    body: key.0,
-                    partner: key.1,
-                    point,
-                    normal,
-                    tangent_u,
-                    tangent_w,
-                    dist: p.dist as f64,
-                    friction: material.friction,
-                    restitution: material.restitution,
-                    features: (p.fid1.0, p.fid2.0),
-                });
-            }
-        }
-        true
+        pair_contacts(
+            key,
+            body,
+            other_shape,
+            other_pose,
+            material,
+            prediction,
+            cache,
+            out,
+        )
     }
+}
+
+/// One pair's contact points, updating its cached manifolds; false if parry cannot handle the
+/// pair.
+#[allow(clippy::too_many_arguments)]
+fn pair_contacts(
+    key: (usize, Partner),
+    body: &Body,
+    other_shape: &parry3d::shape::SharedShape,
+    other_pose: parry3d::math::Pose,
+    (material, rolling): (Material, f64),
+    prediction: f32,
+    cache: &mut PairCache,
+    out: &mut Vec<Contact>,
+) -> bool {
+    let pose1 = body.pose();
+    let pos12 = pose1.inverse() * other_pose;
+    let ok = DefaultQueryDispatcher
+        .contact_manifolds(
+            &pos12,
+            body.shape.as_ref(),
+            other_shape.as_ref(),
+            prediction,
+            &mut cache.manifolds,
+            &mut cache.workspace,
+        )
+        .is_ok();
+    if !ok {
+        return false;
+    }
+    let first = out.len();
+    for m in &cache.manifolds {
+        let sub1 = m.subshape_pos1().copied();
+        let sub2 = m.subshape_pos2().copied();
+        let n1_local = sub1.map_or(m.local_n1, |p| p.transform_vector(m.local_n1));
+        let n1 = from_vec3(pose1.transform_vector(n1_local));
+        let Some(n1) = n1.try_normalize(1e-6) else {
+            continue;
+        };
+        for p in &m.points {
+            if p.dist > prediction {
+                continue;
+            }
+            let l1 = sub1.map_or(p.local_p1, |s| s.transform_point(p.local_p1));
+            let l2 = sub2.map_or(p.local_p2, |s| s.transform_point(p.local_p2));
+            let w1 = from_vec3(pose1.transform_point(l1));
+            let w2 = from_vec3(other_pose.transform_point(l2));
+            // parry's n1 points out of shape 1 towards shape 2; the impulse on body 1
+            // pushes it the other way.
+            let normal = -n1;
+            let point = 0.5 * (w1 + w2);
+            // Coincident faces can come back as two manifolds repeating the same corners;
+            // a repeated row would only make the LCP degenerate.
+            let duplicate = out[first..].iter().any(|c| {
+                (c.point - point).norm() <= DUPLICATE_DISTANCE
+                    && c.normal.dot(&normal) >= 1.0 - 1e-6
+            });
+            if duplicate {
+                continue;
+            }
+            let (tangent_u, tangent_w) = default_tangents(&normal);
+            out.push(Contact {
+                body: key.0,
+                partner: key.1,
+                point,
+                normal,
+                tangent_u,
+                tangent_w,
+                dist: p.dist as f64,
+                friction: material.friction,
+                restitution: material.restitution,
+                features: (p.fid1.0, p.fid2.0),
+                rolling,
+                roll_axis: normal,
+            });
+        }
+    }
+    true
 }

@@ -32,9 +32,12 @@
 //! * [`scene`]: the ordinary scene format read as a final state, and `scenes/reverse/`.
 //! * [`bench`]: the numbers of `mwb bench reverse`.
 //!
-//! Not in this round: joints (the LCP has equality rows, the stepper does not build them yet),
-//! rolling friction (5.15)–(5.18), and any position correction of penetration (as in the
-//! thesis, all conditions are on velocities).
+//! Round bodies (balls, capsules, cylinders) get rolling-friction rows (5.15)–(5.18), bounded by
+//! [`Body::rolling_resistance`] times the normal impulse, forward and backward.
+//!
+//! Not in this round: joints (the LCP has equality rows, the stepper does not build them yet)
+//! and any position correction of penetration (as in the thesis, all conditions are on
+//! velocities).
 //!
 //! # Example: a backward step and its forward check (§5.2)
 //!

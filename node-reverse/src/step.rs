@@ -33,10 +33,52 @@ pub(crate) fn contact_rows(c: &Contact, bodies: &[crate::body::Body]) -> [Jacobi
     ]
 }
 
+/// The rolling-friction rows (5.15)–(5.17) of a contact with a round body, or `None`.
+pub(crate) fn rolling_rows(c: &Contact) -> Option<[JacobianRow; 3]> {
+    (c.rolling > 0.0).then(|| c.rolling_axes().map(|axis| JacobianRow::angular(c, &axis)))
+}
+
 /// The forward LCP of one island at the world's current (pre-step) state.
 pub(crate) struct ForwardIsland {
     pub(crate) problem: LcpProblem,
     pub(crate) responses: Vec<Response>,
+    /// Per contact of the island (in island order), its first row and whether it has
+    /// rolling rows (normal, u, w, then three rolling rows).
+    pub(crate) slots: Vec<(usize, bool)>,
+}
+
+impl ForwardIsland {
+    /// The island's impulses as an LCP vector.
+    pub(crate) fn pack(&self, island: &Island, impulses: &[ContactImpulse]) -> DVector<f64> {
+        let mut x = DVector::zeros(self.problem.len());
+        for (&(row, rolling), &k) in self.slots.iter().zip(&island.contacts) {
+            let i = impulses[k];
+            x[row] = i.normal;
+            x[row + 1] = i.tangent_u;
+            x[row + 2] = i.tangent_w;
+            if rolling {
+                for (a, r) in i.rolling.iter().enumerate() {
+                    x[row + 3 + a] = *r;
+                }
+            }
+        }
+        x
+    }
+
+    /// The impulses of one contact slot from an LCP vector.
+    pub(crate) fn unpack(&self, slot: usize, x: &DVector<f64>) -> ContactImpulse {
+        let (row, rolling) = self.slots[slot];
+        ContactImpulse {
+            normal: x[row],
+            tangent_u: x[row + 1],
+            tangent_w: x[row + 2],
+            rolling: if rolling {
+                [x[row + 3], x[row + 4], x[row + 5]]
+            } else {
+                [0.0; 3]
+            },
+        }
+    }
 }
 
 impl World {
@@ -46,6 +88,15 @@ impl World {
         match contact.partner {
             Partner::Body(b) => va - self.bodies[b].point_velocity(&contact.point),
             Partner::Static(_) => va,
+        }
+    }
+
+    /// Relative angular velocity of `contact`'s body with respect to its partner.
+    pub fn relative_angular_velocity(&self, contact: &Contact) -> Vector3<f64> {
+        let wa = self.bodies[contact.body].angvel;
+        match contact.partner {
+            Partner::Body(b) => wa - self.bodies[b].angvel,
+            Partner::Static(_) => wa,
         }
     }
 
@@ -80,6 +131,7 @@ impl World {
         let mut rows = Vec::with_capacity(3 * island.contacts.len());
         let mut kinds = Vec::with_capacity(rows.capacity());
         let mut b = Vec::with_capacity(rows.capacity());
+        let mut slots = Vec::with_capacity(island.contacts.len());
         for &k in &island.contacts {
             let c = &set.contacts[k];
             let [rn, ru, rw] = contact_rows(c, &self.bodies);
@@ -102,11 +154,28 @@ impl World {
                 RowKind::Friction { normal, mu },
             ]);
             rows.extend([rn, ru, rw]);
+            let rolling = rolling_rows(c);
+            slots.push((normal, rolling.is_some()));
+            // §5.3.5: torque impulses about three axes, each bounded by the rolling arm times
+            // the normal impulse and opposing the relative rotation (5.15)–(5.18); exactly
+            // the friction rows' coupled bounds, on angular velocity.
+            for row in rolling.into_iter().flatten() {
+                b.push(row_velocity(&row, free));
+                kinds.push(RowKind::Friction {
+                    normal,
+                    mu: c.rolling,
+                });
+                rows.push(row);
+            }
         }
         let responses: Vec<Response> = rows.iter().map(|r| Response::new(r, inv)).collect();
         let a = delassus(&rows, &responses);
         let problem = LcpProblem::new(a, DVector::from_vec(b), kinds)?;
-        Ok(ForwardIsland { problem, responses })
+        Ok(ForwardIsland {
+            problem,
+            responses,
+            slots,
+        })
     }
 
     /// One forward step: detects contacts at the current poses, aligns each contact's first
@@ -118,6 +187,8 @@ impl World {
         for k in 0..set.contacts.len() {
             let rel = self.relative_velocity(&set.contacts[k]);
             set.contacts[k].align_tangents(&rel, delta);
+            let spin = self.relative_angular_velocity(&set.contacts[k]);
+            set.contacts[k].align_rolling(&spin, delta);
         }
         let mut report = self.step_forward_with(&set, dt);
         report.unsupported_pairs = unsupported;
@@ -144,11 +215,7 @@ impl World {
                             resp.add_to(sol.x[j], &mut vel);
                         }
                         for (slot, &k) in island.contacts.iter().enumerate() {
-                            impulses[k] = ContactImpulse {
-                                normal: sol.x[3 * slot],
-                                tangent_u: sol.x[3 * slot + 1],
-                                tangent_w: sol.x[3 * slot + 2],
-                            };
+                            impulses[k] = fi.unpack(slot, &sol.x);
                         }
                     }
                     islands.push(IslandSolve {
@@ -201,13 +268,7 @@ impl World {
             let Ok(fi) = self.forward_island(set, island, &inv, (&pre, &free)) else {
                 return f64::NAN;
             };
-            let x = DVector::from_iterator(
-                fi.problem.len(),
-                island.contacts.iter().flat_map(|&k| {
-                    let i = impulses[k];
-                    [i.normal, i.tangent_u, i.tangent_w]
-                }),
-            );
+            let x = fi.pack(island, impulses);
             let r = lcp::complementarity_residual(&fi.problem, &x);
             if r.is_nan() {
                 return f64::NAN;

@@ -53,6 +53,9 @@ pub struct ContactImpulse {
     pub tangent_u: f64,
     /// Along `tangent_w`.
     pub tangent_w: f64,
+    /// Rolling-friction torque impulses (N·m·s) about [`crate::Contact::rolling_axes`]
+    /// (zero for contacts without rolling rows).
+    pub rolling: [f64; 3],
 }
 
 /// How one island's LCP went.

@@ -178,3 +178,62 @@ fn forward_stepping_is_bit_deterministic() {
         "the scene should be contact-heavy ({contacts})"
     );
 }
+
+/// Rolling friction (§5.3.5, (5.15)–(5.18)): a ball rolling without slipping at `v₀` is slowed
+/// only by the rolling-resistance torque `b N`, so it decelerates at `(b / r) g / (1 + 2/5)` and
+/// stops after `v₀² / 2a`; without rolling rows it would roll forever.
+#[test]
+fn rolling_ball_stops_after_v2_over_2a() {
+    let (r, v0, dt) = (0.1, 0.5, 1.0 / 240.0);
+    let arm = 0.02 * r;
+    let mat = Material {
+        friction: 0.6,
+        restitution: 0.0,
+    };
+    let rolling_ball = |arm: f64| {
+        Body::ball(r, 1000.0)
+            .expect("positive radius")
+            .with_material(mat)
+            .with_rolling_resistance(arm)
+            .at(Vector3::new(0.0, 0.0, r), UnitQuaternion::identity())
+            // Rolling without slipping along +x: ω = v / r about +y.
+            .moving(Vector3::new(v0, 0.0, 0.0), Vector3::new(0.0, v0 / r, 0.0))
+    };
+    let mut world = World::new();
+    world.add_static(ground(0.6, 0.0));
+    let b = world.add_body(rolling_ball(arm));
+    let mut steps = 0;
+    while world.bodies[b].linvel.norm() > 1e-9 && steps < 20_000 {
+        let report = world.step_forward(dt);
+        assert!(report.all_solved(), "step {steps}: {:?}", report.islands);
+        steps += 1;
+    }
+    let a = (arm / r) * G / 1.4;
+    let expected = v0 * v0 / (2.0 * a);
+    let got = world.bodies[b].position.x;
+    let rel = (got - expected).abs() / expected;
+    eprintln!(
+        "rolling ball: stop distance {got:.4} m, v0²/2a = {expected:.4} m, rel err {rel:.4}, {steps} steps"
+    );
+    assert!(rel < 0.02, "stop distance {got} vs {expected}");
+    assert!(
+        world.bodies[b].angvel.norm() < 1e-6,
+        "{:?}",
+        world.bodies[b].angvel
+    );
+    assert!((world.bodies[b].position.z - r).abs() < 1e-6);
+
+    // The same ball without rolling resistance keeps rolling.
+    let mut free = World::new();
+    free.add_static(ground(0.6, 0.0));
+    let b = free.add_body(rolling_ball(0.0));
+    for _ in 0..steps {
+        free.step_forward(dt);
+    }
+    // (f32 contact normals cost it a few µm/s over the run, nothing like stopping.)
+    assert!(
+        (free.bodies[b].linvel.x - v0).abs() < 1e-4 * v0,
+        "{:?}",
+        free.bodies[b].linvel
+    );
+}

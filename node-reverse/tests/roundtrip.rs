@@ -33,12 +33,25 @@ fn backward_run(
     steps: usize,
     choices: impl Fn(usize) -> BackwardChoices,
 ) -> Stats {
+    backward_run_within(name, world, dt, steps, choices, (1e-9, 1e-12))
+}
+
+/// [`backward_run`] with given bounds on the forward residual (m/s) and on the replayed
+/// positions (m, rad).
+fn backward_run_within(
+    name: &str,
+    world: &mut World,
+    dt: f64,
+    steps: usize,
+    choices: impl Fn(usize) -> BackwardChoices,
+    (residual_tol, pos_tol): (f64, f64),
+) -> Stats {
     let mut stats = Stats::default();
     for k in 0..steps {
         let at_t = world.clone();
         let report = world.step_backward(dt, &choices(k));
         if std::env::var("RT_DEBUG").is_ok()
-            && (!report.all_solved() || report.forward_residual > 1e-9)
+            && (!report.all_solved() || report.forward_residual > residual_tol)
         {
             for (c, (ch, i)) in report
                 .contacts
@@ -83,7 +96,7 @@ fn backward_run(
         assert_eq!(report.approaching_contacts, 0, "{name} step {k}");
         // The backward impulses solve the forward LCP at s_{t−Δt}.
         assert!(
-            report.forward_residual < 1e-9,
+            report.forward_residual < residual_tol,
             "{name} step {k}: forward residual {:e}",
             report.forward_residual
         );
@@ -115,7 +128,7 @@ fn backward_run(
                 "{name} step {k} body {i}: velocity rel err {rel:e}"
             );
             assert!(
-                dx < 1e-12 && dq < 1e-12,
+                dx < pos_tol && dq < pos_tol,
                 "{name} step {k} body {i}: dx {dx:e} dq {dq:e}"
             );
             stats.max_vel_rel = stats.max_vel_rel.max(rel);
@@ -323,13 +336,15 @@ fn tumbling_box_round_trips() {
 
 /// The top box slides (backward in time) off the edge of the middle one and tips over it.
 ///
-/// Known failure (step 104 of 300): while the box pivots on the middle box's edge and slides,
-/// the contact point moves along the rotating box, so the normal velocity that the previous
-/// backward step set to zero at the old point is −3.1e-4 m/s at the new one. No forward step
-/// ends with an approaching contact in its set; `BackwardReport::approaching_contacts` counts
-/// these. Needs a look-ahead (or a position-level term) to fix.
+/// Known failure (step 132 of 300; step 104 before the look-ahead of `step_backward`): the
+/// look-ahead keeps the pivoting edge contacts exactly at rest, but the velocity-level step
+/// lets a pivoting body sink into its support by about `Δt² ω² r / 2` per backward step (the
+/// mirror of the lift a forward step gives it), and once the tilted face is 0.5 mm inside the
+/// middle box parry's face clipping produces two new contact points at the earlier poses that
+/// approach at 3.8e-3 m/s. No forward step ends with an approaching contact in its set;
+/// `BackwardReport::approaching_contacts` counts these. Needs a position-level answer.
 #[test]
-#[ignore = "known limitation: contact point sliding along a rotating body, see doc comment"]
+#[ignore = "known limitation: penetration drift of a pivoting box, see doc comment"]
 fn box_tipping_off_a_stack_round_trips() {
     let mut world = stack_of_three(0.6, Vector3::new(0.3, 0.1, 0.0));
     let stats = backward_run("tipping stack", &mut world, DT, 300, none);
@@ -363,4 +378,43 @@ fn backward_stepping_is_bit_deterministic() {
             assert_eq!(bits(x), bits(y), "diverged at step {step}");
         }
     }
+}
+
+/// Rolling friction backward (§5.3.5): a rolling ball speeds up stepping backward (the
+/// resistance run in reverse) at the analytic `(b / r) g / 1.4`, and every step round-trips.
+#[test]
+fn rolling_ball_round_trips() {
+    let mat = Material {
+        friction: 0.6,
+        restitution: 0.5,
+    };
+    let (r, v0) = (0.1, 0.5);
+    let arm = 0.02 * r;
+    let mut world = World::new();
+    world.add_static(ground(mat));
+    world.add_body(
+        Body::ball(r, 1000.0)
+            .expect("positive radius")
+            .with_material(mat)
+            .with_rolling_resistance(arm)
+            .at(Vector3::new(0.0, 0.0, r), UnitQuaternion::identity())
+            .moving(Vector3::new(v0, 0.0, 0.0), Vector3::new(0.0, v0 / r, 0.0)),
+    );
+    // One second: the f32 noise grows with the distance from the origin.
+    let steps = 240;
+    // parry's f32 contact point under a spinning ball leaves 1e-8..1e-7 m/s of apparent slip, so
+    // the residual bound is 1e-6 and positions match to 1e-8 (one step of that velocity
+    // noise) here; velocities still round-trip to 1e-6 relative.
+    let stats = backward_run_within("rolling ball", &mut world, DT, steps, none, (1e-6, 1e-8));
+    assert!(stats.max_vel_rel < 1e-6, "{stats:?}");
+    let expected = v0 + (arm / r) * 9.81 / 1.4 * DT * steps as f64;
+    let ball = &world.bodies[0];
+    assert!(
+        (ball.linvel.x - expected).abs() < 1e-3 * expected,
+        "{} vs {expected}",
+        ball.linvel.x
+    );
+    // Still rolling without slipping, still on the ground.
+    assert!((ball.angvel.y * r - ball.linvel.x).abs() < 1e-6 * expected);
+    assert!((ball.position.z - r).abs() < 1e-6, "{:?}", ball.position);
 }

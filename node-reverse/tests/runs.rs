@@ -6,8 +6,8 @@ use mwb_reverse::chain::MAX_STATE;
 use mwb_reverse::run::shadow_energy;
 use mwb_reverse::scene::{builtin, world_from_toml};
 use mwb_reverse::{
-    Body, ChainLearning, ContactChain, Heuristics, HintMotion, ReverseSettings, UserHint, World,
-    free_to_bounce, run_backward, run_mixed,
+    BackwardChoices, Body, ChainLearning, ContactChain, Heuristics, HintMotion, Material, Partner,
+    ReverseSettings, StaticBody, UserHint, World, free_to_bounce, run_backward, run_mixed,
 };
 use nalgebra::{UnitQuaternion, Vector3};
 use parry3d::bounding_volume::Aabb;
@@ -283,6 +283,67 @@ fn free_fall_backward_gains_no_energy() {
     let m = 1.0 / w2.bodies[0].inv_mass;
     assert!((e0 - plain(&w2) - 0.5 * m * 9.81f64.powi(2) * dt * dt).abs() < 1e-6 * m);
     assert!((s0 - shadow_energy(&w2, dt)).abs() < 1e-9 * m);
+}
+
+/// The friction half of the rattling heuristic (§5.3.1): the backward step undoes only the
+/// scaled friction, and the departure from the material's friction is measured.
+#[test]
+fn friction_scale_lowers_reversed_friction_and_is_measured() {
+    let mat = Material {
+        friction: 0.5,
+        restitution: 0.3,
+    };
+    let sliding = || -> Result<World, mwb_reverse::BodyError> {
+        let mut w = World::new();
+        w.add_static(StaticBody::plane(Vector3::z(), 0.0)?.with_material(mat));
+        w.add_body(
+            Body::cuboid(Vector3::new(0.5, 0.5, 0.5), 1.0)?
+                .with_material(mat)
+                .at(Vector3::new(0.0, 0.0, 0.5), UnitQuaternion::identity())
+                .moving(Vector3::new(1.0, 0.0, 0.0), Vector3::zeros()),
+        );
+        Ok(w)
+    };
+    let dt = 1.0 / 240.0;
+    for scale in [1.0, 0.25, 0.0] {
+        let mut world = match sliding() {
+            Ok(w) => w,
+            Err(e) => panic!("{e}"),
+        };
+        let mut choices = BackwardChoices::default();
+        choices
+            .friction_scale
+            .insert((0, Partner::Static(0)), scale);
+        let back = world.step_backward(dt, &choices);
+        assert!(back.all_solved());
+        assert!(
+            back.choices
+                .iter()
+                .all(|c| (c.mu - 0.5 * scale).abs() < 1e-15)
+        );
+        // Backward, sliding friction speeds the box up by (scale μ) g Δt.
+        let expected = 1.0 + scale * 0.5 * 9.81 * dt;
+        let speed = world.bodies[0].linvel.x;
+        assert!(
+            (speed - expected).abs() < 1e-9,
+            "{scale}: {speed} vs {expected}"
+        );
+        // The contact set keeps the material's μ, so the departure is measured: the forward
+        // LCP residual is nonzero and a forward replay brakes by the full μ g Δt.
+        let departure = (1.0 - scale) * 0.5 * 9.81 * dt;
+        if scale < 1.0 {
+            assert!(back.forward_residual > 0.25 * departure, "{scale}");
+        } else {
+            assert!(back.forward_residual < 1e-12);
+        }
+        let mut replay = world.clone();
+        replay.step_forward_with(&back.contacts, dt);
+        let replayed = replay.bodies[0].linvel.x;
+        assert!(
+            (1.0 - replayed - departure).abs() < 1e-9,
+            "{scale}: {replayed}"
+        );
+    }
 }
 
 #[test]
