@@ -9,3 +9,4 @@ pub mod check;
 pub mod client;
 pub mod demo;
 pub mod query;
+pub mod reverse_cmd;

@@ -72,6 +72,8 @@ enum Command {
         #[arg(long)]
         workers: Option<usize>,
     },
+    /// Backward worlds from a final state (ch. 5): a reverse node, or node + job with --scene.
+    Reverse(mwb::reverse_cmd::ReverseArgs),
     /// Submit, list and cancel jobs.
     Job {
         #[command(subcommand)]
@@ -390,6 +392,7 @@ async fn run(cli: Cli) -> Result<()> {
             sampler.stop().await;
             mwb::bus::close(session).await;
         }
+        Command::Reverse(args) => mwb::reverse_cmd::run(args).await?,
         Command::Job { command } => job(command).await?,
         Command::Status { bus, json } => {
             let keys = Keys::new(&bus.space)?;

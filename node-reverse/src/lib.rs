@@ -1,7 +1,7 @@
 //! `mwb-reverse`: the velocity-level LCP time-stepper of node-reverse (thesis ch. 3 and ch. 5),
 //! stepping rigid bodies forward *and* backward in time.
 //!
-//! This part holds the pure numerical core, with no I/O and no async:
+//! Everything but [`node`] is pure computation, with no I/O and no async:
 //!
 //! * [`World`] ([`world`]): dynamic [`Body`]s (box, sphere, capsule, cylinder, convex hull) and
 //!   [`StaticBody`]s (plane, box, triangle mesh), gravity and [`StepParams`] (restitution cutoff
@@ -31,6 +31,11 @@
 //!   ([`BackwardRunReport`]); mixed runs from an intermediate frame (§5.4.4).
 //! * [`scene`]: the ordinary scene format read as a final state, and `scenes/reverse/`.
 //! * [`bench`]: the numbers of `mwb bench reverse`.
+//! * [`sample`]: one backward world as a stored world — time-reversed so that playback runs
+//!   forward, cut into self-contained codec segments, with the per-body summary (impacts,
+//!   rest) of the world as played forward. Pure.
+//! * [`node`]: the bus node around it: takes `JOB_KIND_REVERSE` jobs and publishes their
+//!   worlds exactly as a forward sampler publishes its own (the only part with I/O).
 //!
 //! Round bodies (balls, capsules, cylinders) get rolling-friction rows (5.15)–(5.18), bounded by
 //! [`Body::rolling_resistance`] times the normal impulse, forward and backward.
@@ -161,8 +166,10 @@ pub mod broad_phase;
 pub mod chain;
 pub mod contact;
 pub mod lcp;
+pub mod node;
 pub mod qr;
 pub mod run;
+pub mod sample;
 pub mod scene;
 pub mod step;
 pub mod world;
@@ -175,10 +182,12 @@ pub use bench::{BenchOptions, ReverseBench, bench};
 pub use body::{Body, Material, StaticBody};
 pub use chain::{ChainLearning, ContactChain};
 pub use contact::{Contact, ContactSet, Island, Partner};
+pub use node::{ReverseConfig, ReverseHandle, ReverseNodeError, run_reverse};
 pub use run::{
     BackwardRun, BackwardRunReport, Frame, Heuristics, HintMotion, MixedRun, Pose, ReverseSettings,
     Sampling, UserHint, run_backward, run_mixed,
 };
+pub use sample::{ReverseScene, ReverseWorldSummary, SampleError, sample_world};
 pub use scene::{SceneConvertError, world_from_scene};
 pub use world::{ContactImpulse, IslandSolve, StepParams, StepReport, World};
 

@@ -155,7 +155,11 @@ impl Board {
             .jobs
             .iter()
             .filter(|(_, e)| {
-                !e.closed && e.template.is_some() && e.done + e.in_flight < e.job.target_worlds
+                // Reverse jobs belong to reverse nodes (node-reverse).
+                e.job.kind() != JobKind::Reverse
+                    && !e.closed
+                    && e.template.is_some()
+                    && e.done + e.in_flight < e.job.target_worlds
             })
             .min_by_key(|(id, e)| {
                 (
@@ -676,6 +680,15 @@ mod tests {
         c.cancelled = true;
         b.upsert_job(c);
         assert!(b.pick().is_none());
+    }
+
+    #[test]
+    fn reverse_jobs_are_left_to_reverse_nodes() {
+        let mut b = Board::default();
+        b.upsert_job(job("rev", 10, 9, JobKind::Reverse, 1));
+        assert!(b.pick().is_none());
+        b.upsert_job(job("a", 1, 0, JobKind::Sample, 2));
+        assert_eq!(picks(&mut b, 3), ["a"]);
     }
 
     #[test]

@@ -205,9 +205,11 @@ pub async fn run_store(session: Session, cfg: StoreConfig) -> Result<StoreHandle
         .declare_subscriber(keys.jobs())
         .await
         .map_err(zerr)?;
+    // Every producer of worlds (samplers, reverse nodes) holds a token; a node that holds no
+    // partial worlds leaving costs nothing.
     let alive_sub = session
         .liveliness()
-        .declare_subscriber(keys.alive_role(role::SAMPLER))
+        .declare_subscriber(keys.alive_all())
         .await
         .map_err(zerr)?;
     // Job-level answers come from one shard only (shard 0, the authority), so that a client

@@ -1,0 +1,368 @@
+//! One backward world as a stored world (DESIGN.md "Backward simulation", Output): a
+//! [`run_backward`] from the scene's final state, **time-reversed for playback** (frame 0 is the
+//! earliest state, the last frame is the state the user gave), cut into ~1 s segments that are
+//! each a self-contained `mwb-codec` stream (`ENCODING_SPLINE_V1`), exactly like the forward
+//! sampler's, plus the per-body summary the store indexes (impacts, rest) described *as played
+//! forward*.
+//!
+//! Pure computation, no bus: [`ReverseScene::prepare`] once per job (parse, convert, learn the
+//! contact-count chain of §5.3.6), then [`sample_world`] per seed. Deterministic: the same binary,
+//! scene text and seed give the same segments byte for byte.
+//!
+//! ```
+//! use mwb_reverse::sample::{ReverseScene, sample_world};
+//! use mwb_reverse::scene::builtin;
+//!
+//! // A short run of the word scene: 0.5 s back from the boxes spelling "MWB".
+//! let text = builtin::WORD.replace("end_time = 3.0", "end_time = 0.5");
+//! let scene = ReverseScene::prepare(&text, "word.toml")?;
+//! let mut segments = Vec::new();
+//! let world = sample_world(&scene, 7, mwb_codec::Quality::Standard, &mut |s| {
+//!     segments.push(s);
+//!     std::ops::ControlFlow::Continue(())
+//! })?;
+//! assert_eq!(world.frame_count, 61); // the final state plus one frame per backward step
+//! assert_eq!(segments.iter().map(|s| s.frame_count).sum::<u32>(), world.frame_count);
+//! assert!(world.body_rested.iter().all(|&r| r)); // played forward, the boxes end at rest
+//! # Ok::<(), mwb_reverse::sample::SampleError>(())
+//! ```
+
+use std::ops::ControlFlow;
+
+use mwb_codec::{EncodeParams, LowResPath, MotionModel, Quality, Track, encode_world};
+use mwb_core::perturb;
+use mwb_core::scene::{Scene, SceneTemplate};
+use nalgebra::{UnitQuaternion, Vector3};
+
+use crate::chain::{ChainLearning, ContactChain};
+use crate::run::{BackwardRunReport, Frame, ReverseSettings, run_backward};
+use crate::scene::{SceneConvertError, world_from_scene};
+
+/// What the reverse stepper is, recorded in every world's provenance: a world is regenerated
+/// bit for bit only by the same binary.
+pub const STEPPER_BUILD: &str = "mwb-reverse LCP stepper f64 backward";
+
+/// The provenance string of this binary's backward worlds.
+pub fn provenance() -> String {
+    format!("mwb {} / {STEPPER_BUILD}", env!("CARGO_PKG_VERSION"))
+}
+
+/// Seed of the contact-count chain's learning runs: fixed, so that the chain (and hence every
+/// world) depends only on the scene, and all worlds of a scene share one chain (§5.3.6: learned
+/// per scene).
+pub const CHAIN_SEED: u64 = 1;
+
+/// Why a scene cannot be sampled backward, or a world failed.
+#[derive(Debug, thiserror::Error)]
+pub enum SampleError {
+    /// The scene did not parse or convert (joints, bad shapes, …).
+    #[error(transparent)]
+    Scene(#[from] SceneConvertError),
+    /// A time setting the backward run cannot use.
+    #[error("[settings] {name} = {value}: must be finite and > 0 for a backward run")]
+    Setting {
+        /// Which setting.
+        name: &'static str,
+        /// Its value.
+        value: f64,
+    },
+    /// A body's pose went non-finite (the stepper disables such bodies; their frames cannot
+    /// be stored).
+    #[error("body {body}: non-finite pose in frame {frame}")]
+    NonFinite {
+        /// Body index.
+        body: usize,
+        /// Frame index (played forward).
+        frame: usize,
+    },
+    /// The motion codec refused the frames.
+    #[error("motion encoding: {0}")]
+    Codec(#[from] mwb_codec::CodecError),
+    /// The caller stopped the world (the job closed).
+    #[error("stopped by the caller")]
+    Stopped,
+}
+
+/// A final-state scene ready for backward sampling: parsed once per job.
+#[derive(Debug, Clone)]
+pub struct ReverseScene {
+    template: SceneTemplate,
+    settings: ReverseSettings,
+}
+
+impl ReverseScene {
+    /// Parses the scene (`file` names it in errors), checks that the reverse stepper can build
+    /// it, and learns its contact-count chain (a few dozen short forward runs; tens of
+    /// milliseconds for the shipped word scene).
+    ///
+    /// The run goes back `[settings] end_time` seconds with the scene's `dt`, the default §5.3
+    /// heuristics, and without the per-step departure measurement (it costs a forward step per
+    /// step; `mwb bench reverse` measures it).
+    pub fn prepare(text: &str, file: &str) -> Result<Self, SampleError> {
+        let template = SceneTemplate::parse(text, file).map_err(SceneConvertError::from)?;
+        let s = template.settings();
+        for (name, value) in [("dt", s.dt), ("end_time", s.end_time)] {
+            if !(value.is_finite() && value > 0.0) {
+                return Err(SampleError::Setting { name, value });
+            }
+        }
+        let world = world_from_scene(&template.instantiate(0))?;
+        let learning = ChainLearning {
+            dt: s.dt,
+            ..ChainLearning::default()
+        };
+        let chain = ContactChain::learn(&world, &learning, CHAIN_SEED);
+        let settings = ReverseSettings {
+            dt: s.dt,
+            duration: s.end_time,
+            chain: Some(chain),
+            measure_departure: false,
+            ..ReverseSettings::default()
+        };
+        Ok(Self { template, settings })
+    }
+
+    /// The run settings (editable: hints, heuristics, sampling ranges).
+    pub fn settings_mut(&mut self) -> &mut ReverseSettings {
+        &mut self.settings
+    }
+
+    /// The run settings.
+    pub fn settings(&self) -> &ReverseSettings {
+        &self.settings
+    }
+
+    /// The parsed scene.
+    pub fn template(&self) -> &SceneTemplate {
+        &self.template
+    }
+}
+
+/// One encoded segment of a backward world, in playback order.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Segment {
+    /// 0-based segment number.
+    pub seq: u32,
+    /// First frame (playback order).
+    pub first_frame: u32,
+    /// Frames in this segment.
+    pub frame_count: u32,
+    /// Bodies (scene order).
+    pub body_count: u32,
+    /// An `mwb-codec` world stream of this segment's frames, one object per body
+    /// (`ENCODING_SPLINE_V1`).
+    pub payload: Vec<u8>,
+    /// The few-Hz path of each body over this segment (frames relative to `first_frame`).
+    pub lowres: Vec<LowResPath>,
+}
+
+/// What a backward world looks like played forward, and how plausible it is.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ReverseWorldSummary {
+    /// The world's seed.
+    pub seed: u64,
+    /// Frames: the given final state plus one per backward step.
+    pub frame_count: u32,
+    /// Segments emitted.
+    pub segment_count: u32,
+    /// Seconds between frames.
+    pub frame_dt: f64,
+    /// Every body at rest in the last frame (the given state).
+    pub rested: bool,
+    /// Per body, impacts played forward: onsets of a contact acceleration above the scene's
+    /// `c_v` / `c_omega` (the forward sampler's §4.1.2 rule, gravity removed).
+    pub impacts: Vec<u32>,
+    /// Per body, the time of the first frame from which it stayed below the scene's rest
+    /// thresholds (0 if it never moved); the end time if it moves in the last frame.
+    pub rest_time_s: Vec<f64>,
+    /// Per body, at rest in the last frame.
+    pub body_rested: Vec<bool>,
+    /// Contact lift-offs the run sampled: the random choices that make backward worlds differ,
+    /// as perturbations make forward worlds differ.
+    pub lifts: u32,
+    /// Backward steps.
+    pub steps: u64,
+    /// Encoded bytes over all segments.
+    pub payload_bytes: u64,
+    /// The run's plausibility measurements (§5.3.1: energy and angular-speed growth, …).
+    pub report: BackwardRunReport,
+}
+
+/// The codec's position model: the stepper has no damping and no joints, and its free flight
+/// is the same semi-implicit Euler as rapier's (run backward, then replayed forward, it is
+/// exact), so the gravity-only candidate applies.
+fn motion_model(scene: &Scene) -> MotionModel {
+    MotionModel::FreeFlightGravity {
+        g: scene.settings.gravity,
+    }
+}
+
+/// Per-body velocities in playback order, from consecutive frames. The stepper moves positions
+/// with the *new* velocity (3.17)–(3.18), `x_k = x_{k−1} + v_k Δt` and
+/// `q_k = exp(ω_k Δt) q_{k−1}`, so the differences give back its velocities to round-off;
+/// frame 0 takes the run's earliest state.
+fn velocities(
+    frames: &[Frame],
+    first: &[(Vector3<f64>, Vector3<f64>)],
+    dt: f64,
+) -> Vec<Vec<(Vector3<f64>, Vector3<f64>)>> {
+    let mut out = Vec::with_capacity(frames.len());
+    out.push(first.to_vec());
+    for pair in frames.windows(2) {
+        out.push(
+            pair[0]
+                .poses
+                .iter()
+                .zip(&pair[1].poses)
+                .map(|(a, b)| {
+                    let v = (b.position - a.position) / dt;
+                    let w = (b.orientation * a.orientation.inverse()).scaled_axis() / dt;
+                    (v, w)
+                })
+                .collect(),
+        );
+    }
+    out
+}
+
+fn arr(v: &Vector3<f64>) -> [f64; 3] {
+    [v.x, v.y, v.z]
+}
+
+/// Samples the backward world of `scene` for `seed` and hands its segments, in playback
+/// order, to `emit` (which may stop the world with `ControlFlow::Break`: then
+/// [`SampleError::Stopped`]).
+///
+/// The scene is instantiated with `seed` (a final state with distributions varies per world)
+/// and the backward run draws its free choices from the same seed. Segments hold
+/// `[settings] segment_seconds` of frames each, the last one the rest.
+pub fn sample_world(
+    scene: &ReverseScene,
+    seed: u64,
+    quality: Quality,
+    emit: &mut dyn FnMut(Segment) -> ControlFlow<()>,
+) -> Result<ReverseWorldSummary, SampleError> {
+    let concrete = scene.template.instantiate(seed);
+    let mut world = world_from_scene(&concrete)?;
+    // The stepper's body position is the centre of mass; a stored pose is the scene's body
+    // origin (what the sampler records and the viewer draws from). They differ for hulls only.
+    let com_offset: Vec<Vector3<f64>> = world
+        .bodies
+        .iter()
+        .zip(&concrete.bodies)
+        .map(|(b, s)| {
+            let origin = Vector3::new(s.position[0], s.position[1], s.position[2]);
+            b.orientation.inverse() * (b.position - origin)
+        })
+        .collect();
+    let settings = &scene.settings;
+    let run = run_backward(&mut world, seed, settings);
+    let dt = settings.dt;
+    let s = &concrete.settings;
+    let n = world.bodies.len();
+    let first: Vec<_> = world.bodies.iter().map(|b| (b.linvel, b.angvel)).collect();
+
+    // Poses in playback order, checked finite before anything is encoded.
+    let mut tracks: Vec<Track> = (0..n)
+        .map(|_| Track {
+            positions: Vec::with_capacity(run.frames.len()),
+            rotations: Vec::with_capacity(run.frames.len()),
+        })
+        .collect();
+    for (f, frame) in run.frames.iter().enumerate() {
+        for (b, (pose, t)) in frame.poses.iter().zip(tracks.iter_mut()).enumerate() {
+            let q: UnitQuaternion<f64> = pose.orientation;
+            let origin = pose.position - q * com_offset[b];
+            let c = q.coords;
+            let rotation = [c.x, c.y, c.z, c.w];
+            if !(origin.iter().all(|x| x.is_finite()) && rotation.iter().all(|x| x.is_finite())) {
+                return Err(SampleError::NonFinite { body: b, frame: f });
+            }
+            t.positions.push(arr(&origin));
+            t.rotations.push(rotation);
+        }
+    }
+
+    // Impacts and rest as a viewer of the played-forward world sees them.
+    let vel = velocities(&run.frames, &first, dt);
+    let rest =
+        |v: &Vector3<f64>, w: &Vector3<f64>| v.norm() < s.rest_linear && w.norm() < s.rest_angular;
+    let mut impacts = vec![0u32; n];
+    let mut in_impact = vec![false; n];
+    let mut last_moving: Vec<Option<usize>> = vec![None; n];
+    for (k, frame_vel) in vel.iter().enumerate() {
+        for (b, (v, w)) in frame_vel.iter().enumerate() {
+            if k > 0 {
+                let (v0, w0) = vel[k - 1][b];
+                let rate_v = perturb::impact_rate(arr(&v0), arr(v), s.gravity, dt);
+                let rate_w = perturb::impact_rate(arr(&w0), arr(w), [0.0; 3], dt);
+                let hit = perturb::norm(rate_v) > s.c_v || perturb::norm(rate_w) > s.c_omega;
+                if hit && !in_impact[b] {
+                    impacts[b] += 1;
+                }
+                in_impact[b] = hit;
+            }
+            if !rest(v, w) {
+                last_moving[b] = Some(k);
+            }
+        }
+    }
+    let last = vel.len().saturating_sub(1);
+    let body_rested: Vec<bool> = last_moving.iter().map(|m| *m != Some(last)).collect();
+    let rest_time_s = last_moving
+        .iter()
+        .map(|m| match m {
+            None => 0.0,
+            Some(k) if *k == last => last as f64 * dt,
+            Some(k) => (k + 1) as f64 * dt,
+        })
+        .collect();
+
+    // Segments of ~segment_seconds, each its own codec stream.
+    let frame_count = run.frames.len();
+    let per_segment = ((s.segment_seconds / dt).round() as usize).max(1);
+    let params = EncodeParams::from_quality(quality, dt, motion_model(&concrete));
+    let mut payload_bytes = 0u64;
+    let mut segment_count = 0u32;
+    let mut start = 0usize;
+    while start < frame_count {
+        let end = (start + per_segment).min(frame_count);
+        let chunk: Vec<Track> = tracks
+            .iter()
+            .map(|t| Track {
+                positions: t.positions[start..end].to_vec(),
+                rotations: t.rotations[start..end].to_vec(),
+            })
+            .collect();
+        let encoded = encode_world(&chunk, &params)?;
+        payload_bytes += encoded.bytes.len() as u64;
+        let seg = Segment {
+            seq: segment_count,
+            first_frame: start as u32,
+            frame_count: (end - start) as u32,
+            body_count: n as u32,
+            payload: encoded.bytes,
+            lowres: encoded.lowres,
+        };
+        segment_count += 1;
+        if emit(seg).is_break() {
+            return Err(SampleError::Stopped);
+        }
+        start = end;
+    }
+
+    Ok(ReverseWorldSummary {
+        seed,
+        frame_count: frame_count as u32,
+        segment_count,
+        frame_dt: dt,
+        rested: body_rested.iter().all(|&r| r),
+        impacts,
+        rest_time_s,
+        body_rested,
+        lifts: u32::try_from(run.report.lifts).unwrap_or(u32::MAX),
+        steps: run.report.steps as u64,
+        payload_bytes,
+        report: run.report,
+    })
+}

@@ -1,0 +1,220 @@
+//! `mwb reverse`: backward worlds (ch. 5) over the bus.
+//!
+//! * `mwb reverse [--connect …] [--workers N]` runs a reverse node until Ctrl-C: it takes
+//!   reverse jobs (and only those) from the bus and publishes their worlds to the stores.
+//! * `mwb reverse --scene word --worlds 20 [--connect …]` runs a node *and* submits a reverse
+//!   job of the final-state scene, follows it until the store holds the worlds, prints a
+//!   summary and exits.
+//! * `mwb reverse --scene word --worlds 20 --submit [--wait]` only submits the job, for reverse
+//!   nodes that run elsewhere.
+//!
+//! Every form needs a store on the bus (`mwb store`); the worlds are browsed like any others.
+
+use crate::bus::BusArgs;
+use crate::client::{self, QualityArg};
+use anyhow::{Context, Result, bail};
+use mwb_core::keys::Keys;
+use mwb_proto::v1::{Job, JobKind, JobState, Quality};
+use mwb_reverse::scene::{builtin, world_from_toml};
+use std::time::{Duration, Instant};
+
+/// Arguments of `mwb reverse`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ReverseArgs {
+    #[command(flatten)]
+    pub bus: BusArgs,
+    /// Final-state scene: a TOML file, or a shipped reverse scene (word, stack, balls,
+    /// balls_small, crash). The run goes back `[settings] end_time` seconds. Without it, the
+    /// node serves reverse jobs from the bus until Ctrl-C.
+    #[arg(long)]
+    pub scene: Option<String>,
+    /// Worlds to sample.
+    #[arg(long, default_value_t = 20)]
+    pub worlds: u32,
+    /// Only submit the job (reverse nodes elsewhere run it) and print its id.
+    #[arg(long, requires = "scene")]
+    pub submit: bool,
+    /// With --submit: follow the job until it closes.
+    #[arg(long, requires = "submit")]
+    pub wait: bool,
+    /// Give up waiting after this many seconds.
+    #[arg(long)]
+    pub timeout: Option<u64>,
+    /// Worker threads of the node [default: all cores].
+    #[arg(long)]
+    pub workers: Option<usize>,
+    #[arg(long, default_value_t = 0)]
+    pub priority: i32,
+    /// Job id [default: <scene name>-<time>].
+    #[arg(long)]
+    pub id: Option<String>,
+    /// Codec error bounds: draft 5 mm / 5 mrad, standard 1 mm / 1 mrad, final 0.1 mm / 0.1 mrad.
+    #[arg(long, value_enum, default_value_t = QualityArg::Standard)]
+    pub quality: QualityArg,
+    /// Print the result as one JSON line.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Reads a final-state scene argument: a path to a TOML file, or the name of a shipped
+/// reverse scene (`scenes/reverse/`).
+pub fn load_reverse_scene(arg: &str) -> Result<(String, String)> {
+    let path = std::path::Path::new(arg);
+    if path.exists() {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("reading scene {}", path.display()))?;
+        return Ok((arg.to_owned(), text));
+    }
+    let name = arg.trim_end_matches(".toml");
+    let name = name.rsplit('/').next().unwrap_or(name);
+    match builtin::ALL.iter().find(|(n, _)| *n == name) {
+        Some((n, text)) => Ok((format!("scenes/reverse/{n}.toml"), (*text).to_owned())),
+        None => bail!(
+            "scene {arg:?}: no such file, and not a shipped reverse scene ({})",
+            builtin::ALL
+                .iter()
+                .map(|(n, _)| *n)
+                .collect::<Vec<_>>()
+                .join(", ")
+        ),
+    }
+}
+
+/// A reverse job for `target` worlds of the final-state scene text. Checks first that the
+/// reverse stepper can build the scene, so a bad scene fails here and not on every node.
+pub fn make_reverse_job(
+    file: &str,
+    text: &str,
+    target: u32,
+    priority: i32,
+    id: Option<String>,
+    quality: QualityArg,
+) -> Result<Job> {
+    world_from_toml(text, file).with_context(|| format!("{file}: not a reverse scene"))?;
+    let mut job = client::make_job(file, text, target, priority, id)?;
+    job.kind = JobKind::Reverse as i32;
+    job.quality = match quality {
+        QualityArg::Draft => Quality::Draft,
+        QualityArg::Standard => Quality::Standard,
+        QualityArg::Final => Quality::Final,
+    } as i32;
+    Ok(job)
+}
+
+/// The node's configuration for these arguments.
+fn node_config(args: &ReverseArgs) -> mwb_reverse::ReverseConfig {
+    let mut cfg = mwb_reverse::ReverseConfig {
+        space: args.bus.space.clone(),
+        ..Default::default()
+    };
+    if let Some(w) = args.workers {
+        cfg.workers = w.max(1);
+    }
+    cfg
+}
+
+/// What `mwb reverse --scene` prints.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ReverseSummary {
+    pub job: String,
+    pub scene: String,
+    pub worlds: u32,
+    pub target: u32,
+    pub rejected: u32,
+    pub seconds: f64,
+    pub worlds_per_s: f64,
+}
+
+fn summary(job: &Job, file: &str, st: &JobState, seconds: f64) -> ReverseSummary {
+    ReverseSummary {
+        job: job.id.clone(),
+        scene: file.to_owned(),
+        worlds: st.worlds_done,
+        target: st.target_worlds,
+        rejected: st.worlds_rejected,
+        seconds,
+        worlds_per_s: f64::from(st.worlds_done) / seconds.max(1e-9),
+    }
+}
+
+fn print(s: &ReverseSummary, json: bool) -> Result<()> {
+    if json {
+        println!("{}", serde_json::to_string(s)?);
+    } else {
+        println!(
+            "job {}: {}/{} backward worlds of {} in {:.2} s ({:.2} worlds/s), {} rejected",
+            s.job, s.worlds, s.target, s.scene, s.seconds, s.worlds_per_s, s.rejected
+        );
+    }
+    Ok(())
+}
+
+/// Runs `mwb reverse`.
+pub async fn run(args: ReverseArgs) -> Result<()> {
+    let keys = Keys::new(&args.bus.space)?;
+    let Some(scene) = &args.scene else {
+        // Node only.
+        let session = args.bus.open(args.bus.client_default()).await?;
+        let node = mwb_reverse::run_reverse(session.clone(), node_config(&args)).await?;
+        eprintln!(
+            "mwb reverse: node {} serving reverse jobs in space {:?}; Ctrl-C stops it",
+            node.node_id(),
+            args.bus.space
+        );
+        let _ = tokio::signal::ctrl_c().await;
+        node.stop().await;
+        crate::bus::close(session).await;
+        return Ok(());
+    };
+    let (file, text) = load_reverse_scene(scene)?;
+    let job = make_reverse_job(
+        &file,
+        &text,
+        args.worlds,
+        args.priority,
+        args.id.clone(),
+        args.quality,
+    )?;
+    let session = args.bus.open(args.bus.client_default()).await?;
+    let result = with_scene(&args, &session, &keys, &job, &file).await;
+    crate::bus::close(session).await;
+    result
+}
+
+/// `mwb reverse --scene …`: submit (and follow) the job, with a node in this process unless
+/// `--submit`.
+async fn with_scene(
+    args: &ReverseArgs,
+    session: &zenoh::Session,
+    keys: &Keys,
+    job: &Job,
+    file: &str,
+) -> Result<()> {
+    let timeout = args.timeout.map(Duration::from_secs);
+    let started = Instant::now();
+    if args.submit {
+        client::submit_job(session, keys, job).await?;
+        if !args.wait {
+            if args.json {
+                println!("{}", serde_json::json!({ "job": job.id }));
+            } else {
+                println!("{}", job.id);
+            }
+            return Ok(());
+        }
+        let st = client::wait_job(session, keys, &job.id, timeout, |_| {}).await?;
+        return print(
+            &summary(job, file, &st, started.elapsed().as_secs_f64()),
+            args.json,
+        );
+    }
+    let node = mwb_reverse::run_reverse(session.clone(), node_config(args)).await?;
+    let st = async {
+        client::submit_job(session, keys, job).await?;
+        client::wait_job(session, keys, &job.id, timeout, |_| {}).await
+    }
+    .await;
+    let seconds = started.elapsed().as_secs_f64();
+    node.stop().await;
+    print(&summary(job, file, &st?, seconds), args.json)
+}

@@ -1,0 +1,233 @@
+//! Backward worlds over a real bus (issue 5, item 5): a store (router on a free 127.0.0.1 port,
+//! no scouting), a reverse node and a forward sampler (clients) and a CLI-side client. A reverse
+//! job of the word scene is taken by the reverse node only; the store assembles, verifies and
+//! indexes its worlds; fetched worlds pass the CLI's verification (CRC, contiguity, decode) and
+//! play forward into the scene's final state.
+
+use mwb::bench::free_port;
+use mwb::bus::{BusArgs, Mode};
+use mwb::check::verify_world;
+use mwb::client::{self, QualityArg};
+use mwb::reverse_cmd::{load_reverse_scene, make_reverse_job};
+use mwb_codec::{Quality, WorldReader};
+use mwb_core::keys::Keys;
+use mwb_core::scene::SceneTemplate;
+use mwb_proto::v1::{JobKind, Message, NodeStats};
+use mwb_reverse::{ReverseConfig, run_reverse};
+use mwb_sampler::{SamplerConfig, run_sampler};
+use mwb_store::{StoreConfig, run_store};
+use std::time::Duration;
+
+const SPACE: &str = "reverse";
+const WORLDS: u32 = 3;
+const T: Duration = Duration::from_secs(60);
+
+fn bus(mode: Mode, port: u16) -> BusArgs {
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let (connect, listen) = if mode == Mode::Router {
+        (vec![], vec![endpoint])
+    } else {
+        (vec![endpoint], vec![])
+    };
+    BusArgs {
+        connect,
+        listen,
+        config: None,
+        mode: Some(mode),
+        space: SPACE.to_owned(),
+        multicast: false,
+    }
+}
+
+async fn open(mode: Mode, port: u16) -> zenoh::Session {
+    tokio::time::timeout(T, bus(mode, port).open(mode))
+        .await
+        .unwrap_or_else(|_| panic!("open timed out"))
+        .unwrap_or_else(|e| panic!("{e:#}"))
+}
+
+async fn within<F: std::future::Future>(what: &str, limit: Duration, f: F) -> F::Output {
+    tokio::time::timeout(limit, f)
+        .await
+        .unwrap_or_else(|_| panic!("{what} timed out"))
+}
+
+fn angle(a: [f64; 4], b: [f64; 4]) -> f64 {
+    let d: f64 = a.iter().zip(&b).map(|(x, y)| x * y).sum();
+    2.0 * d.abs().min(1.0).acos()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reverse_job_is_sampled_stored_and_plays_forward_into_the_final_state() {
+    let port = free_port().unwrap_or_else(|e| panic!("{e}"));
+    let keys = Keys::new(SPACE).unwrap_or_else(|e| panic!("{e}"));
+    let store_session = open(Mode::Router, port).await;
+    let store = within(
+        "store start",
+        T,
+        run_store(
+            store_session.clone(),
+            StoreConfig {
+                space: SPACE.into(),
+                node_id: Some("store".into()),
+                ..Default::default()
+            },
+        ),
+    )
+    .await
+    .unwrap_or_else(|e| panic!("{e}"));
+    let node_session = open(Mode::Client, port).await;
+    let reverse = within(
+        "reverse start",
+        T,
+        run_reverse(
+            node_session.clone(),
+            ReverseConfig {
+                space: SPACE.into(),
+                workers: 2,
+                node_id: Some("rev-a".into()),
+                refresh: Duration::from_millis(300),
+                ..Default::default()
+            },
+        ),
+    )
+    .await
+    .unwrap_or_else(|e| panic!("{e}"));
+    // A forward sampler on the same bus must leave the reverse job alone.
+    let sampler = within(
+        "sampler start",
+        T,
+        run_sampler(
+            node_session.clone(),
+            SamplerConfig {
+                space: SPACE.into(),
+                workers: 1,
+                node_id: Some("sampler-a".into()),
+                refresh: Duration::from_millis(300),
+                ..Default::default()
+            },
+        ),
+    )
+    .await
+    .unwrap_or_else(|e| panic!("{e}"));
+
+    // The shipped word scene, going back 1.5 s instead of 3 s.
+    let (file, text) = load_reverse_scene("word").unwrap_or_else(|e| panic!("{e:#}"));
+    let text = text.replace("end_time = 3.0", "end_time = 1.5");
+    let job = make_reverse_job(
+        &file,
+        &text,
+        WORLDS,
+        0,
+        Some("rev-word".into()),
+        QualityArg::Standard,
+    )
+    .unwrap_or_else(|e| panic!("{e:#}"));
+    assert_eq!(job.kind(), JobKind::Reverse);
+    let client_session = open(Mode::Client, port).await;
+    within(
+        "submit",
+        T,
+        client::submit_job(&client_session, &keys, &job),
+    )
+    .await
+    .unwrap_or_else(|e| panic!("{e:#}"));
+    let state = within(
+        "job",
+        Duration::from_secs(240),
+        client::wait_job(
+            &client_session,
+            &keys,
+            &job.id,
+            Some(Duration::from_secs(200)),
+            |_| {},
+        ),
+    )
+    .await
+    .unwrap_or_else(|e| panic!("{e:#}"));
+    assert!(state.closed, "{state:?}");
+    assert_eq!(state.worlds_done, WORLDS, "{state:?}");
+    assert_eq!(state.worlds_rejected, 0, "{state:?}");
+
+    let template = SceneTemplate::parse(&text, &file).unwrap_or_else(|e| panic!("{e}"));
+    let (e_max, theta_max) = Quality::Standard.bounds();
+    for index in 0..WORLDS {
+        let world = within(
+            "fetch",
+            T,
+            client::fetch_world(&client_session, &keys, index),
+        )
+        .await
+        .unwrap_or_else(|e| panic!("{e:#}"))
+        .unwrap_or_else(|| panic!("world {index} not served"));
+        let check = verify_world(&world).unwrap_or_else(|e| panic!("{e:#}"));
+        let Some(done) = &world.done else {
+            panic!("world {index}: no summary")
+        };
+        assert_eq!(done.node_id, "rev-a", "a sampler took a reverse world");
+        assert!(
+            done.provenance.contains("mwb-reverse"),
+            "{}",
+            done.provenance
+        );
+        assert_eq!(check.frames, 181);
+        assert_eq!(done.impacts.len(), 16);
+        assert_eq!(done.body_rested, vec![true; 16]);
+        assert!(done.rested);
+
+        // Played forward, the last frame is the user's final state (within the codec bound).
+        let Some(last) = world.segments.last() else {
+            panic!("world {index}: no segments")
+        };
+        let tracks = WorldReader::new(&last.payload)
+            .and_then(|r| r.decode_all())
+            .unwrap_or_else(|e| panic!("{e}"));
+        let final_state = template.instantiate(done.seed);
+        for (b, body) in final_state.bodies.iter().enumerate() {
+            let (Some(p), Some(q)) = (tracks[b].positions.last(), tracks[b].rotations.last())
+            else {
+                panic!("world {index} body {b}: empty track")
+            };
+            let d = p
+                .iter()
+                .zip(&body.position)
+                .map(|(x, y)| (x - y).powi(2))
+                .sum::<f64>()
+                .sqrt();
+            assert!(
+                d <= e_max * (1.0 + 1e-9),
+                "world {index} body {b}: {d} m off"
+            );
+            assert!(angle(*q, body.rotation) <= theta_max * (1.0 + 1e-6));
+        }
+    }
+    assert_eq!(sampler.worlds(), 0, "the sampler sampled a reverse job");
+
+    // The store indexed every backward world for browsing.
+    let replies = within("stats", T, async {
+        client_session
+            .get(keys.store_stats())
+            .timeout(Duration::from_secs(3))
+            .await
+    })
+    .await
+    .unwrap_or_else(|e| panic!("{e}"));
+    let reply = within("stats reply", T, replies.recv_async())
+        .await
+        .unwrap_or_else(|e| panic!("{e}"));
+    let stats = reply
+        .result()
+        .ok()
+        .and_then(|s| NodeStats::decode(s.payload().to_bytes().as_ref()).ok())
+        .unwrap_or_else(|| panic!("no store stats"));
+    assert_eq!(stats.worlds, u64::from(WORLDS), "{stats:?}");
+    assert_eq!(stats.index_failures, 0, "{stats:?}");
+    assert_eq!(stats.crc_failures, 0, "{stats:?}");
+
+    within("sampler stop", T, sampler.stop()).await;
+    within("reverse stop", T, reverse.stop()).await;
+    store.stop();
+    for s in [client_session, node_session, store_session] {
+        let _ = tokio::time::timeout(Duration::from_secs(5), s.close()).await;
+    }
+}
