@@ -490,7 +490,8 @@ impl Frustum {
     /// within `r` of the original (each half-space grows by `r`), which is what makes an
     /// inflated test never miss a path that deviates from the tested one by at most `r`.
     /// A NaN radius means "unknown error": the planes move to infinity and everything is inside,
-    /// so a never-miss test stays never-miss. Negative radii are treated as 0.
+    /// so a never-miss test stays never-miss. Negative radii are treated as 0. The result has no
+    /// vertex set ([`hull`](Self::hull) is `None`).
     pub fn inflated(&self, r: f64) -> Frustum {
         let r = if r.is_nan() {
             f64::INFINITY
@@ -501,21 +502,9 @@ impl Frustum {
         for p in &mut planes {
             p.offset += r;
         }
-        Frustum::with_hull(planes)
-    }
-
-    /// [`inflated`](Self::inflated) without recomputing the vertices (for segment clipping,
-    /// which needs only the planes).
-    pub(crate) fn inflated_planes(&self, r: f64) -> Frustum {
-        let r = if r.is_nan() {
-            f64::INFINITY
-        } else {
-            r.max(0.0)
-        };
-        let mut planes = self.planes;
-        for p in &mut planes {
-            p.offset += r;
-        }
+        // Only the planes: tests on an inflated frustum clip segments (planes suffice) and box
+        // tests grow the box by `r` against the original frustum instead (`Obb::apart`), so
+        // the vertex set is never needed here and costs nothing.
         Frustum { planes, hull: None }
     }
 
@@ -626,7 +615,7 @@ mod tests {
             })
             .expect("valid");
         assert_eq!(f.hull().map(<[Vec3]>::len), Some(8));
-        assert_eq!(f.inflated(0.05).hull().map(<[Vec3]>::len), Some(8));
+        assert_eq!(f.inflated(0.05).hull(), None);
         // Flip the far plane: the region beyond it is unbounded.
         let mut planes = *f.planes();
         planes[5].normal = scale(planes[5].normal, -1.0);

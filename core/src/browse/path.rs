@@ -484,7 +484,7 @@ impl PathTree {
         };
         // Boxes are tested against the frustum with `r` added to them; segments against the
         // inflated planes.
-        self.visit(0, frustum, &frustum.inflated_planes(r), r, window)
+        self.visit(0, frustum, &frustum.inflated(r), r, window)
             .is_some()
     }
 
