@@ -28,9 +28,9 @@ impl Aabb {
             max: first,
         };
         for p in points {
-            for k in 0..3 {
-                b.min[k] = b.min[k].min(p[k]);
-                b.max[k] = b.max[k].max(p[k]);
+            for (k, &v) in p.iter().enumerate() {
+                b.min[k] = b.min[k].min(v);
+                b.max[k] = b.max[k].max(v);
             }
         }
         // A hair more than `grow`, so rounding in the tests below can never lose a path.
