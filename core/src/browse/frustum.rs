@@ -300,7 +300,7 @@ impl Plane {
 /// A convex region bounded by six planes: left, right, bottom, top, near, far (in that order for
 /// frusta built by [`Camera::frustum`]; any six planes are accepted by [`Frustum::from_planes`],
 /// e.g. a 3D box drawn by a script).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
 #[serde(try_from = "RawFrustum")]
 pub struct Frustum {
     planes: [Plane; 6],
@@ -308,6 +308,14 @@ pub struct Frustum {
     /// from the planes on every construction, never sent.
     #[serde(skip)]
     hull: Option<Hull>,
+}
+
+/// Two frusta are equal when their planes are (the vertex set is derived from them, and an
+/// inflated frustum does not carry one).
+impl PartialEq for Frustum {
+    fn eq(&self, other: &Self) -> bool {
+        self.planes == other.planes
+    }
 }
 
 /// The vertices of a bounded six-plane region (a convex polyhedron with six faces has at most

@@ -23,9 +23,11 @@ use super::{BrowseError, finite};
 
 /// Maximum depth of a [`PathTree`] (the root has depth 0), so at most 2³ = 8 leaves (§4.4.2).
 pub const MAX_TREE_DEPTH: usize = 3;
-/// A node with fewer segments than this stays a leaf: splitting tiny runs costs more in boxes
-/// than it saves in segment tests.
-pub const MIN_SPLIT_SEGMENTS: usize = 8;
+/// A node with fewer segments than this stays a leaf: splitting short runs costs more in boxes
+/// (memory, and a box test costs about two segment tests) than it saves; measured with
+/// `mwb bench query` (4 → 16 took the index from 32 to 15 kB per 10-object world at the same
+/// speed). A 3 s tumbling path of ~19 vertices gets a root and two leaves.
+pub const MIN_SPLIT_SEGMENTS: usize = 16;
 
 /// A timed polyline: positions of one object's centre of mass at strictly increasing times,
 /// linearly interpolated in between.
