@@ -23,9 +23,10 @@ use mwb_core::browse::{
     Aggregate, Camera, Constraint, ConstraintId, Frustum, Intrinsics, Metric, Order, PathTree,
     Polarity, Polyline, RankKey, RestThresholds, ScreenRect, TimeWindow, Viewport,
 };
+use mwb_core::rng::{Stream, WorldRng};
 use mwb_core::scene::SceneTemplate;
-use mwb_proto::v1::{Message, WorldDone};
-use mwb_sampler::{RunOptions, run_world, segment_message};
+use mwb_proto::v1::Message;
+use mwb_sampler::{RunOptions, run_world, segment_message, world_done};
 use mwb_store::index::{DEFAULT_PATH_TOLERANCE_M, IndexedObject};
 use mwb_store::{IndexedWorld, Shard, ShardSpec, StoredWorld, index_world};
 use std::ops::ControlFlow;
@@ -59,18 +60,15 @@ pub struct QueryBench {
     pub path_radius_mm_p50: f64,
 }
 
-struct Rng(u64);
+/// The bench's random draws: a SplitMix64 stream of a fixed seed.
+struct Rng(WorldRng);
 
 impl Rng {
     fn unit(&mut self) -> f64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+        self.0.next_f64()
     }
     fn range(&mut self, lo: f64, hi: f64) -> f64 {
-        lo + (hi - lo) * self.unit()
+        self.0.uniform(lo, hi)
     }
     fn index(&mut self, n: usize) -> usize {
         ((self.unit() * n as f64) as usize).min(n.saturating_sub(1))
@@ -97,17 +95,7 @@ fn sample_pool(file: &str, text: &str, worlds: u32, tolerance: f64) -> Result<Ve
             segments.push(segment_message("q", "n", u64::from(i), seed, seg));
             ControlFlow::Continue(())
         })?;
-        let done = WorldDone {
-            seed,
-            frame_count: summary.frame_count,
-            segment_count: summary.segment_count,
-            frame_dt: summary.frame_dt,
-            rested: summary.rested,
-            impacts: summary.impacts,
-            rest_time_s: summary.rest_time_s,
-            body_rested: summary.body_rested,
-            ..Default::default()
-        };
+        let done = world_done("q", "n", u64::from(i), &summary);
         let bytes = segments.iter().map(|s| s.encoded_len() as u64).sum();
         let stored = StoredWorld {
             index: i,
@@ -278,7 +266,7 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
     if pool_objects.is_empty() {
         bail!("{file}: no dynamic bodies to take paths from");
     }
-    let mut rng = Rng(0x5EED);
+    let mut rng = Rng(WorldRng::new(0x5EED, Stream::Scene));
     let mut shard = Shard::new(ShardSpec::default(), "bench");
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     let mut synthetic = Vec::with_capacity(worlds as usize);

@@ -236,38 +236,25 @@ impl PathBvh {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    struct Rng(u64);
-    impl Rng {
-        fn unit(&mut self) -> f64 {
-            self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-            let mut z = self.0;
-            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-            ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
-        }
-        fn range(&mut self, lo: f64, hi: f64) -> f64 {
-            lo + (hi - lo) * self.unit()
-        }
-    }
+    use mwb_core::rng::{Stream, WorldRng};
 
     /// Every box that truly overlaps the query box is visited, whatever the insertion order and
     /// the rebuild points; boxes far away are mostly not.
     #[test]
     fn query_returns_every_overlapping_box() {
-        let mut rng = Rng(3);
+        let mut rng = WorldRng::new(3, Stream::Scene);
         let mut bvh = PathBvh::default();
         let mut boxes = Vec::new();
         for w in 0..3000u32 {
             let c = [
-                rng.range(-20.0, 20.0),
-                rng.range(0.0, 5.0),
-                rng.range(-20.0, 20.0),
+                rng.uniform(-20.0, 20.0),
+                rng.uniform(0.0, 5.0),
+                rng.uniform(-20.0, 20.0),
             ];
             let h = [
-                rng.range(0.01, 2.0),
-                rng.range(0.01, 1.0),
-                rng.range(0.01, 2.0),
+                rng.uniform(0.01, 2.0),
+                rng.uniform(0.01, 1.0),
+                rng.uniform(0.01, 2.0),
             ];
             let b = Aabb {
                 min: [c[0] - h[0], c[1] - h[1], c[2] - h[2]],
@@ -280,11 +267,11 @@ mod tests {
         assert_eq!(bvh.len(), 2999);
         for _ in 0..200 {
             let c = [
-                rng.range(-20.0, 20.0),
-                rng.range(0.0, 5.0),
-                rng.range(-20.0, 20.0),
+                rng.uniform(-20.0, 20.0),
+                rng.uniform(0.0, 5.0),
+                rng.uniform(-20.0, 20.0),
             ];
-            let h = rng.range(0.1, 4.0);
+            let h = rng.uniform(0.1, 4.0);
             let q = Frustum::aabb(
                 [c[0] - h, c[1] - h, c[2] - h],
                 [c[0] + h, c[1] + h, c[2] + h],

@@ -461,37 +461,16 @@ impl Frustum {
                 });
             }
         }
-        let axis = |i: usize, sign: f64| {
-            let mut n = [0.0; 3];
-            n[i] = sign;
-            n
-        };
-        Frustum::from_planes([
+        // Per axis: the −x side (normal −e, offset −min), then the +x side.
+        Frustum::from_planes(std::array::from_fn(|j| {
+            let (i, sign) = (j / 2, if j % 2 == 0 { -1.0 } else { 1.0 });
+            let mut normal = [0.0; 3];
+            normal[i] = sign;
             Plane {
-                normal: axis(0, -1.0),
-                offset: -min[0],
-            },
-            Plane {
-                normal: axis(0, 1.0),
-                offset: max[0],
-            },
-            Plane {
-                normal: axis(1, -1.0),
-                offset: -min[1],
-            },
-            Plane {
-                normal: axis(1, 1.0),
-                offset: max[1],
-            },
-            Plane {
-                normal: axis(2, -1.0),
-                offset: -min[2],
-            },
-            Plane {
-                normal: axis(2, 1.0),
-                offset: max[2],
-            },
-        ])
+                normal,
+                offset: if j % 2 == 0 { -min[i] } else { max[i] },
+            }
+        }))
     }
 
     /// The frustum with every plane moved outward by `r` metres. The result contains every point

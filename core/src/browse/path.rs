@@ -29,6 +29,19 @@ pub const MAX_TREE_DEPTH: usize = 3;
 /// speed). A 3 s tumbling path of ~19 vertices gets a root and two leaves.
 pub const MIN_SPLIT_SEGMENTS: usize = 16;
 
+/// A finite start time and a positive, finite frame interval.
+fn check_timing(start: f64, frame_dt: f64) -> Result<(), BrowseError> {
+    finite("start", start)?;
+    if finite("frame_dt", frame_dt)? <= 0.0 {
+        return Err(BrowseError::OutOfRange {
+            field: "frame_dt",
+            value: frame_dt,
+            expected: "a positive frame interval",
+        });
+    }
+    Ok(())
+}
+
 /// A timed polyline: positions of one object's centre of mass at strictly increasing times,
 /// linearly interpolated in between.
 #[derive(Debug, Clone, PartialEq)]
@@ -73,14 +86,7 @@ impl Polyline {
 
     /// Frames `points` at `start + i·frame_dt`.
     pub fn uniform(start: f64, frame_dt: f64, points: Vec<Vec3>) -> Result<Self, BrowseError> {
-        finite("start", start)?;
-        if finite("frame_dt", frame_dt)? <= 0.0 {
-            return Err(BrowseError::OutOfRange {
-                field: "frame_dt",
-                value: frame_dt,
-                expected: "a positive frame interval",
-            });
-        }
+        check_timing(start, frame_dt)?;
         let times = (0..points.len())
             .map(|i| start + i as f64 * frame_dt)
             .collect();
@@ -103,14 +109,7 @@ impl Polyline {
         points: &[Vec3],
         tolerance: f64,
     ) -> Result<(Polyline, f64), BrowseError> {
-        finite("start", start)?;
-        if finite("frame_dt", frame_dt)? <= 0.0 {
-            return Err(BrowseError::OutOfRange {
-                field: "frame_dt",
-                value: frame_dt,
-                expected: "a positive frame interval",
-            });
-        }
+        check_timing(start, frame_dt)?;
         let tol = finite("tolerance", tolerance)?.max(0.0);
         if points.is_empty() {
             return Err(BrowseError::Empty {
