@@ -10,8 +10,11 @@
 //!
 //! * add: a new constraint over every world (`Shard::handle`, every core), including the AND;
 //! * remove: removing one of four live constraints (AND of the other bitsets, no geometry);
-//! * brute: the same constraint tested segment by segment on every polyline without the tree,
-//!   on the same threads; obb_speedup = brute ÷ tree evaluation (medians);
+//! * tree: the path index — per object index a hierarchy of path boxes picks the paths near the
+//!   frustum, whose OBB trees then decide; per_world_trees: the OBB trees of every world, world
+//!   by world (every core);
+//! * brute: the same constraint tested segment by segment on every polyline without any tree,
+//!   on every core; obb_speedup = brute ÷ tree (medians). All three must agree on every world;
 //! * rank: top 10 by angular travel summed over all objects, over every world.
 
 use anyhow::{Result, bail};
@@ -20,9 +23,10 @@ use mwb_core::browse::{
     Aggregate, Camera, Constraint, ConstraintId, Frustum, Intrinsics, Metric, Order, PathTree,
     Polarity, Polyline, RankKey, RestThresholds, ScreenRect, TimeWindow, Viewport,
 };
+use mwb_core::rng::{Stream, WorldRng};
 use mwb_core::scene::SceneTemplate;
-use mwb_proto::v1::{Message, WorldDone};
-use mwb_sampler::{RunOptions, run_world, segment_message};
+use mwb_proto::v1::Message;
+use mwb_sampler::{RunOptions, run_world, segment_message, world_done};
 use mwb_store::index::{DEFAULT_PATH_TOLERANCE_M, IndexedObject};
 use mwb_store::{IndexedWorld, Shard, ShardSpec, StoredWorld, index_world};
 use std::ops::ControlFlow;
@@ -31,6 +35,8 @@ use std::time::Instant;
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct QueryBench {
     pub scene: String,
+    pub path_tolerance_mm: f64,
+    pub spread_m: f64,
     pub worlds: u32,
     pub objects: u32,
     pub threads: usize,
@@ -40,7 +46,11 @@ pub struct QueryBench {
     pub add_p50_ms: f64,
     pub add_p95_ms: f64,
     pub remove_p50_ms: f64,
+    /// The index: the per-object hierarchy of path boxes, then the OBB trees of the paths near
+    /// the frustum.
     pub tree_p50_ms: f64,
+    /// Every world's OBB trees, without the hierarchy (how §4.4.2 tests: world by world).
+    pub per_world_trees_p50_ms: f64,
     pub brute_p50_ms: f64,
     pub obb_speedup: f64,
     pub rank_p50_ms: f64,
@@ -50,18 +60,15 @@ pub struct QueryBench {
     pub path_radius_mm_p50: f64,
 }
 
-struct Rng(u64);
+/// The bench's random draws: a SplitMix64 stream of a fixed seed.
+struct Rng(WorldRng);
 
 impl Rng {
     fn unit(&mut self) -> f64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+        self.0.next_f64()
     }
     fn range(&mut self, lo: f64, hi: f64) -> f64 {
-        lo + (hi - lo) * self.unit()
+        self.0.uniform(lo, hi)
     }
     fn index(&mut self, n: usize) -> usize {
         ((self.unit() * n as f64) as usize).min(n.saturating_sub(1))
@@ -77,7 +84,7 @@ fn percentile(v: &mut [f64], p: f64) -> f64 {
 }
 
 /// Real indexed worlds of `scene`, as the store builds them.
-fn sample_pool(file: &str, text: &str, worlds: u32) -> Result<Vec<IndexedWorld>> {
+fn sample_pool(file: &str, text: &str, worlds: u32, tolerance: f64) -> Result<Vec<IndexedWorld>> {
     let template = SceneTemplate::parse(text, file)?;
     let rest = RestThresholds::from(template.settings());
     let mut out = Vec::new();
@@ -88,17 +95,7 @@ fn sample_pool(file: &str, text: &str, worlds: u32) -> Result<Vec<IndexedWorld>>
             segments.push(segment_message("q", "n", u64::from(i), seed, seg));
             ControlFlow::Continue(())
         })?;
-        let done = WorldDone {
-            seed,
-            frame_count: summary.frame_count,
-            segment_count: summary.segment_count,
-            frame_dt: summary.frame_dt,
-            rested: summary.rested,
-            impacts: summary.impacts,
-            rest_time_s: summary.rest_time_s,
-            body_rested: summary.body_rested,
-            ..Default::default()
-        };
+        let done = world_done("q", "n", u64::from(i), &summary);
         let bytes = segments.iter().map(|s| s.encoded_len() as u64).sum();
         let stored = StoredWorld {
             index: i,
@@ -107,7 +104,7 @@ fn sample_pool(file: &str, text: &str, worlds: u32) -> Result<Vec<IndexedWorld>>
             segments,
             bytes,
         };
-        out.push(index_world(&stored, i, rest, DEFAULT_PATH_TOLERANCE_M)?);
+        out.push(index_world(&stored, i, rest, tolerance)?);
     }
     Ok(out)
 }
@@ -221,17 +218,47 @@ fn brute(worlds: &[&IndexedWorld], c: &Constraint, threads: usize) -> usize {
     })
 }
 
-pub fn bench_query(
-    scene: &str,
-    worlds: u32,
-    objects: u32,
-    constraints: usize,
-) -> Result<QueryBench> {
+/// What to measure.
+#[derive(Debug, Clone)]
+pub struct QueryBenchOptions {
+    pub scene: String,
+    pub worlds: u32,
+    pub objects: u32,
+    pub constraints: usize,
+    /// The store's path tolerance, metres (longer polylines when smaller).
+    pub path_tolerance_m: f64,
+    /// Each synthetic object path is shifted sideways by up to this much, metres: 1 m keeps a
+    /// scene as compact as it was sampled (every box meets most paths); larger values spread
+    /// the worlds' objects over a wider set, as in a scene with many separate areas.
+    pub spread_m: f64,
+}
+
+impl Default for QueryBenchOptions {
+    fn default() -> Self {
+        Self {
+            scene: "tumble".into(),
+            worlds: 10_000,
+            objects: 10,
+            constraints: 60,
+            path_tolerance_m: DEFAULT_PATH_TOLERANCE_M,
+            spread_m: 1.0,
+        }
+    }
+}
+
+pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
+    let (worlds, objects, constraints) = (opts.worlds, opts.objects, opts.constraints);
+    if !(opts.spread_m.is_finite() && opts.spread_m >= 0.0) {
+        bail!("--spread-m must be a non-negative number");
+    }
+    if !(opts.path_tolerance_m.is_finite() && opts.path_tolerance_m >= 0.0) {
+        bail!("--path-tolerance-mm must be a non-negative number");
+    }
     if worlds == 0 || objects == 0 || constraints == 0 {
         bail!("--worlds, --objects and --constraints must be positive");
     }
-    let (file, text) = crate::client::load_scene(scene)?;
-    let pool = sample_pool(&file, &text, 24)?;
+    let (file, text) = crate::client::load_scene(&opts.scene)?;
+    let pool = sample_pool(&file, &text, 24, opts.path_tolerance_m)?;
     let pool_objects: Vec<(&IndexedObject, mwb_core::browse::ObjectMetrics)> = pool
         .iter()
         .flat_map(|w| w.objects.iter().zip(w.metrics.iter().copied()))
@@ -239,7 +266,7 @@ pub fn bench_query(
     if pool_objects.is_empty() {
         bail!("{file}: no dynamic bodies to take paths from");
     }
-    let mut rng = Rng(0x5EED);
+    let mut rng = Rng(WorldRng::new(0x5EED, Stream::Scene));
     let mut shard = Shard::new(ShardSpec::default(), "bench");
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     let mut synthetic = Vec::with_capacity(worlds as usize);
@@ -250,7 +277,11 @@ pub fn bench_query(
         let mut metrics = Vec::with_capacity(objects as usize);
         for _ in 0..objects {
             let (obj, m) = pool_objects[rng.index(pool_objects.len())];
-            let d = [rng.range(-1.0, 1.0), 0.0, rng.range(-1.0, 1.0)];
+            let d = [
+                rng.range(-opts.spread_m, opts.spread_m),
+                0.0,
+                rng.range(-opts.spread_m, opts.spread_m),
+            ];
             let o = shifted(obj, d)?;
             vertices += o.tree.path().len();
             radii.push(o.radius * 1000.0);
@@ -292,6 +323,7 @@ pub fn bench_query(
     };
     let (mut add, mut remove, mut tree, mut brute_ms, mut rank, mut kept) =
         (vec![], vec![], vec![], vec![], vec![], vec![]);
+    let mut per_world = vec![];
     let key = RankKey::Metric {
         metric: Metric::AngularTravel,
         objects: (0..objects).collect(),
@@ -304,10 +336,15 @@ pub fn bench_query(
         let by_tree = shard.evaluate_all(&c).len();
         tree.push(t.elapsed().as_secs_f64() * 1e3);
         let t = Instant::now();
+        let each = shard.evaluate_each(&c).len();
+        per_world.push(t.elapsed().as_secs_f64() * 1e3);
+        let t = Instant::now();
         let by_brute = brute(&refs, &c, threads);
         brute_ms.push(t.elapsed().as_secs_f64() * 1e3);
-        if by_tree != by_brute {
-            bail!("constraint {round}: tree kept {by_tree} worlds, brute force {by_brute}");
+        if by_tree != by_brute || each != by_brute {
+            bail!(
+                "constraint {round}: index kept {by_tree} worlds, per-world trees {each}, brute force {by_brute}"
+            );
         }
         kept.push(by_tree as f64 / f64::from(worlds));
         // Add it to the session (evaluation + AND), keeping at most four live.
@@ -342,6 +379,8 @@ pub fn bench_query(
     let brute_p50 = percentile(&mut brute_ms, 0.5);
     Ok(QueryBench {
         scene: file,
+        path_tolerance_mm: opts.path_tolerance_m * 1e3,
+        spread_m: opts.spread_m,
         worlds,
         objects,
         threads,
@@ -351,6 +390,7 @@ pub fn bench_query(
         add_p95_ms: percentile(&mut add, 0.95),
         remove_p50_ms: percentile(&mut remove, 0.5),
         tree_p50_ms: tree_p50,
+        per_world_trees_p50_ms: percentile(&mut per_world, 0.5),
         brute_p50_ms: brute_p50,
         obb_speedup: brute_p50 / tree_p50.max(1e-9),
         rank_p50_ms: percentile(&mut rank, 0.5),

@@ -180,6 +180,12 @@ enum BenchCommand {
         /// Random constraints to time.
         #[arg(long, default_value_t = 60)]
         constraints: usize,
+        /// The store's path tolerance (polyline vs decoded path), mm.
+        #[arg(long, default_value_t = 10.0)]
+        path_tolerance_mm: f64,
+        /// Shift each synthetic object path sideways by up to this many metres.
+        #[arg(long, default_value_t = 1.0)]
+        spread_m: f64,
         /// (Output is always one JSON line.)
         #[arg(long)]
         json: bool,
@@ -486,12 +492,20 @@ async fn run(cli: Cli) -> Result<()> {
                 worlds,
                 objects,
                 constraints,
+                path_tolerance_mm,
+                spread_m,
                 json: _,
             } => {
-                let b = tokio::task::spawn_blocking(move || {
-                    mwb::bench_query::bench_query(&scene, worlds, objects, constraints)
-                })
-                .await??;
+                let opts = mwb::bench_query::QueryBenchOptions {
+                    scene,
+                    worlds,
+                    objects,
+                    constraints,
+                    path_tolerance_m: path_tolerance_mm * 1e-3,
+                    spread_m,
+                };
+                let b = tokio::task::spawn_blocking(move || mwb::bench_query::bench_query(&opts))
+                    .await??;
                 print_json(&b)?;
             }
             BenchCommand::Sampler {

@@ -57,31 +57,8 @@ pub enum QueryCommand {
     Add {
         #[command(flatten)]
         s: SessionArgs,
-        /// Constraint id [default: one more than the largest live id].
-        #[arg(long)]
-        id: Option<u64>,
-        /// "Never passes through" instead of "passes through".
-        #[arg(long)]
-        negative: bool,
-        /// Object indices (scene body order), comma-separated, or `all`.
-        #[arg(long)]
-        objects: Option<String>,
-        /// Only during this time window, seconds: START:END.
-        #[arg(long)]
-        window: Option<String>,
-        /// World-space box: MINX,MINY,MINZ,MAXX,MAXY,MAXZ (metres).
-        #[arg(long, allow_hyphen_values = true)]
-        aabb: Option<String>,
-        /// Screen rectangle in pixels: X0,Y0,X1,Y1 (needs a camera).
-        #[arg(long)]
-        rect: Option<String>,
-        /// Camera JSON file: {"position":[..],"rotation":[x,y,z,w],"intrinsics":{..},"viewport":{..}}.
-        #[arg(long)]
-        camera: Option<PathBuf>,
-        /// JSON file with any of: camera, rect, aabb {min,max}, frustum, polarity, objects,
-        /// window; flags override it.
-        #[arg(long)]
-        file: Option<PathBuf>,
+        #[command(flatten)]
+        flags: ConstraintFlags,
     },
     /// Remove any live constraint by id (the result is the AND of the others).
     Remove {
@@ -275,32 +252,9 @@ impl Client {
 pub async fn run(command: QueryCommand) -> Result<()> {
     let (s, request) = match command {
         QueryCommand::Serve { bus } => return serve(bus).await,
-        QueryCommand::Add {
-            s,
-            id,
-            negative,
-            objects,
-            window,
-            aabb,
-            rect,
-            camera,
-            file,
-        } => {
+        QueryCommand::Add { s, flags } => {
             let client = Client::open(&s).await?;
-            let built = build_constraint(
-                &client,
-                ConstraintFlags {
-                    id,
-                    negative,
-                    objects,
-                    window,
-                    aabb,
-                    rect,
-                    camera,
-                    file,
-                },
-            )
-            .await;
+            let built = build_constraint(&client, flags).await;
             let constraint = match built {
                 Ok(c) => c,
                 Err(e) => {
@@ -389,14 +343,33 @@ pub async fn run(command: QueryCommand) -> Result<()> {
     print_reply(&s, &reply?, None)
 }
 
-struct ConstraintFlags {
+/// What `mwb query add` takes.
+#[derive(Debug, Clone, Args)]
+pub struct ConstraintFlags {
+    /// Constraint id [default: one more than the largest live id].
+    #[arg(long)]
     id: Option<u64>,
+    /// "Never passes through" instead of "passes through".
+    #[arg(long)]
     negative: bool,
+    /// Object indices (scene body order), comma-separated, or `all`.
+    #[arg(long)]
     objects: Option<String>,
+    /// Only during this time window, seconds: START:END.
+    #[arg(long)]
     window: Option<String>,
+    /// World-space box: MINX,MINY,MINZ,MAXX,MAXY,MAXZ (metres).
+    #[arg(long, allow_hyphen_values = true)]
     aabb: Option<String>,
+    /// Screen rectangle in pixels: X0,Y0,X1,Y1 (needs a camera).
+    #[arg(long)]
     rect: Option<String>,
+    /// Camera JSON file: {"position":[..],"rotation":[x,y,z,w],"intrinsics":{..},"viewport":{..}}.
+    #[arg(long)]
     camera: Option<PathBuf>,
+    /// JSON file with any of: camera, rect, aabb {min,max}, frustum, polarity, objects,
+    /// window; flags override it.
+    #[arg(long)]
     file: Option<PathBuf>,
 }
 

@@ -115,9 +115,9 @@ fn aabb(id: u64, polarity: Polarity, min: [f64; 3], max: [f64; 3], window: bool)
     }
 }
 
-/// World index → seed, from the summaries (every world of the space).
-async fn seeds(q: &QueryHandle) -> BTreeMap<u32, u64> {
-    let Reply::Ranking { rows, .. } = ask(
+/// Every world, ranked by the number of constraints it satisfies.
+async fn by_constraints(q: &QueryHandle) -> Vec<mwb_core::browse::Ranked> {
+    match ask(
         q,
         Request::Rank {
             key: RankKey::ConstraintsSatisfied,
@@ -127,9 +127,15 @@ async fn seeds(q: &QueryHandle) -> BTreeMap<u32, u64> {
         },
     )
     .await
-    else {
-        panic!("ranking expected")
-    };
+    {
+        Reply::Ranking { rows, .. } => rows,
+        other => panic!("ranking expected, got {other:?}"),
+    }
+}
+
+/// World index → seed, from the summaries (every world of the space).
+async fn seeds(q: &QueryHandle) -> BTreeMap<u32, u64> {
+    let rows = by_constraints(q).await;
     let mut out = BTreeMap::new();
     for r in rows {
         match ask(q, Request::Summary { world: r.world }).await {
@@ -179,19 +185,7 @@ async fn answers(q: &QueryHandle, seed_of: &BTreeMap<u32, u64>) -> Answers {
     else {
         panic!("ranking expected")
     };
-    let Reply::Ranking { rows: rows2, .. } = ask(
-        q,
-        Request::Rank {
-            key: RankKey::ConstraintsSatisfied,
-            order: Order::Descending,
-            k: 10_000,
-            all_worlds: true,
-        },
-    )
-    .await
-    else {
-        panic!("ranking expected")
-    };
+    let rows2 = by_constraints(q).await;
     // Ties in satisfied counts are broken by world index, which differs between the layouts:
     // compare those as (score, seed) sets.
     let mut by_constraints: Vec<(u64, Option<f64>)> =

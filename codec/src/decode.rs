@@ -7,19 +7,16 @@
 //! bound cannot come from the input length alone) and are only made once the header and index
 //! have been validated against the input length.
 
+mod v1;
+mod v2;
+
 use crate::Track;
-use crate::bits::{BitReader, RICE_K_BITS};
+use crate::bits::{BitReader, read_varint};
 use crate::error::CodecError;
-use crate::format::{
-    Header, INDEX_ENTRY_LEN, S_POS_LEN, S_POS_LINEAR, S_POS_QUADRATIC, S_POS_START, S_ROT_LEN,
-    S_ROT_START, S_ROT_W, STREAMS,
-};
+use crate::format::{Header, INDEX_ENTRY_LEN_V1};
 use crate::params::{MotionModel, Quality};
 use crate::rotation::{self, Quat, Vec3};
-use crate::segment::{
-    PositionCoding, PositionCurve, PositionPredictor, QuadraticQ, RotationCurve, RotationPredictor,
-    bucket, dequantise3, step_linear, unresidual,
-};
+use crate::segment::{PositionCurve, RotationCurve, dequantise3};
 
 /// Caps on what one decode call may allocate.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -72,42 +69,70 @@ impl<'a> WorldReader<'a> {
         let header = Header::parse(bytes)?;
         let n = header.object_count as usize;
         let rest = &bytes[header.header_len..];
-        let index_len = n
-            .checked_mul(INDEX_ENTRY_LEN)
-            .filter(|&l| l <= rest.len())
-            .ok_or(CodecError::Truncated {
-                at_bit: bytes.len() as u64 * 8,
-                needed_bits: (n as u64 * INDEX_ENTRY_LEN as u64)
-                    .saturating_sub(rest.len() as u64)
-                    .saturating_mul(8),
-            })?;
-        let (index, payload) = rest.split_at(index_len);
         let mut reader = Self {
             header,
-            index,
-            payload,
+            index: &[],
+            payload: &[],
             max_frames: 0,
             limits,
         };
-        let mut prev = 0usize;
-        for i in 0..n {
-            let (offset, frames) = reader.entry(i);
-            if offset < prev || offset > payload.len() {
+        if header.version == 1 {
+            let index_len = n
+                .checked_mul(INDEX_ENTRY_LEN_V1)
+                .filter(|&l| l <= rest.len())
+                .ok_or(CodecError::Truncated {
+                    at_bit: bytes.len() as u64 * 8,
+                    needed_bits: (n as u64 * INDEX_ENTRY_LEN_V1 as u64)
+                        .saturating_sub(rest.len() as u64)
+                        .saturating_mul(8),
+                })?;
+            (reader.index, reader.payload) = rest.split_at(index_len);
+            let mut prev = 0usize;
+            for i in 0..n {
+                let e = &reader.index[i * INDEX_ENTRY_LEN_V1..(i + 1) * INDEX_ENTRY_LEN_V1];
+                let offset = u32::from_le_bytes([e[0], e[1], e[2], e[3]]) as usize;
+                if offset < prev || offset > reader.payload.len() {
+                    return Err(CodecError::Corrupt {
+                        what: "object offsets must be increasing and inside the payload",
+                    });
+                }
+                prev = offset;
+            }
+        } else {
+            // Varint lengths (and frame counts): each entry takes at least one byte, so a
+            // hostile object count ends at the end of the input.
+            let mut at = 0usize;
+            let mut total = 0u64;
+            for _ in 0..n {
+                total = total.saturating_add(read_varint(rest, &mut at)?);
+                if header.common_frames.is_none() {
+                    let frames = read_varint(rest, &mut at)?;
+                    if frames > u64::from(u32::MAX) {
+                        return Err(CodecError::Corrupt {
+                            what: "object frame count above 2^32 − 1",
+                        });
+                    }
+                }
+            }
+            (reader.index, reader.payload) = rest.split_at(at);
+            if total != reader.payload.len() as u64 {
                 return Err(CodecError::Corrupt {
-                    what: "object offsets must be increasing and inside the payload",
+                    what: "object payload lengths must add up to the payload",
                 });
             }
-            prev = offset;
-            reader.max_frames = reader.max_frames.max(frames);
         }
+        reader.max_frames = reader.entries().map(|e| e.frames).max().unwrap_or(0);
         Ok(reader)
     }
 
-    fn entry(&self, i: usize) -> (usize, u32) {
-        let e = &self.index[i * INDEX_ENTRY_LEN..(i + 1) * INDEX_ENTRY_LEN];
-        let offset = u32::from_le_bytes([e[0], e[1], e[2], e[3]]) as usize;
-        let frames = u32::from_le_bytes([e[4], e[5], e[6], e[7]]);
-        (offset, frames)
+    /// The index entries in object order (the index has been validated).
+    fn entries(&self) -> Entries<'_> {
+        Entries {
+            reader: self,
+            i: 0,
+            at: 0,
+            offset: 0,
+        }
     }
 
     fn object(&self, i: usize) -> Result<(&'a [u8], u32), CodecError> {
@@ -115,13 +140,10 @@ impl<'a> WorldReader<'a> {
         if i >= count {
             return Err(CodecError::ObjectOutOfRange { index: i, count });
         }
-        let (start, frames) = self.entry(i);
-        let end = if i + 1 < count {
-            self.entry(i + 1).0
-        } else {
-            self.payload.len()
-        };
-        Ok((&self.payload[start..end], frames))
+        let e = self.entries().nth(i).ok_or(CodecError::Corrupt {
+            what: "object index shorter than the object count",
+        })?;
+        Ok((&self.payload[e.start..e.end], e.frames))
     }
 
     /// Format version of the input.
@@ -179,9 +201,7 @@ impl<'a> WorldReader<'a> {
         ObjectStreams::open(bytes, frames, &self.header).map(Some)
     }
 
-    /// Decodes every frame of object `i`.
-    pub fn decode_object(&self, i: usize) -> Result<Track, CodecError> {
-        let frames = self.object(i)?.1;
+    fn decode_entry(&self, bytes: &'a [u8], frames: u32) -> Result<Track, CodecError> {
         if u64::from(frames) > self.limits.max_object_frames {
             return Err(CodecError::LimitExceeded {
                 what: "decode_object",
@@ -189,27 +209,24 @@ impl<'a> WorldReader<'a> {
                 limit: self.limits.max_object_frames,
             });
         }
-        let Some(streams) = self.open(i)? else {
+        if frames == 0 {
             return Ok(Track::default());
-        };
-        let ObjectStreams {
-            mut positions,
-            mut rotations,
-        } = streams;
+        }
+        let mut streams = ObjectStreams::open(bytes, frames, &self.header)?;
         let mut track = Track {
             positions: Vec::with_capacity(frames as usize),
             rotations: Vec::with_capacity(frames as usize),
         };
-        track.positions.push(positions.start);
-        while let Some(seg) = positions.next_segment()? {
+        track.positions.push(streams.position_start());
+        while let Some(seg) = streams.next_position()? {
             for u in 1..=seg.len {
                 track
                     .positions
                     .push(finite_position(seg.curve.eval(seg.c, f64::from(u)))?);
             }
         }
-        track.rotations.push(rotations.start);
-        while let Some(seg) = rotations.next_segment()? {
+        track.rotations.push(streams.start_rotations()?);
+        while let Some(seg) = streams.next_rotation()? {
             for u in 1..=seg.len {
                 track.rotations.push(seg.curve.eval(seg.q0, f64::from(u)));
             }
@@ -217,12 +234,22 @@ impl<'a> WorldReader<'a> {
         Ok(track)
     }
 
+    /// Decodes every frame of object `i`.
+    pub fn decode_object(&self, i: usize) -> Result<Track, CodecError> {
+        let (bytes, frames) = self.object(i)?;
+        self.decode_entry(bytes, frames)
+    }
+
+    /// Every object decoded in turn (one pass over the index; for the encoder's self-check).
+    pub(crate) fn objects(&self) -> impl Iterator<Item = Result<Track, CodecError>> + '_ {
+        self.entries()
+            .map(|e| self.decode_entry(&self.payload[e.start..e.end], e.frames))
+    }
+
     /// Decodes every object. Fails before decoding anything if the world exceeds
     /// [`DecodeLimits::max_total_frames`].
     pub fn decode_all(&self) -> Result<Vec<Track>, CodecError> {
-        let total: u64 = (0..self.object_count())
-            .map(|i| u64::from(self.entry(i).1))
-            .sum();
+        let total: u64 = self.entries().map(|e| u64::from(e.frames)).sum();
         if total > self.limits.max_total_frames {
             return Err(CodecError::LimitExceeded {
                 what: "decode_all",
@@ -230,9 +257,7 @@ impl<'a> WorldReader<'a> {
                 limit: self.limits.max_total_frames,
             });
         }
-        (0..self.object_count())
-            .map(|i| self.decode_object(i))
-            .collect()
+        self.objects().collect()
     }
 
     /// Position and orientation of object `i` at time `t` seconds (frame 0 at t = 0), read
@@ -277,25 +302,21 @@ impl<'a> WorldReader<'a> {
     }
 
     fn sample_at(&self, i: usize, f: f64) -> Result<(Vec3, Quat), CodecError> {
-        let Some(ObjectStreams {
-            mut positions,
-            mut rotations,
-        }) = self.open(i)?
-        else {
+        let Some(mut streams) = self.open(i)? else {
             return Err(CodecError::Corrupt {
                 what: "object has no frames",
             });
         };
-        let mut pos = positions.start;
-        while let Some(seg) = positions.next_segment()? {
+        let mut pos = streams.position_start();
+        while let Some(seg) = streams.next_position()? {
             let s = f64::from(seg.start);
             if f <= s + f64::from(seg.len) {
                 pos = seg.curve.eval(seg.c, f - s);
                 break;
             }
         }
-        let mut rot = rotations.start;
-        while let Some(seg) = rotations.next_segment()? {
+        let mut rot = streams.start_rotations()?;
+        while let Some(seg) = streams.next_rotation()? {
             let s = f64::from(seg.start);
             if f <= s + f64::from(seg.len) {
                 rot = seg.curve.eval(seg.q0, f - s);
@@ -303,6 +324,66 @@ impl<'a> WorldReader<'a> {
             }
         }
         Ok((finite_position(pos)?, rot))
+    }
+}
+
+/// One object's place in the payload.
+struct Entry {
+    start: usize,
+    end: usize,
+    frames: u32,
+}
+
+/// Walks a validated index (version 1: fixed-size offsets; version 2: varint lengths).
+struct Entries<'r> {
+    reader: &'r WorldReader<'r>,
+    i: usize,
+    /// Version 2: byte position in the index.
+    at: usize,
+    /// Version 2: payload offset of object `i`.
+    offset: usize,
+}
+
+impl Iterator for Entries<'_> {
+    type Item = Entry;
+
+    fn next(&mut self) -> Option<Entry> {
+        let r = self.reader;
+        let n = r.object_count();
+        if self.i >= n {
+            return None;
+        }
+        let i = self.i;
+        self.i += 1;
+        if r.header.version == 1 {
+            let field = |j: usize, k: usize| {
+                let e = &r.index[j * INDEX_ENTRY_LEN_V1..(j + 1) * INDEX_ENTRY_LEN_V1];
+                u32::from_le_bytes([e[k], e[k + 1], e[k + 2], e[k + 3]])
+            };
+            let start = field(i, 0) as usize;
+            let end = if i + 1 < n {
+                field(i + 1, 0) as usize
+            } else {
+                r.payload.len()
+            };
+            return Some(Entry {
+                start,
+                end,
+                frames: field(i, 4),
+            });
+        }
+        let len = read_varint(r.index, &mut self.at).ok()? as usize;
+        let frames = match r.header.common_frames {
+            Some(f) => f,
+            None => read_varint(r.index, &mut self.at).ok()? as u32,
+        };
+        let start = self.offset;
+        self.offset += len;
+        Some(Entry {
+            start,
+            end: self.offset,
+            frames,
+        })
     }
 }
 
@@ -320,41 +401,11 @@ fn read_f64(r: &mut BitReader<'_>) -> Result<f64, CodecError> {
     Ok(f64::from_bits(r.read_bits(64)?))
 }
 
-/// The two independent bit streams of one object.
-struct ObjectStreams<'a> {
-    positions: PositionStream<'a>,
-    rotations: RotationStream<'a>,
-}
-
-impl<'a> ObjectStreams<'a> {
-    fn open(bytes: &'a [u8], frames: u32, header: &Header) -> Result<Self, CodecError> {
-        let mut r = BitReader::new(bytes);
-        let mut ks = [0u32; STREAMS];
-        for k in &mut ks {
-            *k = r.read_bits(RICE_K_BITS)? as u32;
-        }
-        let pos_bits = r.read_gamma()?;
-        let pos_start = r.pos();
-        let rot_start = usize::try_from(pos_bits)
-            .ok()
-            .and_then(|b| pos_start.checked_add(b))
-            .filter(|&e| e <= r.end())
-            .ok_or(CodecError::Corrupt {
-                what: "position stream longer than the object",
-            })?;
-        let gravity = match header.model {
-            MotionModel::General => None,
-            MotionModel::FreeFlightGravity { g } => Some(g),
-        };
-        let coding = PositionCoding::new(header.pos_step, gravity, header.frame_dt);
-        let positions = PositionStream::open(r.sub(pos_start, rot_start)?, ks, coding, frames)?;
-        let rotations =
-            RotationStream::open(r.sub(rot_start, r.end())?, ks, header.rot_step, frames)?;
-        Ok(Self {
-            positions,
-            rotations,
-        })
-    }
+fn read_quat(r: &mut BitReader<'_>) -> Result<Quat, CodecError> {
+    let q = [read_f64(r)?, read_f64(r)?, read_f64(r)?, read_f64(r)?];
+    rotation::normalise(q).ok_or(CodecError::Corrupt {
+        what: "stored quaternion cannot be normalised",
+    })
 }
 
 pub(crate) struct PositionSegment {
@@ -364,103 +415,6 @@ pub(crate) struct PositionSegment {
     pub curve: PositionCurve,
 }
 
-struct PositionStream<'a> {
-    r: BitReader<'a>,
-    ks: [u32; STREAMS],
-    coding: PositionCoding,
-    predictor: PositionPredictor,
-    start: Vec3,
-    c: Vec3,
-    covered: u32,
-    steps: u32,
-}
-
-impl<'a> PositionStream<'a> {
-    fn open(
-        mut r: BitReader<'a>,
-        ks: [u32; STREAMS],
-        coding: PositionCoding,
-        frames: u32,
-    ) -> Result<Self, CodecError> {
-        let start = if r.read_bit()? {
-            [read_f64(&mut r)?, read_f64(&mut r)?, read_f64(&mut r)?]
-        } else {
-            let mut q = [0i64; 3];
-            for v in &mut q {
-                *v = unresidual(r.read_rice(ks[S_POS_START])?, 0).ok_or(CodecError::Corrupt {
-                    what: "start position out of range",
-                })?;
-            }
-            dequantise3(q, coding.start_step())
-        };
-        let start = finite_position(start)?;
-        Ok(Self {
-            r,
-            ks,
-            predictor: PositionPredictor::new(&coding),
-            coding,
-            start,
-            c: start,
-            covered: 0,
-            steps: frames - 1,
-        })
-    }
-
-    fn next_segment(&mut self) -> Result<Option<PositionSegment>, CodecError> {
-        if self.covered == self.steps {
-            return Ok(None);
-        }
-        let len = self.r.read_rice(self.ks[S_POS_LEN])?;
-        let curve = if len == 0 {
-            let end = [
-                read_f64(&mut self.r)?,
-                read_f64(&mut self.r)?,
-                read_f64(&mut self.r)?,
-            ];
-            PositionCurve::Key {
-                end: finite_position(end)?,
-            }
-        } else {
-            if len > u64::from(self.steps - self.covered) {
-                return Err(CodecError::Corrupt {
-                    what: "position segment runs past the end of the track",
-                });
-            }
-            let k = bucket(len as u32);
-            let gravity = self.coding.gravity_term.is_some() && self.r.read_bit()?;
-            let (pb, pa) = self.predictor.predict(&self.coding, k);
-            let bq = self.read_residuals(S_POS_LINEAR, pb)?;
-            let aq = if gravity {
-                None
-            } else {
-                Some(self.read_residuals(S_POS_QUADRATIC, pa)?)
-            };
-            QuadraticQ { bq, aq }.curve(&self.coding, k)
-        };
-        let len = len.max(1) as u32;
-        let seg = PositionSegment {
-            start: self.covered,
-            len,
-            c: self.c,
-            curve,
-        };
-        self.predictor.advance(self.c, len, &curve);
-        self.c = finite_position(curve.eval(self.c, f64::from(len)))?;
-        self.covered += len;
-        Ok(Some(seg))
-    }
-
-    fn read_residuals(&mut self, stream: usize, pred: [i64; 3]) -> Result<[i64; 3], CodecError> {
-        let mut q = [0i64; 3];
-        for (v, p) in q.iter_mut().zip(pred) {
-            *v = unresidual(self.r.read_rice(self.ks[stream])?, p).ok_or(CodecError::Corrupt {
-                what: "coefficient residual out of range",
-            })?;
-        }
-        Ok(q)
-    }
-}
-
 pub(crate) struct RotationSegment {
     pub start: u32,
     pub len: u32,
@@ -468,94 +422,47 @@ pub(crate) struct RotationSegment {
     pub curve: RotationCurve,
 }
 
-struct RotationStream<'a> {
-    r: BitReader<'a>,
-    ks: [u32; STREAMS],
-    step: f64,
-    predictor: RotationPredictor,
-    start: Quat,
-    q: Quat,
-    covered: u32,
-    steps: u32,
+/// One object's segments, whatever the format version: positions first, then rotations.
+enum ObjectStreams<'a> {
+    V1(v1::ObjectStreams<'a>),
+    V2(v2::ObjectStream<'a>),
 }
 
-fn read_quat(r: &mut BitReader<'_>) -> Result<Quat, CodecError> {
-    let q = [read_f64(r)?, read_f64(r)?, read_f64(r)?, read_f64(r)?];
-    rotation::normalise(q).ok_or(CodecError::Corrupt {
-        what: "stored quaternion cannot be normalised",
-    })
-}
-
-impl<'a> RotationStream<'a> {
-    fn open(
-        mut r: BitReader<'a>,
-        ks: [u32; STREAMS],
-        step: f64,
-        frames: u32,
-    ) -> Result<Self, CodecError> {
-        let start = if r.read_bit()? {
-            read_quat(&mut r)?
-        } else {
-            let mut q = [0i64; 3];
-            for v in &mut q {
-                *v = unresidual(r.read_rice(ks[S_ROT_START])?, 0).ok_or(CodecError::Corrupt {
-                    what: "start orientation out of range",
-                })?;
-            }
-            start_orientation(q, step)
-        };
-        Ok(Self {
-            r,
-            ks,
-            step,
-            predictor: RotationPredictor::default(),
-            start,
-            q: start,
-            covered: 0,
-            steps: frames - 1,
+impl<'a> ObjectStreams<'a> {
+    fn open(bytes: &'a [u8], frames: u32, header: &Header) -> Result<Self, CodecError> {
+        Ok(match header.version {
+            1 => Self::V1(v1::ObjectStreams::open(bytes, frames, header)?),
+            _ => Self::V2(v2::ObjectStream::open(bytes, frames, header)?),
         })
     }
 
-    fn next_segment(&mut self) -> Result<Option<RotationSegment>, CodecError> {
-        if self.covered == self.steps {
-            return Ok(None);
+    fn position_start(&self) -> Vec3 {
+        match self {
+            Self::V1(s) => s.positions.start,
+            Self::V2(s) => s.position_start,
         }
-        let len = self.r.read_rice(self.ks[S_ROT_LEN])?;
-        let curve = if len == 0 {
-            RotationCurve::Key {
-                end: read_quat(&mut self.r)?,
-            }
-        } else {
-            if len > u64::from(self.steps - self.covered) {
-                return Err(CodecError::Corrupt {
-                    what: "rotation segment runs past the end of the track",
-                });
-            }
-            let k = bucket(len as u32);
-            let pred = self.predictor.predict(self.step, k);
-            let mut wq = [0i64; 3];
-            for (v, p) in wq.iter_mut().zip(pred) {
-                *v = unresidual(self.r.read_rice(self.ks[S_ROT_W])?, p).ok_or(
-                    CodecError::Corrupt {
-                        what: "angular velocity residual out of range",
-                    },
-                )?;
-            }
-            RotationCurve::Linear {
-                w: dequantise3(wq, step_linear(self.step, k)),
-            }
-        };
-        let len = len.max(1) as u32;
-        let seg = RotationSegment {
-            start: self.covered,
-            len,
-            q0: self.q,
-            curve,
-        };
-        self.predictor.advance(&curve);
-        self.q = curve.eval(self.q, f64::from(len));
-        self.covered += len;
-        Ok(Some(seg))
+    }
+
+    fn next_position(&mut self) -> Result<Option<PositionSegment>, CodecError> {
+        match self {
+            Self::V1(s) => s.positions.next_segment(),
+            Self::V2(s) => s.next_position(),
+        }
+    }
+
+    /// The first orientation (version 2 reads past the remaining position segments first).
+    fn start_rotations(&mut self) -> Result<Quat, CodecError> {
+        match self {
+            Self::V1(s) => Ok(s.rotations.start),
+            Self::V2(s) => s.start_rotations(),
+        }
+    }
+
+    fn next_rotation(&mut self) -> Result<Option<RotationSegment>, CodecError> {
+        match self {
+            Self::V1(s) => s.rotations.next_segment(),
+            Self::V2(s) => s.next_rotation(),
+        }
     }
 }
 

@@ -11,9 +11,30 @@
 use crate::params::{FIT_WINDOW, MAX_SEGMENT_LEN};
 use crate::rotation::{self, Quat, Vec3};
 use crate::segment::{
-    PositionCoding, PositionCurve, QuadraticQ, RotationCurve, bucket, quantise3, step_linear,
-    step_quadratic,
+    PositionCoding, PositionCurve, QuadraticQ, QuadraticTerm, RotationCurve, bucket, dequantise3,
+    quantise3, step_angular_acceleration, step_linear, step_quadratic,
 };
+
+/// The position models a segment may use (format 2 chooses per segment; §4.3: "model only what
+/// the scene requires").
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum PositionKind {
+    /// Free flight: linear term fitted, quadratic term `h²g/2`.
+    Gravity,
+    /// Full per-axis quadratic (contacts, rolling, damping).
+    Quadratic,
+    /// Linear (sliding or rolling without acceleration).
+    Linear,
+}
+
+/// The rotation models a segment may use.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum RotationKind {
+    /// Constant angular velocity in the log map (§4.3).
+    Linear,
+    /// Constant angular acceleration in the log map.
+    Quadratic,
+}
 
 /// A fitted, quantised, verified position segment.
 #[derive(Debug, Clone, Copy)]
@@ -28,6 +49,8 @@ pub(crate) struct PositionFit {
 pub(crate) struct RotationFit {
     pub len: u32,
     pub wq: [i64; 3],
+    /// Quantised angular acceleration (quadratic segments).
+    pub aq: Option<[i64; 3]>,
     pub curve: RotationCurve,
 }
 
@@ -52,12 +75,36 @@ pub(crate) enum StartCorrection {
     Horizon(f64),
 }
 
-/// Strategies tried for every segment; the longest result wins.
-pub(crate) const CORRECTIONS: [StartCorrection; 3] = [
+/// Both strategies (format 1 tried these and `Horizon(∞)`, keeping the offset for good; with
+/// steps and per-frame costs in format 2 that one never produced the chosen segment on the
+/// shipped scenes).
+const CORRECTIONS: [StartCorrection; 2] = [
     StartCorrection::Anchored,
-    StartCorrection::Horizon(f64::INFINITY),
     StartCorrection::Horizon(4.0 * FIT_WINDOW as f64),
 ];
+
+impl PositionKind {
+    /// The start corrections the encoder tries for this kind. A full quadratic bends to absorb
+    /// the start offset by itself: the horizon variant changed the size by < 0.3 % on the
+    /// shipped scenes, so it is not fitted (one fit in six saved).
+    pub(crate) fn corrections(self) -> &'static [StartCorrection] {
+        match self {
+            PositionKind::Quadratic => &CORRECTIONS[..1],
+            PositionKind::Gravity | PositionKind::Linear => &CORRECTIONS,
+        }
+    }
+}
+
+impl RotationKind {
+    /// As for positions; for rotations it is the linear kind that gains least from the horizon
+    /// variant (< 0.5 %, one fit in four saved).
+    pub(crate) fn corrections(self) -> &'static [StartCorrection] {
+        match self {
+            RotationKind::Linear => &CORRECTIONS[..1],
+            RotationKind::Quadratic => &CORRECTIONS,
+        }
+    }
+}
 
 /// Most rows a least-squares fit takes: the fit window, start point included.
 const LS_ROWS: usize = FIT_WINDOW;
@@ -182,12 +229,55 @@ fn least_squares(rows: &[(f64, Vec3)], powers: &[i32]) -> [Vec3; 3] {
     BasisQr::new(&us, powers).solve(&ys)
 }
 
-/// The bases the position fitter uses inside its window, factored once: anchored (times
-/// `1..=n`, powers `[1]` or `[1, 2]`) and free start (times `0..n`, powers `[0, 1]` or
-/// `[0, 1, 2]`), for every row count `n ≤ LS_ROWS`.
+/// A least-squares fit over fixed sample times as a matrix: `coef_j = Σ_r P[j][r]·y_r`, with `P`
+/// the pseudo-inverse of the basis, computed once by QR. Every fit inside the fit window uses one
+/// of a few dozen such bases, so a refit is three short dot products per axis.
+#[derive(Debug, Clone, Copy)]
+struct Projector {
+    rows: usize,
+    p: [[f64; LS_ROWS]; 3],
+}
+
+impl Projector {
+    fn new(us: &[f64], powers: &[i32]) -> Self {
+        let qr = BasisQr::new(us, powers);
+        let rows = qr.rows;
+        let mut p = [[0.0; LS_ROWS]; 3];
+        for r in 0..rows {
+            let mut e = [[0.0; 3]; LS_ROWS];
+            e[r] = [1.0, 0.0, 0.0];
+            let col = qr.solve(&e[..rows]);
+            for (j, row) in p.iter_mut().enumerate() {
+                row[r] = col[j][0];
+            }
+        }
+        Self { rows, p }
+    }
+
+    fn solve(&self, ys: &[Vec3]) -> [Vec3; 3] {
+        let rows = self.rows.min(ys.len());
+        std::array::from_fn(|j| {
+            let mut acc = [0.0; 3];
+            for (pj, y) in self.p[j][..rows].iter().zip(ys) {
+                for i in 0..3 {
+                    acc[i] += pj * y[i];
+                }
+            }
+            acc
+        })
+    }
+}
+
+/// Basis variants: anchored (times `1..=n`, powers `[1]` / `[1, 2]`) and free start (times
+/// `0..n`, powers `[0, 1]` / `[0, 1, 2]`).
+const ANCHORED_LINEAR: usize = 0;
+const ANCHORED_QUADRATIC: usize = 1;
+const FREE_LINEAR: usize = 2;
+const FREE_QUADRATIC: usize = 3;
+
+/// The projectors of every basis variant for every row count `n ≤ LS_ROWS`, built once.
 struct WindowBases {
-    /// `[anchored linear, anchored quadratic, free linear, free quadratic][n]`.
-    qr: [[BasisQr; LS_ROWS + 1]; 4],
+    proj: [[Projector; LS_ROWS + 1]; 4],
 }
 
 fn window_bases() -> &'static WindowBases {
@@ -195,33 +285,38 @@ fn window_bases() -> &'static WindowBases {
     BASES.get_or_init(|| {
         let powers: [&[i32]; 4] = [&[1], &[1, 2], &[0, 1], &[0, 1, 2]];
         WindowBases {
-            qr: std::array::from_fn(|variant| {
+            proj: std::array::from_fn(|variant| {
                 std::array::from_fn(|n| {
                     let first = if variant < 2 { 1 } else { 0 };
                     let us: Vec<f64> = (first..first + n).map(|u| u as f64).collect();
-                    BasisQr::new(&us, powers[variant])
+                    Projector::new(&us, powers[variant])
                 })
             }),
         }
     })
 }
 
-/// `(b, a)` of a position segment starting at `c` (decoded) over data frames `s..=s+len`.
+/// `(b, a)` of a position segment of kind `kind` starting at `c` (decoded) over data frames
+/// `s..=s+len`; `a` is only meaningful for [`PositionKind::Quadratic`].
 fn position_coefficients(
     x: &[Vec3],
     s: usize,
     len: usize,
     c: Vec3,
-    g: Option<Vec3>,
+    kind: PositionKind,
+    g: Vec3,
     correction: StartCorrection,
 ) -> (Vec3, Vec3) {
     // Remove the known gravity term so that only unknown coefficients are fitted.
     let data = |u: usize| -> Vec3 {
-        let uu = (u * u) as f64;
-        let gu = g.map_or([0.0; 3], |g| rotation::scale3(g, uu));
-        std::array::from_fn(|i| x[s + u][i] - gu[i])
+        if kind == PositionKind::Gravity {
+            let uu = (u * u) as f64;
+            std::array::from_fn(|i| x[s + u][i] - g[i] * uu)
+        } else {
+            x[s + u]
+        }
     };
-    let quadratic = g.is_none();
+    let quadratic = kind == PositionKind::Quadratic && len >= 2;
     let bases = window_bases();
     let mut ys = [[0.0; 3]; LS_ROWS];
     match correction {
@@ -231,39 +326,45 @@ fn position_coefficients(
                 let d = data(u);
                 *y = std::array::from_fn(|i| d[i] - c[i]);
             }
-            let variant = if quadratic && len >= 2 { 1 } else { 0 };
-            let [b, a, _] = bases.qr[variant][n].solve(&ys[..n]);
-            (b, if quadratic { a } else { g.unwrap_or([0.0; 3]) })
+            let variant = if quadratic {
+                ANCHORED_QUADRATIC
+            } else {
+                ANCHORED_LINEAR
+            };
+            let [b, a, _] = bases.proj[variant][n].solve(&ys[..n]);
+            (b, a)
         }
         StartCorrection::Horizon(h) => {
             let n = (len + 1).min(LS_ROWS);
             for (u, y) in (0..n).zip(&mut ys) {
                 *y = data(u);
             }
-            let variant = if quadratic && len >= 2 { 3 } else { 2 };
-            let [c_fit, b, a] = bases.qr[variant][n].solve(&ys[..n]);
+            let variant = if quadratic {
+                FREE_QUADRATIC
+            } else {
+                FREE_LINEAR
+            };
+            let [c_fit, b, a] = bases.proj[variant][n].solve(&ys[..n]);
             let b = std::array::from_fn(|i| b[i] - (c[i] - c_fit[i]) / h);
-            (b, if quadratic { a } else { g.unwrap_or([0.0; 3]) })
+            (b, a)
         }
     }
 }
 
-/// Figure 4.6 for positions: the longest segment from frame `s` whose quantised curve keeps every
-/// frame within `e_max`, or `None` if not even one frame can be covered. `gravity = true` fixes
-/// the quadratic term to the model's `h²g/2` (the one-bit case); otherwise all of it is fitted.
+/// Figure 4.6 for positions: the longest segment of kind `kind` from frame `s` whose quantised
+/// curve keeps every frame within `e_max`, or `None` if not even one frame can be covered.
 pub(crate) fn fit_position(
     x: &[Vec3],
     s: usize,
     c: Vec3,
-    gravity: bool,
+    kind: PositionKind,
     correction: StartCorrection,
     coding: &PositionCoding,
     e_max: f64,
 ) -> Option<PositionFit> {
-    let g = if gravity {
-        Some(coding.gravity_term?)
-    } else {
-        None
+    let g = match kind {
+        PositionKind::Gravity => coding.gravity_term?,
+        _ => [0.0; 3],
     };
     let max_len = (x.len() - 1 - s).min(MAX_SEGMENT_LEN);
     let within = |curve: &PositionCurve, u: usize| dist(curve.eval(c, u as f64), x[s + u]) <= e_max;
@@ -273,7 +374,7 @@ pub(crate) fn fit_position(
     for len in 1..=max_len {
         let refit = len < FIT_WINDOW;
         if refit {
-            (b, a) = position_coefficients(x, s, len, c, g, correction);
+            (b, a) = position_coefficients(x, s, len, c, kind, g, correction);
         }
         let k = bucket(len as u32);
         let requantise = refit || current.is_none_or(|(ck, _, _)| ck != k);
@@ -281,24 +382,25 @@ pub(crate) fn fit_position(
             let Some(bq) = quantise3(b, step_linear(coding.step, k)) else {
                 break;
             };
-            let aq = match g {
-                Some(_) => None,
-                None => match quantise3(a, step_quadratic(coding.step, k)) {
-                    Some(aq) => Some(aq),
+            let term = match kind {
+                PositionKind::Gravity => QuadraticTerm::Gravity,
+                PositionKind::Linear => QuadraticTerm::Zero,
+                PositionKind::Quadratic => match quantise3(a, step_quadratic(coding.step, k)) {
+                    Some(aq) => QuadraticTerm::Fitted(aq),
                     None => break,
                 },
             };
-            let coeffs = QuadraticQ { bq, aq };
+            let coeffs = QuadraticQ { bq, term };
             // A refit that quantises to the curve already verified on 1..len−1 (the common case
-            // once the window has a few points) needs only the new point checked: same decisions
-            // and bytes, without re-evaluating the window.
+            // once the window has a few points) needs only the new point checked.
             if let Some((_, _, curve)) = current.filter(|&(ck, cq, _)| (ck, cq) == (k, coeffs)) {
                 if !within(&curve, len) {
                     break;
                 }
             } else {
                 let curve = coeffs.curve(coding, k);
-                if !(1..=len).all(|u| within(&curve, u)) {
+                // The newest point first: where a refitted curve most often fails.
+                if !(1..=len).rev().all(|u| within(&curve, u)) {
                     break;
                 }
                 current = Some((k, coeffs, curve));
@@ -318,6 +420,15 @@ pub(crate) fn fit_position(
     best
 }
 
+/// How many frames from `s` on stay within `e_max` of the start point `c` (a [`PositionCurve::Rest`]
+/// segment of that length meets the bound; 0: not even the next frame).
+pub(crate) fn rest_length(x: &[Vec3], s: usize, c: Vec3, e_max: f64) -> usize {
+    let max_len = (x.len() - 1 - s).min(MAX_SEGMENT_LEN);
+    (1..=max_len)
+        .take_while(|&u| dist(c, x[s + u]) <= e_max)
+        .count()
+}
+
 /// The rotation bound test `angle(exp(u·ω) ⊗ q₀, q) ≤ θ_lim`, decided without `atan2` and
 /// without normalising where that is safe — with exactly the verdict of the full computation.
 ///
@@ -328,9 +439,10 @@ pub(crate) fn fit_position(
 /// decoder and the self-check perform).
 ///
 /// Why the verdicts agree: both computations start from the same unit quaternions (components
-/// ≤ 1). Each Hamilton product adds at most ≈5 ulp(1) per component (Cauchy–Schwarz bounds the
-/// sum of the four products' magnitudes by 1), normalising ≈2 ulp, so the two residuals differ by
-/// at most δa ≈ 3·10⁻¹⁴ per component, of `|d_xyz|` by less than 10⁻¹³ = [`ANGLE_TEST_ABS`].
+/// ≤ 1); the fast test's `exp` ([`rotation::exp_approx`], polynomial `sin`/`cos`) is within
+/// 10⁻¹⁵ of the full one's. Each Hamilton product adds at most ≈5 ulp(1) per component
+/// (Cauchy–Schwarz bounds the sum of the four products' magnitudes by 1), normalising ≈2 ulp,
+/// so the two residuals differ by at most δa ≈ 3·10⁻¹⁴ per component, of `|d_xyz|` by less than 10⁻¹³ = [`ANGLE_TEST_ABS`].
 /// Near the boundary `|d_w| ≥ cos(1) > 0.54` (θ_lim ≤ 2), so a relative band
 /// `b = 10⁻⁹ + 16·δa/T` on the squared ratio is more than twice what rounding can move it, and
 /// the angle gap it leaves (≥ 0.2·b relative) dwarfs the ulp errors of `tan` and `atan2`.
@@ -360,18 +472,25 @@ impl AngleTest {
 
     /// `angle_between(curve.eval(q0, u), q) ≤ θ_lim`, exactly as the full computation decides.
     pub(crate) fn within(&self, curve: &RotationCurve, q0: Quat, u: f64, q: Quat) -> bool {
-        if let (Some((inside, outside)), RotationCurve::Linear { w }) = (self.ratio2, curve)
+        if let Some((inside, outside)) = self.ratio2
             && u != 0.0
         {
-            let e = rotation::exp(rotation::scale3(*w, u));
-            let d = rotation::mul(rotation::mul(e, q0), rotation::conj(q));
-            let s2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
-            let c2 = d[3] * d[3];
-            if s2 < inside * c2 {
-                return true;
-            }
-            if s2 > outside * c2 {
-                return false;
+            let rotated = match curve {
+                RotationCurve::Rest => Some(q0),
+                _ => curve
+                    .log_at(u)
+                    .map(|r| rotation::mul(rotation::exp_approx(r), q0)),
+            };
+            if let Some(rotated) = rotated {
+                let d = rotation::mul(rotated, rotation::conj(q));
+                let s2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+                let c2 = d[3] * d[3];
+                if s2 < inside * c2 {
+                    return true;
+                }
+                if s2 > outside * c2 {
+                    return false;
+                }
             }
         }
         rotation::angle_between(curve.eval(q0, u), q) <= self.theta_lim
@@ -392,16 +511,18 @@ pub(crate) struct RotationScratch {
     logs: [Vec<Vec3>; 2],
     /// `log(q₀ ⊗ q_s⁻¹)`.
     offset: Option<Vec3>,
-    /// Verdicts per quantised curve `(bucket, ω)`.
+    /// Verdicts per quantised curve.
     verdicts: Vec<Verdicts>,
 }
+
+/// A quantised rotation curve: bucket, angular velocity, angular acceleration.
+type CurveKey = (u32, [i64; 3], Option<[i64; 3]>);
 
 /// What is known of one quantised curve: every frame in `1..=good` is within the bound, frame
 /// `bad` is not (`usize::MAX`: none known).
 #[derive(Debug, Clone, Copy)]
 struct Verdicts {
-    k: u32,
-    wq: [i64; 3],
+    key: CurveKey,
     good: usize,
     bad: usize,
 }
@@ -416,8 +537,8 @@ impl RotationScratch {
         }
     }
 
-    /// The `n`-th (1-based) unwrapped logarithm against reference `which`.
-    fn log(&mut self, which: usize, q: &[Quat], s: usize, reference: Quat, n: usize) -> Vec3 {
+    /// Makes the first `n` unwrapped logarithms against reference `which` available.
+    fn log(&mut self, which: usize, q: &[Quat], s: usize, reference: Quat, n: usize) {
         let logs = &mut self.logs[which];
         let inv_ref = rotation::conj(reference);
         while logs.len() < n {
@@ -425,16 +546,14 @@ impl RotationScratch {
             let r = rotation::log(rotation::mul(q[s + logs.len() + 1], inv_ref));
             logs.push(rotation::unwrap_near(r, last));
         }
-        logs[n - 1]
     }
 
-    fn verdicts(&mut self, k: u32, wq: [i64; 3]) -> &mut Verdicts {
-        let i = match self.verdicts.iter().position(|v| (v.k, v.wq) == (k, wq)) {
+    fn verdicts(&mut self, key: CurveKey) -> &mut Verdicts {
+        let i = match self.verdicts.iter().position(|v| v.key == key) {
             Some(i) => i,
             None => {
                 self.verdicts.push(Verdicts {
-                    k,
-                    wq,
+                    key,
                     good: 0,
                     bad: usize::MAX,
                 });
@@ -444,16 +563,15 @@ impl RotationScratch {
         &mut self.verdicts[i]
     }
 
-    /// Are frames `1..=len` all within the bound for curve `(k, wq)`? `within(u)` decides one
+    /// Are frames `1..=len` all within the bound for curve `key`? `within(u)` decides one
     /// frame; it is asked only about frames not already known.
     fn all_within(
         &mut self,
-        k: u32,
-        wq: [i64; 3],
+        key: CurveKey,
         len: usize,
         mut within: impl FnMut(usize) -> bool,
     ) -> bool {
-        let v = self.verdicts(k, wq);
+        let v = self.verdicts(key);
         if len <= v.good {
             return true;
         }
@@ -474,15 +592,17 @@ impl RotationScratch {
 }
 
 /// Figure 4.6 for rotations (§4.3: "essentially unchanged, except that we replace FIT-SEGMENT"):
-/// a constant angular velocity ω fitted by least squares to unwrapped logarithms
-/// `log(q_u ⊗ q_ref⁻¹) ≈ u·ω`, error = angle of the residual rotation. `q_ref` is the decoded
-/// start (anchored) or the data's own start (horizon, then corrected by the start offset / H).
-/// `scratch` carries what the candidate fits of one segment share (any scratch may be passed; it
-/// resets itself for a new segment).
+/// ω (and, for [`RotationKind::Quadratic`], α) fitted by least squares to unwrapped logarithms
+/// `log(q_u ⊗ q_ref⁻¹) ≈ u·ω + u²·α`, error = angle of the residual rotation. `q_ref` is the
+/// decoded start (anchored) or the data's own start (horizon, then ω corrected by the start
+/// offset / H). `scratch` carries what the candidate fits of one segment share (any scratch may
+/// be passed; it resets itself for a new segment).
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn fit_rotation(
     q: &[Quat],
     s: usize,
     q0: Quat,
+    kind: RotationKind,
     correction: StartCorrection,
     step: f64,
     theta_lim: f64,
@@ -501,54 +621,81 @@ pub(crate) fn fit_rotation(
             (1, q[s], rotation::scale3(offset, 1.0 / h))
         }
     };
-    // Running sums for ω = Σ u·r_u / Σ u².
-    let (mut sur, mut suu) = ([0.0; 3], 0.0);
-    let mut w = [0.0; 3];
+    let bases = window_bases();
+    let (mut w, mut acc) = ([0.0; 3], [0.0; 3]);
     let mut best: Option<RotationFit> = None;
-    let mut current: Option<(u32, [i64; 3], RotationCurve)> = None;
+    let mut current: Option<(CurveKey, RotationCurve)> = None;
     for len in 1..=max_len {
         let refit = len < FIT_WINDOW;
         if refit {
-            let r = scratch.log(which, q, s, reference, len);
-            let u = len as f64;
-            sur = std::array::from_fn(|i| sur[i] + u * r[i]);
-            suu += u * u;
-            w = std::array::from_fn(|i| sur[i] / suu - correction_rate[i]);
+            let n = len.min(LS_ROWS);
+            scratch.log(which, q, s, reference, n);
+            let ys = &scratch.logs[which][..n];
+            let quadratic = kind == RotationKind::Quadratic && len >= 2;
+            let [w_fit, a_fit, _] = if quadratic {
+                bases.proj[ANCHORED_QUADRATIC][n].solve(ys)
+            } else {
+                bases.proj[ANCHORED_LINEAR][n].solve(ys)
+            };
+            w = std::array::from_fn(|i| w_fit[i] - correction_rate[i]);
+            acc = a_fit;
         }
         let k = bucket(len as u32);
-        let requantise = refit || current.is_none_or(|(ck, _, _)| ck != k);
-        let ok = if requantise {
+        let requantise = refit || current.is_none_or(|((ck, _, _), _)| ck != k);
+        if requantise {
             let sw = step_linear(step, k);
             let Some(wq) = quantise3(w, sw) else {
                 break;
             };
-            // As for positions: an unchanged quantised curve needs only the new point checked
-            // (the verdicts know 1..len−1 already).
-            let curve = match current.filter(|&(ck, cq, _)| (ck, cq) == (k, wq)) {
-                Some((_, _, curve)) => curve,
-                None => RotationCurve::Linear {
-                    w: crate::segment::dequantise3(wq, sw),
+            let aq = match kind {
+                RotationKind::Linear => None,
+                RotationKind::Quadratic => match quantise3(acc, step_angular_acceleration(step, k))
+                {
+                    Some(aq) => Some(aq),
+                    None => break,
                 },
             };
-            current = Some((k, wq, curve));
-            scratch.all_within(k, wq, len, |u| within(&curve, u))
-        } else {
-            match current {
-                Some((k, wq, curve)) => scratch.all_within(k, wq, len, |u| within(&curve, u)),
-                None => false,
-            }
+            let key = (k, wq, aq);
+            // An unchanged quantised curve keeps its verdicts (only the new point is checked).
+            let curve = match current.filter(|&(ck, _)| ck == key) {
+                Some((_, curve)) => curve,
+                None => {
+                    let w = dequantise3(wq, sw);
+                    match aq {
+                        None => RotationCurve::Linear { w },
+                        Some(aq) => RotationCurve::Quadratic {
+                            w,
+                            a: dequantise3(aq, step_angular_acceleration(step, k)),
+                        },
+                    }
+                }
+            };
+            current = Some((key, curve));
+        }
+        let Some((key, curve)) = current else {
+            break;
         };
-        if !ok {
+        if !scratch.all_within(key, len, |u| within(&curve, u)) {
             break;
         }
-        let (_, wq, curve) = current?;
         best = Some(RotationFit {
             len: len as u32,
-            wq,
+            wq: key.1,
+            aq: key.2,
             curve,
         });
     }
     best
+}
+
+/// How many frames from `s` on stay within `θ_lim` of the start orientation `q0` (a
+/// [`RotationCurve::Rest`] segment of that length meets the bound).
+pub(crate) fn rotation_rest_length(q: &[Quat], s: usize, q0: Quat, theta_lim: f64) -> usize {
+    let max_len = (q.len() - 1 - s).min(MAX_SEGMENT_LEN);
+    let test = AngleTest::new(theta_lim);
+    (1..=max_len)
+        .take_while(|&u| test.within(&RotationCurve::Rest, q0, u as f64, q[s + u]))
+        .count()
 }
 
 #[cfg(test)]
@@ -643,7 +790,7 @@ mod tests {
     }
 
     #[test]
-    fn kept_factorisations_solve_bit_for_bit_like_interleaved_qr() {
+    fn projectors_agree_with_interleaved_qr() {
         let mut seed = 0x1234_5678_9abc_def0_u64;
         let mut rnd = || {
             seed = seed
@@ -660,10 +807,15 @@ mod tests {
                         .map(|u| (u as f64, [rnd(), rnd(), rnd()]))
                         .collect();
                     let ys: Vec<Vec3> = rows.iter().map(|r| r.1).collect();
-                    let got = window_bases().qr[variant][n].solve(&ys);
+                    let got = window_bases().proj[variant][n].solve(&ys);
                     let want = interleaved_least_squares(&rows, p);
-                    let bits = |x: [Vec3; 3]| x.map(|v| v.map(f64::to_bits));
-                    assert_eq!(bits(got), bits(want), "variant {variant}, {n} rows");
+                    let scale = ys.iter().flatten().fold(1e-300f64, |m, v| m.max(v.abs()));
+                    for (g, w) in got.iter().flatten().zip(want.iter().flatten()) {
+                        assert!(
+                            (g - w).abs() <= 1e-10 * scale,
+                            "variant {variant}, {n} rows"
+                        );
+                    }
                 }
             }
         }
@@ -713,10 +865,46 @@ mod tests {
                 [1.0 + 2.0 * t, 3.0 + 5.0 * t - 4.905 * t * t, -0.5 * t]
             })
             .collect();
-        let fit =
-            fit_position(&x, 0, x[0], true, StartCorrection::Anchored, &coding, 1e-3).unwrap();
+        let fit = fit_position(
+            &x,
+            0,
+            x[0],
+            PositionKind::Gravity,
+            StartCorrection::Anchored,
+            &coding,
+            1e-3,
+        )
+        .unwrap();
         assert_eq!(fit.len, 399);
-        assert_eq!(fit.coeffs.aq, None);
+        assert_eq!(fit.coeffs.term, QuadraticTerm::Gravity);
+    }
+
+    #[test]
+    fn a_constant_angular_acceleration_is_one_quadratic_segment() {
+        // A box tipping over an edge: angular speed growing 1 mrad/frame per frame.
+        let (w, a) = ([0.01, 0.0, 0.002], [1e-3, 0.0, -2e-4]);
+        let q: Vec<Quat> = (0..60)
+            .map(|i| {
+                let u = i as f64;
+                rotation::exp(std::array::from_fn(|k| w[k] * u + a[k] * u * u))
+            })
+            .collect();
+        let fit = |kind| {
+            fit_rotation(
+                &q,
+                0,
+                q[0],
+                kind,
+                StartCorrection::Anchored,
+                1e-3,
+                1e-3,
+                &mut RotationScratch::default(),
+            )
+            .unwrap()
+            .len
+        };
+        assert_eq!(fit(RotationKind::Quadratic), 59);
+        assert!(fit(RotationKind::Linear) < 15);
     }
 
     #[test]
@@ -729,6 +917,7 @@ mod tests {
             &q,
             0,
             q[0],
+            RotationKind::Linear,
             StartCorrection::Anchored,
             1e-3,
             1e-3,

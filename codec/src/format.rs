@@ -1,58 +1,99 @@
-//! The versioned byte layout of an encoded world.
+//! The versioned byte layout of an encoded world. This build writes version 2 and reads 1 and 2.
+//!
+//! # Version 2
 //!
 //! ```text
-//! offset  size  field (little endian)
+//! offset  size  field (little endian; "varint" = unsigned LEB128)
+//!      0     4  magic  b"MWBM"
+//!      4     2  format version (2)
+//!      6     2  header length H in bytes (readers skip fields they do not know)
+//!      8     1  motion model: 0 = General, 1 = FreeFlightGravity
+//!      9     1  flags: 1 = bounds are a preset, 2 = frame_dt is 1/n, 4 = steps stored,
+//!               8 = every object has the same frame count
+//!     10        bounds: preset byte (0 draft, 1 standard, 2 final) | e_max f64, θ_max f64
+//!               frame_dt: varint n (frame_dt = 1.0 / n) | f64
+//!               steps (flag 4): Δ f64, Δθ f64; otherwise Δ = e_max, Δθ = θ_max
+//!               gravity (model 1): a byte with bit i set for a non-zero g[i], then those f64s;
+//!               or 0x80 | i for the i-th of the well-known vectors (`KNOWN_GRAVITY`)
+//!               2 bytes: Rice parameters of the start positions and of the start orientations
+//!               varint object count N; varint common frame count (flag 8)
+//!      H        object index: N × (varint payload length in bytes [, varint frame count])
+//!               payloads, object after object, each a whole number of bytes
+//! ```
+//!
+//! An object's payload is one bit stream (most significant bit first). Every integer is an
+//! adaptive Rice code ([`crate::bits::AdaptiveRice`]) of its own stream, starting from the prior
+//! in [`ADAPTIVE_PRIORS`], except the start values, which use the header's Rice parameters;
+//! signed values are zig-zag mapped.
+//!
+//! ```text
+//! position start   1 bit: 0 → 3 × Rice(c₀ / (Δ/16)), 1 → 3 × raw f64
+//! at rest          (tracks of two or more frames) 1 bit: 1 → the start point holds for the
+//!                  whole track, no segments follow
+//! position segments until the track is covered, each:
+//!   type           1 bit "same type as the previous segment", else the new type's rank
+//!                  among the others (truncated binary; the first previous type is Gravity in
+//!                  FreeFlightGravity worlds, Quadratic otherwise)
+//!   length         (not for Step, Key) 0 = to the end of the track, else L frames
+//!   Gravity        3 × linear residual (the quadratic term is h²g/2)
+//!   Quadratic      3 × linear, 3 × quadratic residuals
+//!   Linear         3 × linear residual (no quadratic term)
+//!   Rest           nothing: the segment holds its start point
+//!   Step           no length (one frame): 3 × step residual, the frame minus its prediction
+//!                  from the two frames before (see `segment::position_step_prediction`), in Δ
+//!   Key            3 × raw f64: one frame, stored exactly
+//! rotation start   1 bit: 0 → 3 × Rice(log q₀ / (Δθ/16)), 1 → 4 × raw f64
+//! at rest          as for positions
+//! rotation segments: type (first previous: Linear), length as above, then
+//!   Linear         3 × angular-velocity residual
+//!   Quadratic      3 × angular-velocity, 3 × angular-acceleration residual
+//!   Rest           nothing
+//!   Step           no length: 3 × residual of the frame's rotation vector against the last
+//!                  frame-to-frame rotation, in Δθ
+//!   Key            4 × raw f64
+//! ```
+//!
+//! Residuals are quantised coefficients minus a prediction from the previous segment (see
+//! `segment`). Every segment consumes at least one bit and covers at least one frame, so a hostile
+//! stream ends in an error after at most as many segments as it has bits.
+//!
+//! # Version 1
+//!
+//! ```text
 //!      0     4  magic  b"MWBM"
 //!      4     2  format version (1)
-//!      6     2  header length H in bytes (80 for version 1; readers skip fields they do not know)
-//!      8     1  motion model: 0 = General, 1 = FreeFlightGravity
-//!      9     3  reserved, zero
-//!     12     4  object count N
-//!     16     8  frame_dt (s)          24  8  e_max (m)      32  8  θ_max (rad)
+//!      6     2  header length H in bytes (80)
+//!      8     1  motion model          9   3  reserved, zero       12  4  object count N
+//!     16     8  frame_dt (s)          24  8  e_max (m)            32  8  θ_max (rad)
 //!     40     8  position step Δ (m)   48  8  rotation step Δθ (rad)
 //!     56    24  gravity g (3 × f64; zero for General)
 //!      H   8·N  object index: N × (payload byte offset u32, frame count u32)
 //!   H+8N        payloads, object after object
 //! ```
 //!
-//! The quantisation steps are stored, not re-derived from the bounds, so a future encoder may
-//! choose them differently and old readers still decode its output, and old recordings stay
-//! readable when today's derivation changes. A reader accepts every version up to
-//! [`FORMAT_VERSION`] and dispatches on it.
+//! A version-1 payload starts with 7 × 6-bit Rice parameters (one per stream: pos length, pos
+//! linear, pos quadratic, pos start, rot length, rot angular velocity, rot start) and the
+//! Elias-gamma bit length of the position stream; segments are `Rice length L (0 = key)`, a
+//! gravity flag bit (FreeFlightGravity only), linear and (unless gravity) quadratic residuals;
+//! rotation segments are a length and three angular-velocity residuals.
 //!
-//! An object's payload is a bit stream (most significant bit first):
-//!
-//! ```text
-//! 7 × 6 bits   Rice parameters: pos length, pos linear, pos quadratic, pos start,
-//!              rot length, rot angular velocity, rot start
-//! γ            bit length of the position stream (Elias gamma), so that the rotation stream
-//!              can be reached without decoding positions
-//! position stream
-//!   1 bit      start flag: 0 → 3 × Rice(zigzag(round(c₀ / (Δ/16)))), 1 → 3 × raw f64
-//!   segments until the track is covered:
-//!     Rice     length L in frames (0 = key: one frame, 3 × raw f64 end point)
-//!     1 bit    only for FreeFlightGravity: quadratic term is gravity's
-//!     3 × Rice linear residuals, then (unless gravity) 3 × Rice quadratic residuals
-//! rotation stream
-//!   1 bit      start flag: 0 → 3 × Rice(zigzag(round(log q₀ / (Δθ/16)))), 1 → 4 × raw f64
-//!   segments: Rice length L (0 = key: 4 × raw f64), then 3 × Rice angular-velocity residuals
-//! ```
-//!
-//! Residuals are quantised coefficients minus a prediction from the previous segment (see
-//! `segment`), zig-zag mapped. Per-segment CRCs live one layer up, on the bus (DESIGN.md).
+//! The quantisation steps are part of the header (stored, or a fixed derivation of the bounds), so
+//! a future encoder may choose them differently and old readers still decode its output. Per-
+//! segment CRCs live one layer up, on the bus (DESIGN.md).
 
+use crate::bits::{AdaptiveRice, read_varint, write_varint};
 use crate::error::CodecError;
-use crate::params::MotionModel;
+use crate::params::{MotionModel, POS_STEP_RATIO, Quality, ROT_STEP_RATIO};
 
 /// First four bytes of every encoded world.
 pub const MAGIC: [u8; 4] = *b"MWBM";
 /// The format version this build writes (and the newest it reads).
-pub const FORMAT_VERSION: u16 = 1;
+pub const FORMAT_VERSION: u16 = 2;
 pub(crate) const HEADER_LEN_V1: usize = 80;
-pub(crate) const INDEX_ENTRY_LEN: usize = 8;
+pub(crate) const INDEX_ENTRY_LEN_V1: usize = 8;
 
-/// Number of Rice-coded streams per object, each with its own parameter.
-pub(crate) const STREAMS: usize = 7;
+/// Number of Rice-coded streams per object in version 1, each with its own parameter.
+pub(crate) const STREAMS_V1: usize = 7;
 pub(crate) const S_POS_LEN: usize = 0;
 pub(crate) const S_POS_LINEAR: usize = 1;
 pub(crate) const S_POS_QUADRATIC: usize = 2;
@@ -60,6 +101,42 @@ pub(crate) const S_POS_START: usize = 3;
 pub(crate) const S_ROT_LEN: usize = 4;
 pub(crate) const S_ROT_W: usize = 5;
 pub(crate) const S_ROT_START: usize = 6;
+/// Version 2 adds streams for angular accelerations and for one-frame steps.
+pub(crate) const S_ROT_ACC: usize = 7;
+pub(crate) const S_POS_STEP: usize = 8;
+pub(crate) const S_ROT_STEP: usize = 9;
+pub(crate) const STREAMS_V2: usize = 10;
+
+/// Version 2: the expected value of each stream before it has seen any (by stream index above).
+/// Only a prior — the parameter adapts within a few values — chosen from the shipped scenes at
+/// Standard quality.
+/// (The start streams, 3 and 6, use the header's parameters instead.)
+pub(crate) const ADAPTIVE_PRIORS: [u64; STREAMS_V2] = [24, 6, 6, 0, 12, 12, 0, 6, 3, 3];
+
+/// The adaptive coders of one object's payload (version 2), all at their priors.
+pub(crate) fn adaptive_streams() -> [AdaptiveRice; STREAMS_V2] {
+    ADAPTIVE_PRIORS.map(AdaptiveRice::new)
+}
+
+/// Largest start Rice parameter a version-2 header may hold.
+pub(crate) const MAX_START_K: u32 = 60;
+
+const FLAG_PRESET: u8 = 1;
+const FLAG_RATE: u8 = 2;
+const FLAG_STEPS: u8 = 4;
+const FLAG_COMMON_FRAMES: u8 = 8;
+const PRESETS: [Quality; 3] = [Quality::Draft, Quality::Standard, Quality::Final];
+
+/// Gravity vectors a version-2 header names by number (the gravity byte is `0x80 | i`) instead
+/// of storing them: y-up and z-up at 9.81 and at standard gravity 9.80665 m/s². A ~1 s segment
+/// of a one-body scene restates its header every second, so 8 bytes matter.
+const KNOWN_GRAVITY: [[f64; 3]; 4] = [
+    [0.0, -9.81, 0.0],
+    [0.0, 0.0, -9.81],
+    [0.0, -9.80665, 0.0],
+    [0.0, 0.0, -9.80665],
+];
+const GRAVITY_KNOWN: u8 = 0x80;
 
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(crate) struct Header {
@@ -72,43 +149,83 @@ pub(crate) struct Header {
     pub theta_max: f64,
     pub pos_step: f64,
     pub rot_step: f64,
+    /// Version 2: the frame count shared by every object (then the index omits it).
+    pub common_frames: Option<u32>,
+    /// Version 2: the Rice parameters of the start positions and start orientations, chosen for
+    /// the whole world (three values per object are too few to adapt to).
+    pub start_k: [u32; 2],
+}
+
+/// The steps version 2 derives from the bounds when the header does not store them.
+pub(crate) fn derived_steps(e_max: f64, theta_max: f64) -> (f64, f64) {
+    (POS_STEP_RATIO * e_max, ROT_STEP_RATIO * theta_max)
 }
 
 impl Header {
+    /// Writes a version-2 header.
     pub(crate) fn write(&self, out: &mut Vec<u8>) {
+        let start = out.len();
         out.extend_from_slice(&MAGIC);
         out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
-        out.extend_from_slice(&(HEADER_LEN_V1 as u16).to_le_bytes());
+        out.extend_from_slice(&[0, 0]); // header length, patched below
         out.push(self.model.wire_id());
-        out.extend_from_slice(&[0; 3]);
-        out.extend_from_slice(&self.object_count.to_le_bytes());
-        for v in [
-            self.frame_dt,
-            self.e_max,
-            self.theta_max,
-            self.pos_step,
-            self.rot_step,
-        ]
-        .into_iter()
-        .chain(self.model.gravity())
-        {
-            out.extend_from_slice(&v.to_le_bytes());
+        let preset = PRESETS
+            .iter()
+            .position(|q| q.bounds() == (self.e_max, self.theta_max));
+        let rate = (1.0 / self.frame_dt).round();
+        let rate = (rate >= 1.0 && rate <= f64::from(u32::MAX) && 1.0 / rate == self.frame_dt)
+            .then_some(rate as u64);
+        let steps_stored =
+            derived_steps(self.e_max, self.theta_max) != (self.pos_step, self.rot_step);
+        let mut flags = 0;
+        flags |= if preset.is_some() { FLAG_PRESET } else { 0 };
+        flags |= if rate.is_some() { FLAG_RATE } else { 0 };
+        flags |= if steps_stored { FLAG_STEPS } else { 0 };
+        flags |= if self.common_frames.is_some() {
+            FLAG_COMMON_FRAMES
+        } else {
+            0
+        };
+        out.push(flags);
+        match preset {
+            Some(i) => out.push(i as u8),
+            None => {
+                out.extend_from_slice(&self.e_max.to_le_bytes());
+                out.extend_from_slice(&self.theta_max.to_le_bytes());
+            }
         }
-        debug_assert_eq!(out.len(), HEADER_LEN_V1);
+        match rate {
+            Some(n) => write_varint(out, n),
+            None => out.extend_from_slice(&self.frame_dt.to_le_bytes()),
+        }
+        if steps_stored {
+            out.extend_from_slice(&self.pos_step.to_le_bytes());
+            out.extend_from_slice(&self.rot_step.to_le_bytes());
+        }
+        if let MotionModel::FreeFlightGravity { g } = self.model {
+            match KNOWN_GRAVITY.iter().position(|&k| k == g) {
+                Some(i) => out.push(GRAVITY_KNOWN | i as u8),
+                None => {
+                    let mask = (0..3).fold(0u8, |m, i| m | (u8::from(g[i] != 0.0) << i));
+                    out.push(mask);
+                    for v in g.into_iter().filter(|&v| v != 0.0) {
+                        out.extend_from_slice(&v.to_le_bytes());
+                    }
+                }
+            }
+        }
+        out.push(self.start_k[0] as u8);
+        out.push(self.start_k[1] as u8);
+        write_varint(out, u64::from(self.object_count));
+        if let Some(f) = self.common_frames {
+            write_varint(out, u64::from(f));
+        }
+        let len = (out.len() - start) as u16;
+        out[start + 6..start + 8].copy_from_slice(&len.to_le_bytes());
     }
 
     pub(crate) fn parse(bytes: &[u8]) -> Result<Self, CodecError> {
-        let need = |n: usize| {
-            if bytes.len() < n {
-                Err(CodecError::Truncated {
-                    at_bit: bytes.len() as u64 * 8,
-                    needed_bits: (n - bytes.len()) as u64 * 8,
-                })
-            } else {
-                Ok(())
-            }
-        };
-        need(8)?;
+        need(bytes, 8)?;
         if bytes[..4] != MAGIC {
             return Err(CodecError::BadMagic {
                 expected: MAGIC,
@@ -116,53 +233,160 @@ impl Header {
             });
         }
         let version = u16::from_le_bytes([bytes[4], bytes[5]]);
-        if version == 0 || version > FORMAT_VERSION {
-            return Err(CodecError::UnsupportedVersion {
-                found: version,
-                supported: FORMAT_VERSION,
-            });
-        }
         let header_len = usize::from(u16::from_le_bytes([bytes[6], bytes[7]]));
+        let header = match version {
+            1 => Self::parse_v1(bytes, header_len)?,
+            2 => Self::parse_v2(bytes, header_len)?,
+            _ => {
+                return Err(CodecError::UnsupportedVersion {
+                    found: version,
+                    supported: FORMAT_VERSION,
+                });
+            }
+        };
+        header.validate()
+    }
+
+    fn parse_v1(bytes: &[u8], header_len: usize) -> Result<Self, CodecError> {
         if header_len < HEADER_LEN_V1 {
             return Err(CodecError::BadHeaderField {
                 field: "header_len",
                 value: header_len as f64,
             });
         }
-        need(header_len)?;
-        let f = |at: usize| {
-            let mut b = [0u8; 8];
-            b.copy_from_slice(&bytes[at..at + 8]);
-            f64::from_le_bytes(b)
-        };
+        need(bytes, header_len)?;
+        let f = |at: usize| f64_at(bytes, at);
         let g = [f(56), f(64), f(72)];
-        let model = match bytes[8] {
-            0 => MotionModel::General,
-            1 => MotionModel::FreeFlightGravity { g },
-            other => {
-                return Err(CodecError::BadHeaderField {
-                    field: "model",
-                    value: f64::from(other),
-                });
-            }
-        };
-        let header = Header {
-            version,
+        Ok(Header {
+            version: 1,
             header_len,
-            model,
+            model: model(bytes[8], g)?,
             object_count: u32::from_le_bytes([bytes[12], bytes[13], bytes[14], bytes[15]]),
             frame_dt: f(16),
             e_max: f(24),
             theta_max: f(32),
             pos_step: f(40),
             rot_step: f(48),
+            common_frames: None,
+            start_k: [0; 2],
+        })
+    }
+
+    fn parse_v2(bytes: &[u8], header_len: usize) -> Result<Self, CodecError> {
+        need(bytes, header_len)?;
+        // Every field is read from the header's own bytes: a field running past H is corrupt.
+        let h = &bytes[..header_len];
+        let mut at = 8;
+        let byte = |at: &mut usize| -> Result<u8, CodecError> {
+            let b = *h.get(*at).ok_or(CodecError::Truncated {
+                at_bit: *at as u64 * 8,
+                needed_bits: 8,
+            })?;
+            *at += 1;
+            Ok(b)
         };
+        let float = |at: &mut usize| -> Result<f64, CodecError> {
+            need(h, *at + 8)?;
+            let v = f64_at(h, *at);
+            *at += 8;
+            Ok(v)
+        };
+        let model_id = byte(&mut at)?;
+        let flags = byte(&mut at)?;
+        let (e_max, theta_max) = if flags & FLAG_PRESET != 0 {
+            let i = byte(&mut at)?;
+            PRESETS
+                .get(usize::from(i))
+                .ok_or(CodecError::BadHeaderField {
+                    field: "preset",
+                    value: f64::from(i),
+                })?
+                .bounds()
+        } else {
+            (float(&mut at)?, float(&mut at)?)
+        };
+        let frame_dt = if flags & FLAG_RATE != 0 {
+            let n = read_varint(h, &mut at)?;
+            if n == 0 {
+                return Err(CodecError::BadHeaderField {
+                    field: "frame rate",
+                    value: 0.0,
+                });
+            }
+            1.0 / n as f64
+        } else {
+            float(&mut at)?
+        };
+        let (pos_step, rot_step) = if flags & FLAG_STEPS != 0 {
+            (float(&mut at)?, float(&mut at)?)
+        } else {
+            derived_steps(e_max, theta_max)
+        };
+        let mut g = [0.0; 3];
+        if model_id == 1 {
+            let mask = byte(&mut at)?;
+            if mask & GRAVITY_KNOWN != 0 {
+                g = *KNOWN_GRAVITY
+                    .get(usize::from(mask & !GRAVITY_KNOWN))
+                    .ok_or(CodecError::BadHeaderField {
+                        field: "gravity",
+                        value: f64::from(mask),
+                    })?;
+            } else {
+                for (i, v) in g.iter_mut().enumerate() {
+                    if mask & (1 << i) != 0 {
+                        *v = float(&mut at)?;
+                    }
+                }
+            }
+        }
+        let mut start_k = [0u32; 2];
+        for k in &mut start_k {
+            *k = u32::from(byte(&mut at)?);
+            if *k > MAX_START_K {
+                return Err(CodecError::BadHeaderField {
+                    field: "start Rice parameter",
+                    value: f64::from(*k),
+                });
+            }
+        }
+        let object_count =
+            u32::try_from(read_varint(h, &mut at)?).map_err(|_| CodecError::BadHeaderField {
+                field: "object count",
+                value: f64::INFINITY,
+            })?;
+        let common_frames = if flags & FLAG_COMMON_FRAMES != 0 {
+            Some(u32::try_from(read_varint(h, &mut at)?).map_err(|_| {
+                CodecError::BadHeaderField {
+                    field: "frame count",
+                    value: f64::INFINITY,
+                }
+            })?)
+        } else {
+            None
+        };
+        Ok(Header {
+            version: 2,
+            header_len,
+            model: model(model_id, g)?,
+            object_count,
+            frame_dt,
+            e_max,
+            theta_max,
+            pos_step,
+            rot_step,
+            common_frames,
+            start_k,
+        })
+    }
+
+    fn validate(self) -> Result<Self, CodecError> {
         let positive = [
-            ("frame_dt", header.frame_dt),
-            ("e_max", header.e_max),
-            ("theta_max", header.theta_max),
-            ("pos_step", header.pos_step),
-            ("rot_step", header.rot_step),
+            ("frame_dt", self.frame_dt),
+            ("e_max", self.e_max),
+            ("theta_max", self.theta_max),
+            ("pos_step", self.pos_step),
+            ("rot_step", self.rot_step),
         ];
         // Steps must stay in the normal range after scaling by 4^-32 (the smallest bucket step).
         for (field, value) in positive {
@@ -170,11 +394,116 @@ impl Header {
                 return Err(CodecError::BadHeaderField { field, value });
             }
         }
+        let g = self.model.gravity();
         for (field, value) in [("g.x", g[0]), ("g.y", g[1]), ("g.z", g[2])] {
             if !value.is_finite() {
                 return Err(CodecError::BadHeaderField { field, value });
             }
         }
-        Ok(header)
+        Ok(self)
+    }
+}
+
+fn need(bytes: &[u8], n: usize) -> Result<(), CodecError> {
+    if bytes.len() < n {
+        Err(CodecError::Truncated {
+            at_bit: bytes.len() as u64 * 8,
+            needed_bits: (n - bytes.len()) as u64 * 8,
+        })
+    } else {
+        Ok(())
+    }
+}
+
+/// The f64 at `at` (the caller has checked the length).
+fn f64_at(bytes: &[u8], at: usize) -> f64 {
+    let mut b = [0u8; 8];
+    b.copy_from_slice(&bytes[at..at + 8]);
+    f64::from_le_bytes(b)
+}
+
+fn model(id: u8, g: [f64; 3]) -> Result<MotionModel, CodecError> {
+    match id {
+        0 => Ok(MotionModel::General),
+        1 => Ok(MotionModel::FreeFlightGravity { g }),
+        other => Err(CodecError::BadHeaderField {
+            field: "model",
+            value: f64::from(other),
+        }),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn header(
+        model: MotionModel,
+        frame_dt: f64,
+        bounds: (f64, f64),
+        common: Option<u32>,
+    ) -> Header {
+        let (pos_step, rot_step) = derived_steps(bounds.0, bounds.1);
+        Header {
+            version: FORMAT_VERSION,
+            header_len: 0,
+            model,
+            object_count: 300,
+            frame_dt,
+            e_max: bounds.0,
+            theta_max: bounds.1,
+            pos_step,
+            rot_step,
+            common_frames: common,
+            start_k: [13, 15],
+        }
+    }
+
+    #[test]
+    fn v2_headers_roundtrip_and_are_small_for_presets() {
+        let g = MotionModel::FreeFlightGravity {
+            g: [0.0, -9.81, 0.0],
+        };
+        for (h, max_len) in [
+            (
+                header(g, 1.0 / 120.0, Quality::Standard.bounds(), Some(120)),
+                18,
+            ),
+            (
+                header(
+                    MotionModel::FreeFlightGravity {
+                        g: [0.1, -9.0, 0.0],
+                    },
+                    1.0 / 120.0,
+                    Quality::Draft.bounds(),
+                    Some(7),
+                ),
+                34,
+            ),
+            (header(MotionModel::General, 0.013, (2e-3, 7e-4), None), 40),
+            (
+                Header {
+                    pos_step: 0.5e-3,
+                    ..header(g, 1.0 / 60.0, Quality::Final.bounds(), Some(0))
+                },
+                60,
+            ),
+        ] {
+            let mut out = Vec::new();
+            h.write(&mut out);
+            assert!(out.len() <= max_len, "{} bytes", out.len());
+            let back = Header::parse(&out).unwrap();
+            assert_eq!(
+                back,
+                Header {
+                    header_len: out.len(),
+                    ..h
+                }
+            );
+            // Any truncation is an error, never a panic.
+            for n in 0..out.len() {
+                assert!(Header::parse(&out[..n]).is_err());
+            }
+        }
     }
 }

@@ -2,12 +2,15 @@
 //! §4.3 of the reference thesis).
 //!
 //! Each object's track — positions and unit quaternions sampled at a fixed frame rate — becomes
-//! a handful of spline segments: C⁰ piecewise quadratics for the centre of mass, piecewise
-//! constant angular velocity (linear in the log map) for the orientation. Coefficients are
-//! quantised, predicted from the previous segment and Golomb–Rice coded. For **every object and
-//! every frame** the decoded position is within `e_max` of the input (Euclidean norm, which also
-//! bounds each axis) and the decoded orientation within `θ_max` (angle of the residual rotation);
-//! the encoder checks this on the decoded bytes before returning them.
+//! a handful of segments: C⁰ piecewise quadratics for the centre of mass (in free flight the
+//! quadratic term is gravity's), linear or quadratic curves in the log map for the orientation,
+//! rest segments where nothing moves, and one-frame steps predicted from the two frames before
+//! where contact makes the motion change every frame. Coefficients are quantised, predicted from
+//! the previous segment and Golomb–Rice coded with parameters that adapt as the stream goes. For
+//! **every object and every frame** the decoded position is within `e_max` of the input
+//! (Euclidean norm, which also bounds each axis) and the decoded orientation within `θ_max`
+//! (angle of the residual rotation); the encoder checks this on the decoded bytes before
+//! returning them. The encoder writes format version 2 and the reader reads versions 1 and 2.
 //!
 //! # Writing
 //!
@@ -79,8 +82,9 @@
 //! ```
 //!
 //! # Modules, in pipeline order
-//! `fit` (greedy segment fitting, Figure 4.6) → `segment` (quantisation, prediction, evaluation,
-//! shared by both directions) → `bits` (Rice codes) → `format` (versioned layout) → `decode`.
+//! `fit` (greedy segment fitting, Figure 4.6) → `encode` (choosing the cheapest segment per
+//! frame) → `segment` (quantisation, prediction, evaluation, shared by both directions) → `bits`
+//! (adaptive Rice codes) → `format` (versioned layout) → `decode` (`decode/v1`, `decode/v2`).
 //! `lowres` builds the few-Hz path; `baseline` gives the raw size and a quantised-frames reference.
 
 mod baseline;
@@ -97,7 +101,7 @@ mod segment;
 
 pub use baseline::{RAW_BYTES_PER_OBJECT_FRAME, quantised_frames_baseline, raw_f32_size};
 pub use decode::{DecodeLimits, WorldReader};
-pub use encode::{EncodeStats, EncodedWorld, Track, encode_world};
+pub use encode::{EncodeStats, EncodedWorld, SizeBreakdown, Track, encode_world};
 pub use error::CodecError;
 pub use format::{FORMAT_VERSION, MAGIC};
 pub use lowres::LowResPath;

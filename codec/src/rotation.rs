@@ -62,6 +62,45 @@ pub(crate) fn exp(r: Vec3) -> Quat {
     [r[0] * k, r[1] * k, r[2] * k, half.cos()]
 }
 
+/// [`exp`] with `sin` and `cos` replaced by their Taylor polynomials for angles below 1 rad
+/// (truncation < 10⁻¹⁹, so the result differs from [`exp`] by a few ulp): for the encoder's fast
+/// bound test, which allows for far larger differences (`fit::AngleTest`). The decoder always
+/// uses [`exp`].
+pub(crate) fn exp_approx(r: Vec3) -> Quat {
+    let t2 = dot3(r, r);
+    if t2.is_nan() || t2 >= 1.0 {
+        return exp(r);
+    }
+    // h = θ/2, x = h²: sin(h)/h = Σ (−x)ᵏ/(2k+1)!, cos(h) = Σ (−x)ᵏ/(2k)!, to the h¹⁶ term.
+    let x = 0.25 * t2;
+    const S: [f64; 8] = [
+        1.0,
+        -1.0 / 6.0,
+        1.0 / 120.0,
+        -1.0 / 5040.0,
+        1.0 / 362_880.0,
+        -1.0 / 39_916_800.0,
+        1.0 / 6_227_020_800.0,
+        -1.0 / 1_307_674_368_000.0,
+    ];
+    const C: [f64; 9] = [
+        1.0,
+        -1.0 / 2.0,
+        1.0 / 24.0,
+        -1.0 / 720.0,
+        1.0 / 40_320.0,
+        -1.0 / 3_628_800.0,
+        1.0 / 479_001_600.0,
+        -1.0 / 87_178_291_200.0,
+        1.0 / 20_922_789_888_000.0,
+    ];
+    let sinc = S.iter().rev().fold(0.0, |acc, &c| acc * x + c);
+    let cos = C.iter().rev().fold(0.0, |acc, &c| acc * x + c);
+    // sin(h)/θ = sinc(h)/2.
+    let k = 0.5 * sinc;
+    [r[0] * k, r[1] * k, r[2] * k, cos]
+}
+
 /// Unit quaternion → rotation vector with angle in [0, π] (the shorter of `q`, `−q`).
 pub(crate) fn log(q: Quat) -> Vec3 {
     let q = if q[3] < 0.0 {
@@ -146,6 +185,26 @@ mod tests {
             assert!(close(exp(log(neg)), q), "−q is the same rotation");
             assert!(angle_between(q, neg) < 1e-12);
         }
+    }
+
+    #[test]
+    fn the_polynomial_exp_agrees_with_exp_to_a_few_ulp() {
+        let mut worst = 0.0f64;
+        for i in 0..20_000 {
+            let t = i as f64 / 20_000.0;
+            let r = [
+                t * 0.6 * (i as f64).sin(),
+                -t * 0.5,
+                t * 0.6 * (i as f64 * 0.7).cos(),
+            ];
+            let (a, b) = (exp(r), exp_approx(r));
+            for k in 0..4 {
+                worst = worst.max((a[k] - b[k]).abs());
+            }
+        }
+        assert!(worst < 1e-15, "{worst:e}");
+        assert_eq!(exp_approx([0.0; 3]), IDENTITY);
+        assert_eq!(exp_approx([2.0, 0.0, 0.0]), exp([2.0, 0.0, 0.0]));
     }
 
     #[test]

@@ -50,6 +50,45 @@ fn exercise(bytes: &[u8]) -> usize {
     ok
 }
 
+/// A version-1 header (80 bytes, fixed layout) from the saved fixture.
+fn v1_header() -> Vec<u8> {
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/fixtures/v1_gravity_standard.mwbm"
+    );
+    std::fs::read(path).expect("fixture")[..80].to_vec()
+}
+
+/// A version-2 header (see `format`): Standard preset, 120 Hz, the given model and object count,
+/// optionally one frame count for every object, start Rice parameters 13 and 15.
+fn v2_header(model: u8, objects: u32, common_frames: Option<u32>) -> Vec<u8> {
+    fn varint(out: &mut Vec<u8>, mut v: u64) {
+        while v >= 0x80 {
+            out.push((v as u8) | 0x80);
+            v >>= 7;
+        }
+        out.push(v as u8);
+    }
+    let mut h = b"MWBM".to_vec();
+    h.extend_from_slice(&2u16.to_le_bytes());
+    h.extend_from_slice(&[0, 0]);
+    h.push(model);
+    h.push(1 | 2 | if common_frames.is_some() { 8 } else { 0 });
+    h.push(1); // standard
+    varint(&mut h, 120);
+    if model == 1 {
+        h.push(0x80); // y-up 9.81
+    }
+    h.extend_from_slice(&[13, 15]); // Rice parameters of the start values
+    varint(&mut h, u64::from(objects));
+    if let Some(f) = common_frames {
+        varint(&mut h, u64::from(f));
+    }
+    let len = h.len() as u16;
+    h[6..8].copy_from_slice(&len.to_le_bytes());
+    h
+}
+
 fn valid_world() -> Vec<u8> {
     let dt = 1.0 / 120.0;
     let tracks: Vec<_> = (0..4)
@@ -72,14 +111,14 @@ proptest! {
     }
 
     #[test]
-    fn arbitrary_payload_behind_a_valid_header(
+    fn arbitrary_payload_behind_a_valid_v1_header(
         objects in 0u32..6,
         frames in proptest::collection::vec(any::<u32>(), 6),
         payload in proptest::collection::vec(any::<u8>(), 0..400),
         model in 0u8..2,
     ) {
         // A real header, a plausible index, random object streams: reaches the segment decoder.
-        let mut bytes = valid_world()[..80].to_vec();
+        let mut bytes = v1_header();
         bytes[8] = model;
         bytes[12..16].copy_from_slice(&objects.to_le_bytes());
         let per = payload.len() as u32 / objects.max(1);
@@ -88,6 +127,36 @@ proptest! {
             bytes.extend_from_slice(&(frames[i as usize] % 3000).to_le_bytes());
         }
         bytes.extend_from_slice(&payload);
+        exercise(&bytes);
+    }
+
+    #[test]
+    fn arbitrary_payload_behind_a_valid_v2_header(
+        objects in 0u32..6,
+        frames in proptest::collection::vec(any::<u32>(), 6),
+        common in any::<bool>(),
+        payload in proptest::collection::vec(any::<u8>(), 0..400),
+        model in 0u8..2,
+    ) {
+        // A real header and an index whose lengths add up, so the segment decoder is reached.
+        let common_frames = common.then_some(frames[0] % 3000);
+        let mut bytes = v2_header(model, objects, common_frames);
+        let per = payload.len() / objects.max(1) as usize;
+        for (i, f) in frames.iter().enumerate().take(objects as usize) {
+            let len = if i + 1 == objects as usize { payload.len() - per * i } else { per };
+            let mut v = len as u64;
+            while v >= 0x80 {
+                bytes.push((v as u8) | 0x80);
+                v >>= 7;
+            }
+            bytes.push(v as u8);
+            if !common {
+                bytes.push((f % 100) as u8 + 1);
+            }
+        }
+        if objects > 0 {
+            bytes.extend_from_slice(&payload);
+        }
         exercise(&bytes);
     }
 
@@ -122,33 +191,43 @@ fn the_valid_world_passes_every_entry_point() {
 
 #[test]
 fn hostile_frame_counts_are_refused_before_allocating() {
-    // One object claiming 4 billion frames, covered by a single Rice-coded segment.
-    let mut bytes = valid_world()[..80].to_vec();
-    bytes[12..16].copy_from_slice(&1u32.to_le_bytes());
-    bytes.extend_from_slice(&0u32.to_le_bytes());
-    bytes.extend_from_slice(&u32::MAX.to_le_bytes());
-    bytes.extend_from_slice(&[0xFF; 64]);
-    let r = WorldReader::new(&bytes).unwrap();
-    assert_eq!(r.frame_count(), u32::MAX as usize);
-    assert!(matches!(
-        r.decode_object(0),
-        Err(mwb_codec::CodecError::LimitExceeded { .. })
-    ));
-    assert!(matches!(
-        r.decode_all(),
-        Err(mwb_codec::CodecError::LimitExceeded { .. })
-    ));
+    // One object claiming 4 billion frames, covered by a single Rice-coded segment — in either
+    // format version.
+    let mut v1 = v1_header();
+    v1[12..16].copy_from_slice(&1u32.to_le_bytes());
+    v1.extend_from_slice(&0u32.to_le_bytes());
+    v1.extend_from_slice(&u32::MAX.to_le_bytes());
+    v1.extend_from_slice(&[0xFF; 64]);
+    let mut v2 = v2_header(1, 1, Some(u32::MAX));
+    v2.push(64);
+    v2.extend_from_slice(&[0x00; 64]);
+    for bytes in [v1, v2] {
+        let r = WorldReader::new(&bytes).unwrap();
+        assert_eq!(r.frame_count(), u32::MAX as usize);
+        assert!(matches!(
+            r.decode_object(0),
+            Err(mwb_codec::CodecError::LimitExceeded { .. })
+        ));
+        assert!(matches!(
+            r.decode_all(),
+            Err(mwb_codec::CodecError::LimitExceeded { .. })
+        ));
+        // Random access needs no allocation, and a stream that cannot cover the frames ends in
+        // an error, not a long loop.
+        let _ = r.sample_frame(0, u32::MAX - 1);
+    }
 }
 
 #[test]
 fn unknown_versions_and_magic_are_named() {
     let mut bytes = valid_world();
+    assert_eq!(WorldReader::new(&bytes).unwrap().version(), 2);
     bytes[4] = 9;
     assert!(matches!(
         WorldReader::new(&bytes),
         Err(mwb_codec::CodecError::UnsupportedVersion {
             found: 9,
-            supported: 1
+            supported: mwb_codec::FORMAT_VERSION,
         })
     ));
     bytes[0] = b'X';
@@ -156,4 +235,21 @@ fn unknown_versions_and_magic_are_named() {
         WorldReader::new(&bytes),
         Err(mwb_codec::CodecError::BadMagic { .. })
     ));
+}
+
+#[test]
+fn index_lengths_must_add_up_to_the_payload() {
+    let mut bytes = v2_header(0, 2, Some(10));
+    bytes.extend_from_slice(&[3, 4]);
+    bytes.extend_from_slice(&[0; 6]);
+    assert!(matches!(
+        WorldReader::new(&bytes),
+        Err(mwb_codec::CodecError::Corrupt { .. })
+    ));
+    bytes.push(0);
+    assert!(WorldReader::new(&bytes).is_ok());
+    // An object count far beyond the input ends at the end of the input.
+    let mut bytes = v2_header(0, u32::MAX, None);
+    bytes.extend_from_slice(&[1, 1, 0]);
+    assert!(WorldReader::new(&bytes).is_err());
 }

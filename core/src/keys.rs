@@ -30,6 +30,11 @@ pub fn check_identifier(what: &'static str, value: &str) -> Result<(), BadIdenti
     }
 }
 
+/// The last chunk of a key (a node id, a session, an index), or "" for an empty key.
+pub fn last_chunk(key: &str) -> &str {
+    key.rsplit('/').next().unwrap_or("")
+}
+
 /// Node roles, as they appear in `alive/<role>/<node>` and `stats/<role>/<node>`.
 pub mod role {
     pub const SAMPLER: &str = "sampler";

@@ -374,13 +374,7 @@ pub async fn run_query(session: Session, cfg: QueryConfig) -> Result<QueryHandle
                 // (requests of one session still run one at a time, under its lock).
                 let inner = inner.clone();
                 tokio::spawn(async move {
-                    let session = q
-                        .key_expr()
-                        .as_str()
-                        .rsplit('/')
-                        .next()
-                        .unwrap_or("")
-                        .to_owned();
+                    let session = mwb_core::keys::last_chunk(q.key_expr().as_str()).to_owned();
                     let request = q
                         .payload()
                         .map(|p| serde_json::from_slice::<Request>(&p.to_bytes()));

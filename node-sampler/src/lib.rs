@@ -7,7 +7,7 @@
 pub mod node;
 pub mod world;
 
-pub use node::{SamplerConfig, SamplerHandle, run_sampler, segment_message};
+pub use node::{SamplerConfig, SamplerHandle, run_sampler, segment_message, world_done};
 pub use world::{
     PayloadEncoding, RunOptions, Segment, WorldSummary, motion_model, provenance, run_world,
     run_world_observed,

@@ -89,6 +89,32 @@ fn codec_quality(q: Quality) -> mwb_codec::Quality {
     }
 }
 
+/// The wire summary of world `(job, node, counter)` (CPU time, provenance and scene hash are
+/// the caller's to add).
+pub fn world_done(
+    job_id: &str,
+    node: &str,
+    counter: u64,
+    summary: &crate::WorldSummary,
+) -> WorldDone {
+    WorldDone {
+        job_id: job_id.to_owned(),
+        node_id: node.to_owned(),
+        world_counter: counter,
+        seed: summary.seed,
+        frame_count: summary.frame_count,
+        segment_count: summary.segment_count,
+        frame_dt: summary.frame_dt,
+        rested: summary.rested,
+        impacts: summary.impacts.clone(),
+        rest_time_s: summary.rest_time_s.clone(),
+        body_rested: summary.body_rested.clone(),
+        perturbations: summary.perturbations,
+        sim_steps: summary.steps,
+        ..Default::default()
+    }
+}
+
 /// The wire form of a recorded segment of world `(job, node, counter)`: the codec payload
 /// (`SPLINE_V1`) with its CRC and, beside it, the low-resolution paths.
 pub fn segment_message(
@@ -544,22 +570,10 @@ fn worker(shared: &Shared, tx: &mpsc::Sender<Outgoing>, keys: &Keys, node: &str)
         match result {
             Ok(summary) => {
                 let done = WorldDone {
-                    job_id: job_id.clone(),
-                    node_id: node.to_owned(),
-                    world_counter: counter,
-                    seed,
-                    frame_count: summary.frame_count,
-                    segment_count: summary.segment_count,
-                    frame_dt: summary.frame_dt,
-                    rested: summary.rested,
-                    impacts: summary.impacts,
-                    rest_time_s: summary.rest_time_s,
-                    body_rested: summary.body_rested,
-                    perturbations: summary.perturbations,
-                    sim_steps: summary.steps,
                     cpu_seconds: cpu_time() - started,
                     provenance: provenance.clone(),
                     scene_hash,
+                    ..world_done(&job_id, node, counter, &summary)
                 };
                 let out = Outgoing::Put {
                     key: keys.done(&job_id, node, counter),

@@ -3,6 +3,7 @@
 //! stored and [`ShardRequest`]s from node-query, and sends back the [`ShardReply`].
 
 use crate::index::IndexedWorld;
+use crate::spatial::{Aabb, PathBvh};
 use mwb_core::browse::api::{
     ConstraintStatus, Reply, Request, SessionStatus, ShardReply, ShardRequest, WorldSummary,
 };
@@ -97,6 +98,10 @@ pub struct Shard {
     /// By local index; `None` for a world that could not be indexed.
     worlds: Vec<Option<IndexedWorld>>,
     indexed: u64,
+    /// Every indexed world (the complement of a negative constraint is taken in it).
+    all: WorldSet,
+    /// Per object index, the boxes of that object's paths in every world.
+    bvh: Vec<PathBvh>,
     sessions: HashMap<String, Session>,
     threads: usize,
 }
@@ -112,6 +117,8 @@ impl Shard {
             name: name.into(),
             worlds: Vec::new(),
             indexed: 0,
+            all: WorldSet::new(),
+            bvh: Vec::new(),
             sessions: HashMap::new(),
             threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
         }
@@ -144,6 +151,8 @@ impl Shard {
             .map(|w| w.heap_bytes() + std::mem::size_of::<IndexedWorld>())
             .sum::<usize>()
             + self.worlds.capacity() * std::mem::size_of::<Option<IndexedWorld>>()
+            + self.bvh.iter().map(PathBvh::heap_bytes).sum::<usize>()
+            + self.all.heap_bytes()
             + self
                 .sessions
                 .values()
@@ -173,6 +182,20 @@ impl Shard {
         for s in self.sessions.values_mut() {
             s.set.on_new_world(global, |c, _| evaluate(c, Some(&world)));
         }
+        if let Some(old) = &self.worlds[slot] {
+            for b in self.bvh.iter_mut().take(old.objects.len()) {
+                b.remove(global);
+            }
+        }
+        if self.bvh.len() < world.objects.len() {
+            self.bvh.resize_with(world.objects.len(), PathBvh::default);
+        }
+        for (o, obj) in world.objects.iter().enumerate() {
+            if let Some(b) = Aabb::of_points(obj.tree.path().points(), obj.radius) {
+                self.bvh[o].insert(b, global);
+            }
+        }
+        self.all.insert(global);
         if self.worlds[slot].replace(world).is_none() {
             self.indexed += 1;
         }
@@ -272,19 +295,60 @@ impl Shard {
         }
     }
 
-    /// The worlds satisfying `constraint`, evaluated on `threads` threads.
+    /// The worlds satisfying `constraint`. The per-object hierarchies give the paths whose box
+    /// may meet the frustum; only those get the exact OBB-tree test (on `threads` threads when
+    /// there are many). A world none of whose chosen paths is touched satisfies a negative
+    /// constraint and fails a positive one.
     pub fn evaluate_all(&self, constraint: &Constraint) -> WorldSet {
+        let mut candidates: Vec<(u32, u32)> = Vec::new();
+        for &o in &constraint.objects {
+            if let Some(b) = self.bvh.get(o as usize) {
+                b.query(&constraint.frustum, |w| candidates.push((w, o)));
+            }
+        }
+        let exact = |&(w, o): &(u32, u32)| {
+            self.world(w)
+                .and_then(|world| world.objects.get(o as usize))
+                .is_some_and(|obj| {
+                    obj.tree
+                        .intersects(&constraint.frustum, constraint.window, obj.radius)
+                })
+        };
+        let threads = self.threads.min(candidates.len() / 512).max(1);
+        let touched: WorldSet = if threads == 1 {
+            candidates
+                .iter()
+                .filter(|c| exact(c))
+                .map(|c| c.0)
+                .collect()
+        } else {
+            let chunk = candidates.len().div_ceil(threads);
+            std::thread::scope(|s| {
+                let handles: Vec<_> = candidates
+                    .chunks(chunk)
+                    .map(|part| {
+                        s.spawn(move || part.iter().filter(|c| exact(c)).map(|c| c.0).collect())
+                    })
+                    .collect();
+                handles
+                    .into_iter()
+                    .flat_map(|h| h.join().unwrap_or_else(|_| Vec::<u32>::new()))
+                    .collect()
+            })
+        };
+        match constraint.polarity {
+            mwb_core::browse::Polarity::Positive => touched,
+            mwb_core::browse::Polarity::Negative => self.all.and_not(&touched),
+        }
+    }
+
+    /// [`evaluate_all`](Self::evaluate_all) without the hierarchies: every world's OBB trees,
+    /// world by world (on `threads` threads), for benchmarks and as the reference in tests.
+    pub fn evaluate_each(&self, constraint: &Constraint) -> WorldSet {
         let worlds: Vec<&IndexedWorld> = self.worlds.iter().flatten().collect();
         let threads = self.threads.min(worlds.len() / 256).max(1);
-        if threads == 1 {
-            return worlds
-                .iter()
-                .filter(|w| evaluate(constraint, Some(w)))
-                .map(|w| w.world)
-                .collect();
-        }
-        let chunk = worlds.len().div_ceil(threads);
-        let parts: Vec<Vec<u32>> = std::thread::scope(|s| {
+        let chunk = worlds.len().div_ceil(threads).max(1);
+        std::thread::scope(|s| {
             let handles: Vec<_> = worlds
                 .chunks(chunk)
                 .map(|part| {
@@ -298,10 +362,9 @@ impl Shard {
                 .collect();
             handles
                 .into_iter()
-                .map(|h| h.join().unwrap_or_default())
+                .flat_map(|h| h.join().unwrap_or_default())
                 .collect()
-        });
-        parts.into_iter().flatten().collect()
+        })
     }
 
     fn status(&self, session: &Session) -> Reply {
@@ -623,6 +686,36 @@ mod tests {
         match read(&mut shard, Request::Status) {
             Reply::Status(st) => assert_eq!((st.edits, st.constraints.len(), st.result), (0, 0, 5)),
             other => panic!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn hierarchy_answers_like_testing_every_world() {
+        let mut shard = Shard::new(ShardSpec::default(), "a");
+        for i in 0..2000u32 {
+            let y = f64::from(i % 97) * 0.05 - 2.0;
+            shard.insert(world(i, y, 0.0));
+        }
+        // Re-inserting a world replaces its boxes.
+        shard.insert(world(5, 40.0, 0.0));
+        for k in 0..60 {
+            let y = f64::from(k) * 0.09 - 2.5;
+            let h = 0.01 + f64::from(k % 7) * 0.05;
+            let c = Constraint {
+                id: ConstraintId(1),
+                polarity: if k % 3 == 0 {
+                    Polarity::Negative
+                } else {
+                    Polarity::Positive
+                },
+                frustum: Frustum::aabb([-0.2, y - h, -0.2], [0.2, y + h, 0.2])
+                    .unwrap_or_else(|e| panic!("{e}")),
+                objects: vec![0],
+                window: None,
+            };
+            let fast = shard.evaluate_all(&c);
+            assert_eq!(fast, shard.evaluate_each(&c), "constraint {k}");
+            assert!(!fast.contains(5) || c.polarity == Polarity::Negative);
         }
     }
 

@@ -4,12 +4,15 @@
 //! * [`index`] — pure: a stored world → per-object path trees (OBB, depth ≤ 3) and metrics.
 //! * [`browse`] — pure: one shard's worlds and per-session constraint bitsets; answers
 //!   node-query's requests.
+//! * [`spatial`] — pure: per object index, a bounding-volume hierarchy over every world's path
+//!   box, so a constraint visits only the paths near it.
 //! * [`node`] — the bus node around them.
 
 pub mod assembly;
 pub mod browse;
 pub mod index;
 pub mod node;
+pub mod spatial;
 
 pub use assembly::{Assembler, Outcome, Rejection, StoredWorld};
 pub use browse::{Shard, ShardSpec};

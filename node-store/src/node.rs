@@ -462,13 +462,7 @@ pub async fn run_store(session: Session, cfg: StoreConfig) -> Result<StoreHandle
         let node_id = node_id.clone();
         tasks.push(tokio::spawn(async move {
             while let Ok(q) = browse_q.recv_async().await {
-                let session = q
-                    .key_expr()
-                    .as_str()
-                    .rsplit('/')
-                    .next()
-                    .unwrap_or("")
-                    .to_owned();
+                let session = mwb_core::keys::last_chunk(q.key_expr().as_str()).to_owned();
                 let request = q
                     .payload()
                     .ok_or_else(|| "empty request".to_owned())

@@ -4,27 +4,13 @@
 //! sampler saw.
 
 use mwb_core::browse::{Frustum, Polyline, RestThresholds, TimeWindow};
+use mwb_core::rng::{Stream, WorldRng};
 use mwb_core::scene::SceneTemplate;
-use mwb_proto::v1::{Message, WorldDone};
-use mwb_sampler::{PayloadEncoding, RunOptions, run_world_observed, segment_message};
+use mwb_proto::v1::Message;
+use mwb_sampler::{PayloadEncoding, RunOptions, run_world_observed, segment_message, world_done};
 use mwb_store::index::DEFAULT_PATH_TOLERANCE_M;
 use mwb_store::{StoredWorld, index_world};
 use std::ops::ControlFlow;
-
-struct Rng(u64);
-
-impl Rng {
-    fn unit(&mut self) -> f64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
-    }
-    fn range(&mut self, lo: f64, hi: f64) -> f64 {
-        lo + (hi - lo) * self.unit()
-    }
-}
 
 /// Samples one world and returns it as the store holds it, plus the simulated full-rate
 /// positions per body.
@@ -54,19 +40,7 @@ fn sample(scene: &str, seed: u64, encoding: PayloadEncoding) -> (StoredWorld, Ve
         },
     )
     .unwrap_or_else(|e| panic!("{e}"));
-    let done = WorldDone {
-        job_id: "j".into(),
-        node_id: "n".into(),
-        seed,
-        frame_count: summary.frame_count,
-        segment_count: summary.segment_count,
-        frame_dt: summary.frame_dt,
-        rested: summary.rested,
-        impacts: summary.impacts.clone(),
-        rest_time_s: summary.rest_time_s.clone(),
-        body_rested: summary.body_rested.clone(),
-        ..Default::default()
-    };
+    let done = world_done("j", "n", seed, &summary);
     let bytes = segments.iter().map(|s| s.encoded_len() as u64).sum();
     (
         StoredWorld {
@@ -82,7 +56,7 @@ fn sample(scene: &str, seed: u64, encoding: PayloadEncoding) -> (StoredWorld, Ve
 
 #[test]
 fn index_never_misses_a_simulated_path_and_keeps_the_samplers_metrics() {
-    let mut rng = Rng(7);
+    let mut rng = WorldRng::new(7, Stream::Scene);
     let mut hits = 0;
     let mut checks = 0;
     let rest = RestThresholds {
@@ -116,13 +90,13 @@ fn index_never_misses_a_simulated_path_and_keeps_the_samplers_metrics() {
             let end = f64::from(stored.done.frame_count) * dt;
             for _ in 0..150 {
                 // A box of 2–40 cm around a point near a random frame of this object's path.
-                let k = (rng.unit() * truth[b].len() as f64) as usize % truth[b].len();
+                let k = (rng.next_f64() * truth[b].len() as f64) as usize % truth[b].len();
                 let c = truth[b][k];
-                let half = rng.range(0.01, 0.25);
+                let half = rng.uniform(0.01, 0.25);
                 let off = [
-                    rng.range(-0.2, 0.2),
-                    rng.range(-0.2, 0.2),
-                    rng.range(-0.2, 0.2),
+                    rng.uniform(-0.2, 0.2),
+                    rng.uniform(-0.2, 0.2),
+                    rng.uniform(-0.2, 0.2),
                 ];
                 let min = [
                     c[0] + off[0] - half,
@@ -135,9 +109,9 @@ fn index_never_misses_a_simulated_path_and_keeps_the_samplers_metrics() {
                     c[2] + off[2] + half,
                 ];
                 let frustum = Frustum::aabb(min, max).unwrap_or_else(|e| panic!("{e}"));
-                let window = if rng.unit() < 0.5 {
-                    let a = rng.range(0.0, end);
-                    TimeWindow::new(a, a + rng.range(0.0, 1.0)).ok()
+                let window = if rng.next_f64() < 0.5 {
+                    let a = rng.uniform(0.0, end);
+                    TimeWindow::new(a, a + rng.uniform(0.0, 1.0)).ok()
                 } else {
                     None
                 };

@@ -300,7 +300,7 @@ impl Plane {
 /// A convex region bounded by six planes: left, right, bottom, top, near, far (in that order for
 /// frusta built by [`Camera::frustum`]; any six planes are accepted by [`Frustum::from_planes`],
 /// e.g. a 3D box drawn by a script).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
 #[serde(try_from = "RawFrustum")]
 pub struct Frustum {
     planes: [Plane; 6],
@@ -308,6 +308,14 @@ pub struct Frustum {
     /// from the planes on every construction, never sent.
     #[serde(skip)]
     hull: Option<Hull>,
+}
+
+/// Two frusta are equal when their planes are (the vertex set is derived from them, and an
+/// inflated frustum does not carry one).
+impl PartialEq for Frustum {
+    fn eq(&self, other: &Self) -> bool {
+        self.planes == other.planes
+    }
 }
 
 /// The vertices of a bounded six-plane region (a convex polyhedron with six faces has at most
@@ -453,44 +461,24 @@ impl Frustum {
                 });
             }
         }
-        let axis = |i: usize, sign: f64| {
-            let mut n = [0.0; 3];
-            n[i] = sign;
-            n
-        };
-        Frustum::from_planes([
+        // Per axis: the −x side (normal −e, offset −min), then the +x side.
+        Frustum::from_planes(std::array::from_fn(|j| {
+            let (i, sign) = (j / 2, if j % 2 == 0 { -1.0 } else { 1.0 });
+            let mut normal = [0.0; 3];
+            normal[i] = sign;
             Plane {
-                normal: axis(0, -1.0),
-                offset: -min[0],
-            },
-            Plane {
-                normal: axis(0, 1.0),
-                offset: max[0],
-            },
-            Plane {
-                normal: axis(1, -1.0),
-                offset: -min[1],
-            },
-            Plane {
-                normal: axis(1, 1.0),
-                offset: max[1],
-            },
-            Plane {
-                normal: axis(2, -1.0),
-                offset: -min[2],
-            },
-            Plane {
-                normal: axis(2, 1.0),
-                offset: max[2],
-            },
-        ])
+                normal,
+                offset: if j % 2 == 0 { -min[i] } else { max[i] },
+            }
+        }))
     }
 
     /// The frustum with every plane moved outward by `r` metres. The result contains every point
     /// within `r` of the original (each half-space grows by `r`), which is what makes an
     /// inflated test never miss a path that deviates from the tested one by at most `r`.
     /// A NaN radius means "unknown error": the planes move to infinity and everything is inside,
-    /// so a never-miss test stays never-miss. Negative radii are treated as 0.
+    /// so a never-miss test stays never-miss. Negative radii are treated as 0. The result has no
+    /// vertex set ([`hull`](Self::hull) is `None`).
     pub fn inflated(&self, r: f64) -> Frustum {
         let r = if r.is_nan() {
             f64::INFINITY
@@ -501,21 +489,9 @@ impl Frustum {
         for p in &mut planes {
             p.offset += r;
         }
-        Frustum::with_hull(planes)
-    }
-
-    /// [`inflated`](Self::inflated) without recomputing the vertices (for segment clipping,
-    /// which needs only the planes).
-    pub(crate) fn inflated_planes(&self, r: f64) -> Frustum {
-        let r = if r.is_nan() {
-            f64::INFINITY
-        } else {
-            r.max(0.0)
-        };
-        let mut planes = self.planes;
-        for p in &mut planes {
-            p.offset += r;
-        }
+        // Only the planes: tests on an inflated frustum clip segments (planes suffice) and box
+        // tests grow the box by `r` against the original frustum instead (`Obb::apart`), so
+        // the vertex set is never needed here and costs nothing.
         Frustum { planes, hull: None }
     }
 
@@ -626,7 +602,7 @@ mod tests {
             })
             .expect("valid");
         assert_eq!(f.hull().map(<[Vec3]>::len), Some(8));
-        assert_eq!(f.inflated(0.05).hull().map(<[Vec3]>::len), Some(8));
+        assert_eq!(f.inflated(0.05).hull(), None);
         // Flip the far plane: the region beyond it is unbounded.
         let mut planes = *f.planes();
         planes[5].normal = scale(planes[5].normal, -1.0);

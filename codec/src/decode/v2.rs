@@ -1,0 +1,316 @@
+//! Version-2 object payloads: one bit stream per object, positions then rotations, every integer
+//! adaptively Rice-coded (layout in `format`).
+
+use super::{
+    PositionSegment, RotationSegment, finite_position, read_f64, read_quat, start_orientation,
+};
+use crate::bits::{AdaptiveRice, BitReader};
+use crate::error::CodecError;
+use crate::format::{
+    Header, S_POS_LEN, S_POS_LINEAR, S_POS_QUADRATIC, S_POS_STEP, S_ROT_ACC, S_ROT_LEN, S_ROT_STEP,
+    S_ROT_W, STREAMS_V2, adaptive_streams,
+};
+use crate::params::MotionModel;
+use crate::rotation::{Quat, Vec3};
+use crate::segment::{
+    PositionCoding, PositionCurve, PositionPredictor, PositionType, QuadraticQ, QuadraticTerm,
+    ROTATION_TYPES, RotationCurve, RotationPredictor, RotationType, bucket, dequantise3,
+    position_step_prediction, position_types, rotation_step_prediction, step_angular_acceleration,
+    step_end, step_linear, unresidual,
+};
+
+/// The decoding state of one version-2 object.
+pub(crate) struct ObjectStream<'a> {
+    r: BitReader<'a>,
+    streams: [AdaptiveRice; STREAMS_V2],
+    coding: PositionCoding,
+    rot_step: f64,
+    /// Rice parameter of the start orientation (from the header).
+    start_k: u32,
+    /// Frames after the first (segments cover exactly this many).
+    steps: u32,
+    pub position_start: Vec3,
+    positions: PositionState,
+    rotations: Option<RotationState>,
+}
+
+struct PositionState {
+    predictor: PositionPredictor,
+    /// The whole track is one rest segment (not yet returned).
+    at_rest: bool,
+    c: Vec3,
+    /// The decoded frame before `c` (for step segments).
+    before: Option<Vec3>,
+    covered: u32,
+    prev_type: usize,
+}
+
+struct RotationState {
+    predictor: RotationPredictor,
+    at_rest: bool,
+    q: Quat,
+    before: Option<Quat>,
+    covered: u32,
+    prev_type: usize,
+}
+
+/// Reads three residuals of `stream` against `pred`.
+fn residuals(
+    r: &mut BitReader<'_>,
+    state: &mut AdaptiveRice,
+    pred: [i64; 3],
+    what: &'static str,
+) -> Result<[i64; 3], CodecError> {
+    let mut q = [0i64; 3];
+    for (v, p) in q.iter_mut().zip(pred) {
+        *v = unresidual(r.read_adaptive(state)?, p).ok_or(CodecError::Corrupt { what })?;
+    }
+    Ok(q)
+}
+
+/// Three zig-zagged start values, Rice-coded with the header's parameter `k`.
+fn start_values(r: &mut BitReader<'_>, k: u32, what: &'static str) -> Result<[i64; 3], CodecError> {
+    let mut q = [0i64; 3];
+    for v in &mut q {
+        *v = unresidual(r.read_rice2(k)?, 0).ok_or(CodecError::Corrupt { what })?;
+    }
+    Ok(q)
+}
+
+/// Segment length: 0 = the rest of the track, else `L ≤ remaining`.
+fn length(
+    r: &mut BitReader<'_>,
+    state: &mut AdaptiveRice,
+    remaining: u32,
+) -> Result<u32, CodecError> {
+    match r.read_adaptive(state)? {
+        0 => Ok(remaining),
+        l if l <= u64::from(remaining) => Ok(l as u32),
+        _ => Err(CodecError::Corrupt {
+            what: "segment runs past the end of the track",
+        }),
+    }
+}
+
+impl<'a> ObjectStream<'a> {
+    pub(crate) fn open(bytes: &'a [u8], frames: u32, header: &Header) -> Result<Self, CodecError> {
+        let mut r = BitReader::new(bytes);
+        let streams = adaptive_streams();
+        let gravity = match header.model {
+            MotionModel::General => None,
+            MotionModel::FreeFlightGravity { g } => Some(g),
+        };
+        let coding = PositionCoding::new(header.pos_step, gravity, header.frame_dt);
+        let start = if r.read_bit()? {
+            [read_f64(&mut r)?, read_f64(&mut r)?, read_f64(&mut r)?]
+        } else {
+            let q = start_values(&mut r, header.start_k[0], "start position out of range")?;
+            dequantise3(q, coding.start_step())
+        };
+        let start = finite_position(start)?;
+        let steps = frames - 1;
+        // A track at rest throughout: one rest segment, no codes.
+        let at_rest = steps > 0 && r.read_bit()?;
+        Ok(Self {
+            r,
+            streams,
+            coding,
+            rot_step: header.rot_step,
+            start_k: header.start_k[1],
+            steps,
+            position_start: start,
+            positions: PositionState {
+                predictor: PositionPredictor::new(&coding),
+                c: start,
+                before: None,
+                covered: 0,
+                prev_type: 0,
+                at_rest,
+            },
+            rotations: None,
+        })
+    }
+
+    /// The next position segment, `None` once the track is covered.
+    pub(crate) fn next_position(&mut self) -> Result<Option<PositionSegment>, CodecError> {
+        let p = &mut self.positions;
+        if p.covered == self.steps {
+            return Ok(None);
+        }
+        let remaining = self.steps - p.covered;
+        if p.at_rest {
+            p.covered = self.steps;
+            return Ok(Some(PositionSegment {
+                start: 0,
+                len: remaining,
+                c: p.c,
+                curve: PositionCurve::Rest,
+            }));
+        }
+        let types = position_types(self.coding.gravity_term.is_some());
+        let rank = self.r.read_type(types.len(), p.prev_type)?;
+        p.prev_type = rank;
+        let (len, curve) = match types[rank] {
+            PositionType::Key => {
+                let end = [
+                    read_f64(&mut self.r)?,
+                    read_f64(&mut self.r)?,
+                    read_f64(&mut self.r)?,
+                ];
+                (
+                    1,
+                    PositionCurve::Key {
+                        end: finite_position(end)?,
+                    },
+                )
+            }
+            PositionType::Rest => (
+                length(&mut self.r, &mut self.streams[S_POS_LEN], remaining)?,
+                PositionCurve::Rest,
+            ),
+            PositionType::Step => {
+                let pred = position_step_prediction(p.c, p.before, p.predictor.velocity());
+                let what = "position step out of range";
+                let q = residuals(&mut self.r, &mut self.streams[S_POS_STEP], [0; 3], what)?;
+                let end = step_end(pred, q, self.coding.step);
+                (
+                    1,
+                    PositionCurve::Key {
+                        end: finite_position(end)?,
+                    },
+                )
+            }
+            kind => {
+                let len = length(&mut self.r, &mut self.streams[S_POS_LEN], remaining)?;
+                let k = bucket(len);
+                let (pb, pa) = p.predictor.predict(&self.coding, k);
+                let what = "position coefficient out of range";
+                let bq = residuals(&mut self.r, &mut self.streams[S_POS_LINEAR], pb, what)?;
+                let term = match kind {
+                    PositionType::Gravity => QuadraticTerm::Gravity,
+                    PositionType::Linear => QuadraticTerm::Zero,
+                    _ => QuadraticTerm::Fitted(residuals(
+                        &mut self.r,
+                        &mut self.streams[S_POS_QUADRATIC],
+                        pa,
+                        what,
+                    )?),
+                };
+                (len, QuadraticQ { bq, term }.curve(&self.coding, k))
+            }
+        };
+        let seg = PositionSegment {
+            start: p.covered,
+            len,
+            c: p.c,
+            curve,
+        };
+        p.predictor.advance(p.c, len, &curve);
+        p.before = Some(curve.eval(p.c, f64::from(len - 1)));
+        p.c = finite_position(curve.eval(p.c, f64::from(len)))?;
+        p.covered += len;
+        Ok(Some(seg))
+    }
+
+    /// Reads past the remaining position segments and the rotation start (the rotation stream
+    /// follows the position stream); returns the first orientation.
+    pub(crate) fn start_rotations(&mut self) -> Result<Quat, CodecError> {
+        if let Some(rot) = &self.rotations {
+            return Ok(rot.q);
+        }
+        while self.next_position()?.is_some() {}
+        let start = if self.r.read_bit()? {
+            read_quat(&mut self.r)?
+        } else {
+            let q = start_values(&mut self.r, self.start_k, "start orientation out of range")?;
+            start_orientation(q, self.rot_step)
+        };
+        let at_rest = self.steps > 0 && self.r.read_bit()?;
+        self.rotations = Some(RotationState {
+            at_rest,
+            predictor: RotationPredictor::default(),
+            q: start,
+            before: None,
+            covered: 0,
+            prev_type: 0,
+        });
+        Ok(start)
+    }
+
+    /// The next rotation segment, `None` once the track is covered.
+    pub(crate) fn next_rotation(&mut self) -> Result<Option<RotationSegment>, CodecError> {
+        self.start_rotations()?;
+        let Some(rot) = &mut self.rotations else {
+            return Ok(None);
+        };
+        if rot.covered == self.steps {
+            return Ok(None);
+        }
+        let remaining = self.steps - rot.covered;
+        if rot.at_rest {
+            rot.covered = self.steps;
+            return Ok(Some(RotationSegment {
+                start: 0,
+                len: remaining,
+                q0: rot.q,
+                curve: RotationCurve::Rest,
+            }));
+        }
+        let rank = self.r.read_type(ROTATION_TYPES.len(), rot.prev_type)?;
+        rot.prev_type = rank;
+        let (len, curve) = match ROTATION_TYPES[rank] {
+            RotationType::Key => (
+                1,
+                RotationCurve::Key {
+                    end: read_quat(&mut self.r)?,
+                },
+            ),
+            RotationType::Rest => (
+                length(&mut self.r, &mut self.streams[S_ROT_LEN], remaining)?,
+                RotationCurve::Rest,
+            ),
+            RotationType::Step => {
+                let pred =
+                    rotation_step_prediction(rot.q, rot.before, rot.predictor.angular_velocity());
+                let what = "rotation step out of range";
+                let q = residuals(&mut self.r, &mut self.streams[S_ROT_STEP], [0; 3], what)?;
+                (
+                    1,
+                    RotationCurve::Linear {
+                        w: step_end(pred, q, self.rot_step),
+                    },
+                )
+            }
+            kind => {
+                let len = length(&mut self.r, &mut self.streams[S_ROT_LEN], remaining)?;
+                let k = bucket(len);
+                let what = "angular velocity residual out of range";
+                let pred = rot.predictor.predict(self.rot_step, k);
+                let wq = residuals(&mut self.r, &mut self.streams[S_ROT_W], pred, what)?;
+                let w = dequantise3(wq, step_linear(self.rot_step, k));
+                let curve = if kind == RotationType::Quadratic {
+                    let pred = rot.predictor.predict_acceleration(self.rot_step, k);
+                    let aq = residuals(&mut self.r, &mut self.streams[S_ROT_ACC], pred, what)?;
+                    RotationCurve::Quadratic {
+                        w,
+                        a: dequantise3(aq, step_angular_acceleration(self.rot_step, k)),
+                    }
+                } else {
+                    RotationCurve::Linear { w }
+                };
+                (len, curve)
+            }
+        };
+        let seg = RotationSegment {
+            start: rot.covered,
+            len,
+            q0: rot.q,
+            curve,
+        };
+        rot.predictor.advance(&curve, len);
+        rot.before = Some(curve.eval(rot.q, f64::from(len - 1)));
+        rot.q = curve.eval(rot.q, f64::from(len));
+        rot.covered += len;
+        Ok(Some(seg))
+    }
+}

@@ -1,0 +1,297 @@
+//! A top-level bounding-volume hierarchy over the paths of one object index across all worlds,
+//! so that a new constraint visits only the paths near its frustum instead of every world.
+//!
+//! §4.4.2 indexes each path with a shallow OBB tree; testing a constraint still touches every
+//! world's tree. Here the box of every path (its root box, grown by the path's never-miss
+//! radius) goes into an axis-aligned BVH per object index; a query walks it with the frustum's
+//! planes and vertices and returns the worlds whose box may meet the frustum, which then get
+//! the exact per-path test. Worlds that arrive after the last build wait in a pending list
+//! (tested one by one) until it is a quarter of the built part, then the hierarchy is rebuilt:
+//! ingest stays O(1) and queries stay O(paths near the frustum + pending).
+
+use mwb_core::browse::Frustum;
+
+type Vec3 = [f64; 3];
+
+/// An axis-aligned box.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Aabb {
+    pub min: Vec3,
+    pub max: Vec3,
+}
+
+impl Aabb {
+    pub fn of_points(points: &[Vec3], grow: f64) -> Option<Aabb> {
+        let first = *points.first()?;
+        let mut b = Aabb {
+            min: first,
+            max: first,
+        };
+        for p in points {
+            for (k, &v) in p.iter().enumerate() {
+                b.min[k] = b.min[k].min(v);
+                b.max[k] = b.max[k].max(v);
+            }
+        }
+        // A hair more than `grow`, so rounding in the tests below can never lose a path.
+        let pad = grow
+            + 1e-9
+                * (1.0
+                    + b.max
+                        .iter()
+                        .chain(&b.min)
+                        .fold(0.0f64, |m, v| m.max(v.abs())));
+        for k in 0..3 {
+            b.min[k] -= pad;
+            b.max[k] += pad;
+        }
+        Some(b)
+    }
+
+    fn union(&self, o: &Aabb) -> Aabb {
+        let mut b = *self;
+        for k in 0..3 {
+            b.min[k] = b.min[k].min(o.min[k]);
+            b.max[k] = b.max[k].max(o.max[k]);
+        }
+        b
+    }
+
+    fn centre(&self, k: usize) -> f64 {
+        0.5 * (self.min[k] + self.max[k])
+    }
+
+    /// True only if the box and the frustum are provably apart: one frustum plane has the whole
+    /// box outside, or (for a frustum with known vertices) one coordinate axis separates them.
+    pub fn apart(&self, frustum: &Frustum) -> bool {
+        let c = [self.centre(0), self.centre(1), self.centre(2)];
+        let e = [
+            0.5 * (self.max[0] - self.min[0]),
+            0.5 * (self.max[1] - self.min[1]),
+            0.5 * (self.max[2] - self.min[2]),
+        ];
+        let by_plane = frustum.planes().iter().any(|p| {
+            let reach: f64 = (0..3).map(|k| p.normal[k].abs() * e[k]).sum();
+            p.distance(c) > reach
+        });
+        if by_plane {
+            return true;
+        }
+        let Some(hull) = frustum.hull() else {
+            return false;
+        };
+        (0..3).any(|k| {
+            let (lo, hi) = hull
+                .iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
+                    (lo.min(v[k]), hi.max(v[k]))
+                });
+            lo > self.max[k] || hi < self.min[k]
+        })
+    }
+}
+
+#[derive(Debug, Clone)]
+struct Node {
+    bounds: Aabb,
+    /// Leaf: `entries[first..first + count]`; inner: children at `first` and `first + 1`.
+    first: u32,
+    count: u32,
+}
+
+/// Leaves hold at most this many paths.
+const LEAF: usize = 8;
+
+/// The paths of one object index across worlds.
+#[derive(Debug, Clone, Default)]
+pub struct PathBvh {
+    /// (box, world) in leaf order.
+    entries: Vec<(Aabb, u32)>,
+    nodes: Vec<Node>,
+    pending: Vec<(Aabb, u32)>,
+}
+
+impl PathBvh {
+    /// Adds a world's path box (goes to the pending list; rebuilt in batches).
+    pub fn insert(&mut self, bounds: Aabb, world: u32) {
+        self.pending.push((bounds, world));
+        if self.pending.len() >= 64 && self.pending.len() * 4 >= self.entries.len() {
+            self.rebuild();
+        }
+    }
+
+    /// Removes a world (rebuilds; worlds leave rarely).
+    pub fn remove(&mut self, world: u32) {
+        let before = self.entries.len() + self.pending.len();
+        self.entries.retain(|e| e.1 != world);
+        self.pending.retain(|e| e.1 != world);
+        if self.entries.len() + self.pending.len() != before {
+            self.rebuild();
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.entries.len() + self.pending.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    pub fn heap_bytes(&self) -> usize {
+        (self.entries.capacity() + self.pending.capacity()) * std::mem::size_of::<(Aabb, u32)>()
+            + self.nodes.capacity() * std::mem::size_of::<Node>()
+    }
+
+    fn rebuild(&mut self) {
+        self.entries.append(&mut self.pending);
+        self.nodes.clear();
+        if self.entries.is_empty() {
+            return;
+        }
+        self.nodes.push(Node {
+            bounds: self.entries[0].0,
+            first: 0,
+            count: 0,
+        });
+        let n = self.entries.len();
+        self.build(0, 0, n);
+    }
+
+    /// Builds node `at` over `entries[lo..hi]`: median split on the widest axis of the centres.
+    fn build(&mut self, at: usize, lo: usize, hi: usize) {
+        let bounds = self.entries[lo + 1..hi]
+            .iter()
+            .fold(self.entries[lo].0, |b, e| b.union(&e.0));
+        if hi - lo <= LEAF {
+            self.nodes[at] = Node {
+                bounds,
+                first: lo as u32,
+                count: (hi - lo) as u32,
+            };
+            return;
+        }
+        let (mut cmin, mut cmax) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+        for e in &self.entries[lo..hi] {
+            for k in 0..3 {
+                cmin[k] = cmin[k].min(e.0.centre(k));
+                cmax[k] = cmax[k].max(e.0.centre(k));
+            }
+        }
+        let axis = (0..3)
+            .max_by(|&a, &b| (cmax[a] - cmin[a]).total_cmp(&(cmax[b] - cmin[b])))
+            .unwrap_or(0);
+        let mid = lo + (hi - lo) / 2;
+        self.entries[lo..hi].select_nth_unstable_by(mid - lo, |a, b| {
+            a.0.centre(axis).total_cmp(&b.0.centre(axis))
+        });
+        let left = self.nodes.len();
+        for _ in 0..2 {
+            self.nodes.push(Node {
+                bounds,
+                first: 0,
+                count: 0,
+            });
+        }
+        self.nodes[at] = Node {
+            bounds,
+            first: left as u32,
+            count: 0,
+        };
+        self.build(left, lo, mid);
+        self.build(left + 1, mid, hi);
+    }
+
+    /// Calls `visit(world)` for every world whose path box may meet `frustum` (all pending
+    /// ones included). Never skips a world whose box meets it.
+    pub fn query(&self, frustum: &Frustum, mut visit: impl FnMut(u32)) {
+        if !self.nodes.is_empty() {
+            let mut stack = vec![0usize];
+            while let Some(i) = stack.pop() {
+                let node = &self.nodes[i];
+                if node.bounds.apart(frustum) {
+                    continue;
+                }
+                if node.count > 0 {
+                    let (a, n) = (node.first as usize, node.count as usize);
+                    for (b, w) in &self.entries[a..a + n] {
+                        if !b.apart(frustum) {
+                            visit(*w);
+                        }
+                    }
+                } else {
+                    stack.push(node.first as usize + 1);
+                    stack.push(node.first as usize);
+                }
+            }
+        }
+        for (b, w) in &self.pending {
+            if !b.apart(frustum) {
+                visit(*w);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use mwb_core::rng::{Stream, WorldRng};
+
+    /// Every box that truly overlaps the query box is visited, whatever the insertion order and
+    /// the rebuild points; boxes far away are mostly not.
+    #[test]
+    fn query_returns_every_overlapping_box() {
+        let mut rng = WorldRng::new(3, Stream::Scene);
+        let mut bvh = PathBvh::default();
+        let mut boxes = Vec::new();
+        for w in 0..3000u32 {
+            let c = [
+                rng.uniform(-20.0, 20.0),
+                rng.uniform(0.0, 5.0),
+                rng.uniform(-20.0, 20.0),
+            ];
+            let h = [
+                rng.uniform(0.01, 2.0),
+                rng.uniform(0.01, 1.0),
+                rng.uniform(0.01, 2.0),
+            ];
+            let b = Aabb {
+                min: [c[0] - h[0], c[1] - h[1], c[2] - h[2]],
+                max: [c[0] + h[0], c[1] + h[1], c[2] + h[2]],
+            };
+            boxes.push(b);
+            bvh.insert(b, w);
+        }
+        bvh.remove(17);
+        assert_eq!(bvh.len(), 2999);
+        for _ in 0..200 {
+            let c = [
+                rng.uniform(-20.0, 20.0),
+                rng.uniform(0.0, 5.0),
+                rng.uniform(-20.0, 20.0),
+            ];
+            let h = rng.uniform(0.1, 4.0);
+            let q = Frustum::aabb(
+                [c[0] - h, c[1] - h, c[2] - h],
+                [c[0] + h, c[1] + h, c[2] + h],
+            )
+            .unwrap_or_else(|e| panic!("{e}"));
+            let mut seen = std::collections::BTreeSet::new();
+            bvh.query(&q, |w| {
+                seen.insert(w);
+            });
+            let mut truth = 0;
+            for (w, b) in boxes.iter().enumerate() {
+                let overlap = (0..3).all(|k| b.min[k] <= c[k] + h && b.max[k] >= c[k] - h);
+                if overlap && w != 17 {
+                    truth += 1;
+                    assert!(seen.contains(&(w as u32)), "box {w} missed");
+                }
+            }
+            // Boxes and queries are both axis-aligned here, so the test is exact.
+            assert_eq!(seen.len(), truth);
+            assert!(!seen.contains(&17));
+        }
+    }
+}
