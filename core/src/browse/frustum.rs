@@ -332,6 +332,20 @@ struct Hull {
 /// generous tolerance, so a borderline point is kept rather than lost), which is what makes a
 /// separating-axis test against it never reject a box that overlaps the region.
 fn compute_hull(planes: &[Plane; 6]) -> Option<Hull> {
+    // Disabled: the proptest `apart_never_separates_overlapping_boxes` found a frustum (seed
+    // 10821258474367936766, r = 0.1665) whose computed vertex set let the separating-axis test
+    // reject a box that overlaps it. Until that is understood, no vertex set is offered, so
+    // every box test falls back to the plane test, which is conservative by construction.
+    if HULL_ENABLED {
+        return hull_vertices(planes);
+    }
+    None
+}
+
+/// See [`compute_hull`].
+const HULL_ENABLED: bool = false;
+
+fn hull_vertices(planes: &[Plane; 6]) -> Option<Hull> {
     // Bounded ⟺ no direction d ≠ 0 with n_i·d ≤ 0 for every plane. Such a recession cone, if
     // any, has an extreme ray on two of its facets: along ±(n_i × n_j).
     let mut any_cross = false;
@@ -581,6 +595,7 @@ mod tests {
     use proptest::prelude::*;
 
     #[test]
+    #[ignore = "the vertex set is disabled (see compute_hull)"]
     fn hull_only_for_bounded_regions() {
         let b = Frustum::aabb([-1.0, 0.0, 2.0], [1.0, 0.5, 3.0]).expect("valid box");
         let hull = b.hull().expect("a box is bounded");
