@@ -499,10 +499,13 @@ proptest! {
         let obb = Obb::fit(&pts);
         let mut overlap = false;
         for _ in 0..2000 {
+            // A point of the box, moved by at most r: what `apart(.., r)` must not separate.
             let mut x = obb.center;
             for k in 0..3 {
-                x = add(x, scale(obb.axes[k], rng.range(-1.0, 1.0) * (obb.half[k] + r)));
+                x = add(x, scale(obb.axes[k], rng.range(-1.0, 1.0) * obb.half[k]));
             }
+            let d = rng.vec3(-1.0, 1.0);
+            x = add(x, scale(d, r * rng.unit() / norm(d).max(1e-12)));
             if c.frustum.contains(x) {
                 overlap = true;
                 break;
