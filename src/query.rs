@@ -40,7 +40,7 @@ pub enum RankBy {
     TimeToRest,
     /// Impact count.
     Impacts,
-    /// Angle between the final and the starting orientation.
+    /// Angle between the final and the starting orientation, or `--goal`.
     OrientationError,
     /// Number of live constraints satisfied (ranks every world, not only survivors).
     Constraints,
@@ -107,6 +107,10 @@ pub enum QueryCommand {
         /// Rank every world, not only the survivors.
         #[arg(long)]
         all: bool,
+        /// With `--by orientation-error`: the goal orientation as a world-frame quaternion
+        /// `x,y,z,w` (e.g. `0,0,0,1`: upright as modelled) instead of each object's start.
+        #[arg(long, allow_hyphen_values = true)]
+        goal: Option<String>,
     },
     /// One world's metrics and standing in the session.
     Show {
@@ -291,10 +295,31 @@ pub async fn run(command: QueryCommand) -> Result<()> {
             order,
             k,
             all,
+            goal,
         } => {
+            let goal = match (&goal, by) {
+                (None, _) => None,
+                (Some(g), RankBy::OrientationError) => {
+                    let v = numbers("goal", g, 4)?;
+                    Some([v[0], v[1], v[2], v[3]])
+                }
+                (Some(_), _) => bail!("--goal applies to --by orientation-error only"),
+            };
+            let aggregate = match aggregate {
+                AggregateArg::Sum => Aggregate::Sum,
+                AggregateArg::Max => Aggregate::Max,
+            };
             let client = Client::open(&s).await?;
             let key = match by {
                 RankBy::Constraints => Ok(RankKey::ConstraintsSatisfied),
+                RankBy::OrientationError if let Some(goal) = goal => client
+                    .objects(&objects)
+                    .await
+                    .map(|objects| RankKey::OrientationTo {
+                        goal,
+                        objects,
+                        aggregate,
+                    }),
                 other => client
                     .objects(&objects)
                     .await
@@ -306,10 +331,7 @@ pub async fn run(command: QueryCommand) -> Result<()> {
                             _ => Metric::OrientationError,
                         },
                         objects,
-                        aggregate: match aggregate {
-                            AggregateArg::Sum => Aggregate::Sum,
-                            AggregateArg::Max => Aggregate::Max,
-                        },
+                        aggregate,
                     }),
             };
             let order = match (order, by) {

@@ -93,6 +93,8 @@ pub struct Assembler {
     partial: HashMap<WorldKey, Partial>,
     worlds: Vec<Arc<StoredWorld>>,
     stored_bytes: u64,
+    /// The browsing index's bytes, as last reported by the node.
+    index_bytes: u64,
     partial_bytes: u64,
     cap_bytes: u64,
     shard: ShardSpec,
@@ -113,6 +115,7 @@ impl Assembler {
             partial: HashMap::new(),
             worlds: Vec::new(),
             stored_bytes: 0,
+            index_bytes: 0,
             partial_bytes: 0,
             cap_bytes,
             shard,
@@ -137,9 +140,28 @@ impl Assembler {
     pub fn stored(&self) -> impl Iterator<Item = &Arc<StoredWorld>> {
         self.worlds.iter()
     }
-    /// Bytes held: stored worlds plus partial worlds in flight.
+    /// Bytes held: stored worlds, partial worlds in flight, and the browsing index (as last
+    /// reported with [`set_index_bytes`](Self::set_index_bytes)) — what the cap limits.
     pub fn memory_bytes(&self) -> u64 {
-        self.stored_bytes + self.partial_bytes
+        self.stored_bytes + self.partial_bytes + self.index_bytes
+    }
+
+    /// Tells the assembler how many bytes the browsing index of its worlds takes (the index
+    /// lives beside it, in the browse shard). Counted against the memory cap: a world is
+    /// refused when its bytes, the stored ones, the index and the index the world itself will
+    /// need (estimated as the mean so far) would exceed the cap. On a 10-object scene the
+    /// index is several times the compressed world, so leaving it out would let a store grow
+    /// far past its cap.
+    pub fn set_index_bytes(&mut self, bytes: u64) {
+        self.index_bytes = bytes;
+    }
+
+    /// The index bytes a new world is expected to add: the mean over the stored worlds.
+    fn index_estimate(&self) -> u64 {
+        match self.worlds.len() as u64 {
+            0 => 0,
+            n => self.index_bytes / n,
+        }
     }
     pub fn cap_bytes(&self) -> u64 {
         self.cap_bytes
@@ -330,7 +352,10 @@ impl Assembler {
         }
         let world_bytes = p.bytes + done.encoded_len() as u64;
         let owned = self.shard.owns(&job_id, done.seed);
-        if owned && self.stored_bytes + world_bytes > self.cap_bytes {
+        if owned
+            && self.stored_bytes + self.index_bytes + world_bytes + self.index_estimate()
+                > self.cap_bytes
+        {
             return self.reject(&key, Rejection::MemoryCap);
         }
         let Some(index) = self.shard.global(self.worlds.len() as u32) else {
@@ -649,6 +674,31 @@ mod tests {
             }
         }
         assert_eq!(a.counters.refused_memory, 1);
+        assert!(a.memory_bytes() <= a.cap_bytes());
+    }
+
+    /// The browsing index counts against the cap: with room for three worlds' bytes, a store
+    /// whose index takes one world's worth per world holds fewer.
+    #[test]
+    fn index_bytes_count_against_the_cap() {
+        let (s, d) = world("j", "n", 0, 1, 2);
+        let one: u64 =
+            s.iter().map(|x| x.encoded_len() as u64).sum::<u64>() + d.encoded_len() as u64;
+        let mut a = Assembler::new(one * 3 + one / 2);
+        a.submit_job(job("j", 10));
+        let mut stored = 0u64;
+        for c in 0..4u64 {
+            let (s, d) = world("j", "n", c, 100 + c, 2);
+            if matches!(feed(&mut a, s, d), Outcome::Stored { .. }) {
+                stored += 1;
+                // The node reports the index after indexing each stored world.
+                a.set_index_bytes(stored * one);
+            }
+        }
+        // World 0 (0 + 1 + est 0 ≤ 3.5), world 1 (1 + 1 + 1 + est 1 = 4 > 3.5): refused, …
+        assert_eq!(stored, 1);
+        assert_eq!(a.counters.refused_memory, 3);
+        assert_eq!(a.memory_bytes(), 2 * one);
         assert!(a.memory_bytes() <= a.cap_bytes());
     }
 

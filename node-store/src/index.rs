@@ -13,7 +13,8 @@ pub struct IndexedObject {
     pub tree: PathTree,
     /// Inflation for frustum tests, metres: the codec's error bound plus the largest distance
     /// between the full-rate decoded path and the indexed polyline, so that a world whose true
-    /// path enters a frustum is never missed (§4.4.2 tests the low-res path conservatively).
+    /// path enters a frustum is never missed (§4.4.2 tests the low-res path conservatively);
+    /// rounded up to [`PATH_RADIUS_STEP_M`].
     pub radius: f64,
 }
 
@@ -118,6 +119,19 @@ fn decode_segment(s: &MotionSegment) -> Result<Decoded, IndexError> {
 /// the price of a smaller index in query precision.
 pub const DEFAULT_PATH_TOLERANCE_M: f64 = 0.01;
 
+/// Path radii are rounded up to a multiple of this, metres. A query inflates its frustum once
+/// per distinct radius (with the inflated region's vertices, for the separating-axis test);
+/// rounding leaves a handful of radii per query instead of one per path, and only widens the
+/// never-miss margin, by at most half a millimetre.
+pub const PATH_RADIUS_STEP_M: f64 = 0.0005;
+
+/// `r` rounded up to [`PATH_RADIUS_STEP_M`] (never down: the margin must not shrink).
+fn round_radius(r: f64) -> f64 {
+    let q = (r / PATH_RADIUS_STEP_M).ceil() * PATH_RADIUS_STEP_M;
+    // Division and product may each round down by an ulp.
+    if q >= r { q } else { q + PATH_RADIUS_STEP_M }
+}
+
 /// Indexes a complete (assembled, CRC-verified) world under global index `world`.
 ///
 /// Every segment is decoded once (full rate). From the decoded centre-of-mass positions each
@@ -192,7 +206,7 @@ pub fn index_world(
         }
         objects.push(IndexedObject {
             tree: PathTree::build(polyline),
-            radius: e_max + deviation,
+            radius: round_radius(e_max + deviation),
         });
         all_metrics.push(metrics);
     }

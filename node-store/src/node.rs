@@ -433,7 +433,14 @@ pub async fn run_store(session: Session, cfg: StoreConfig) -> Result<StoreHandle
                         .copied()
                         .unwrap_or_else(default_rest);
                     match index_world(&w, w.index, thresholds, path_tolerance) {
-                        Ok(indexed) => shared.browse().insert(indexed),
+                        Ok(indexed) => {
+                            let index_bytes = {
+                                let mut b = shared.browse();
+                                b.insert(indexed);
+                                b.heap_bytes() as u64
+                            };
+                            shared.lock().set_index_bytes(index_bytes);
+                        }
                         Err(e) => {
                             shared
                                 .index_failures

@@ -61,9 +61,13 @@ impl Aabb {
         0.5 * (self.min[k] + self.max[k])
     }
 
-    /// True only if the box and the frustum are provably apart: one frustum plane has the whole
-    /// box outside, or (for a frustum with known vertices) one coordinate axis separates them.
-    pub fn apart(&self, frustum: &Frustum) -> bool {
+    /// True only if the box (a path's box grown by its radius `r`) provably holds no point of
+    /// `frustum` inflated by `r`: one plane of `frustum` has the whole box outside (the box is
+    /// grown by `r` along the axes, so this implies the same of the plane moved out by `r`), or
+    /// the box misses `region_box` — the bounding box of the vertices of `frustum` inflated by
+    /// at least every radius in the hierarchy (see [`region_box`]): a separating-axis test on
+    /// the coordinate axes, which are the box's own.
+    pub fn apart(&self, frustum: &Frustum, region_box: Option<&Aabb>) -> bool {
         let c = [self.centre(0), self.centre(1), self.centre(2)];
         let e = [
             0.5 * (self.max[0] - self.min[0]),
@@ -74,21 +78,28 @@ impl Aabb {
             let reach: f64 = (0..3).map(|k| p.normal[k].abs() * e[k]).sum();
             p.distance(c) > reach
         });
-        if by_plane {
-            return true;
-        }
-        let Some(hull) = frustum.hull() else {
-            return false;
-        };
-        (0..3).any(|k| {
-            let (lo, hi) = hull
-                .iter()
-                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
-                    (lo.min(v[k]), hi.max(v[k]))
-                });
-            lo > self.max[k] || hi < self.min[k]
-        })
+        by_plane
+            || region_box
+                .is_some_and(|r| (0..3).any(|k| r.min[k] > self.max[k] || r.max[k] < self.min[k]))
     }
+}
+
+/// The bounding box of `region`'s vertices, grown by a millionth of their scale (the vertex
+/// set's own rounding); `None` when the region has no vertex set.
+pub fn region_box(region: &Frustum) -> Option<Aabb> {
+    let hull = region.hull()?;
+    let mut b = Aabb::of_points(hull, 0.0)?;
+    let size = b
+        .min
+        .iter()
+        .chain(&b.max)
+        .fold(0.0f64, |m, v| m.max(v.abs()));
+    let margin = 1e-6 * (1.0 + size);
+    for k in 0..3 {
+        b.min[k] -= margin;
+        b.max[k] += margin;
+    }
+    Some(b)
 }
 
 #[derive(Debug, Clone)]
@@ -109,11 +120,19 @@ pub struct PathBvh {
     entries: Vec<(Aabb, u32)>,
     nodes: Vec<Node>,
     pending: Vec<(Aabb, u32)>,
+    /// The largest path radius inserted (never lowered on removal: only ever conservative).
+    max_radius: f64,
 }
 
 impl PathBvh {
-    /// Adds a world's path box (goes to the pending list; rebuilt in batches).
-    pub fn insert(&mut self, bounds: Aabb, world: u32) {
+    /// Adds a world's path box, grown by the path's never-miss `radius` (goes to the pending
+    /// list; rebuilt in batches).
+    pub fn insert(&mut self, bounds: Aabb, world: u32, radius: f64) {
+        self.max_radius = self.max_radius.max(if radius.is_nan() {
+            f64::INFINITY
+        } else {
+            radius
+        });
         self.pending.push((bounds, world));
         if self.pending.len() >= 64 && self.pending.len() * 4 >= self.entries.len() {
             self.rebuild();
@@ -202,20 +221,23 @@ impl PathBvh {
         self.build(left + 1, mid, hi);
     }
 
-    /// Calls `visit(world)` for every world whose path box may meet `frustum` (all pending
-    /// ones included). Never skips a world whose box meets it.
+    /// Calls `visit(world)` for every world whose path may come within its radius of
+    /// `frustum`'s planes (all pending ones included): never skips a world whose path the
+    /// exact test on the inflated frustum would accept.
     pub fn query(&self, frustum: &Frustum, mut visit: impl FnMut(u32)) {
+        let region = region_box(&frustum.inflated_bounded(self.max_radius));
+        let apart = |b: &Aabb| b.apart(frustum, region.as_ref());
         if !self.nodes.is_empty() {
             let mut stack = vec![0usize];
             while let Some(i) = stack.pop() {
                 let node = &self.nodes[i];
-                if node.bounds.apart(frustum) {
+                if apart(&node.bounds) {
                     continue;
                 }
                 if node.count > 0 {
                     let (a, n) = (node.first as usize, node.count as usize);
                     for (b, w) in &self.entries[a..a + n] {
-                        if !b.apart(frustum) {
+                        if !apart(b) {
                             visit(*w);
                         }
                     }
@@ -226,7 +248,7 @@ impl PathBvh {
             }
         }
         for (b, w) in &self.pending {
-            if !b.apart(frustum) {
+            if !apart(b) {
                 visit(*w);
             }
         }
@@ -261,7 +283,7 @@ mod tests {
                 max: [c[0] + h[0], c[1] + h[1], c[2] + h[2]],
             };
             boxes.push(b);
-            bvh.insert(b, w);
+            bvh.insert(b, w, 0.0);
         }
         bvh.remove(17);
         assert_eq!(bvh.len(), 2999);

@@ -8,7 +8,7 @@ use mwb_core::rng::{Stream, WorldRng};
 use mwb_core::scene::SceneTemplate;
 use mwb_proto::v1::Message;
 use mwb_sampler::{PayloadEncoding, RunOptions, run_world_observed, segment_message, world_done};
-use mwb_store::index::DEFAULT_PATH_TOLERANCE_M;
+use mwb_store::index::{DEFAULT_PATH_TOLERANCE_M, PATH_RADIUS_STEP_M};
 use mwb_store::{StoredWorld, index_world};
 use std::ops::ControlFlow;
 
@@ -76,7 +76,7 @@ fn index_never_misses_a_simulated_path_and_keeps_the_samplers_metrics() {
         for (b, obj) in w.objects.iter().enumerate() {
             // The radius is the codec's bound plus at most the simplification tolerance.
             assert!(
-                obj.radius <= 0.002 + DEFAULT_PATH_TOLERANCE_M,
+                obj.radius <= 0.002 + DEFAULT_PATH_TOLERANCE_M + PATH_RADIUS_STEP_M,
                 "{scene} {b}: {}",
                 obj.radius
             );

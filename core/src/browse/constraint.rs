@@ -2,7 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::frustum::Frustum;
+use super::frustum::{Frustum, RegionCache};
 use super::path::PathTree;
 use super::{BrowseError, finite};
 
@@ -93,10 +93,23 @@ impl Constraint {
     /// Whether any chosen object's path comes within the frustum (inflated per object by the
     /// radius `path_of` returns with the tree: codec e_max + low-res deviation). Objects the
     /// world does not have (`None`) do not touch it.
-    pub fn touched<'a>(&self, mut path_of: impl FnMut(u32) -> Option<(&'a PathTree, f64)>) -> bool {
+    pub fn touched<'a>(&self, path_of: impl FnMut(u32) -> Option<(&'a PathTree, f64)>) -> bool {
+        self.touched_cached(&mut RegionCache::new(&self.frustum), path_of)
+    }
+
+    /// [`touched`](Self::touched) with the inflated frusta kept in `regions` (which must be a
+    /// cache of this constraint's frustum), for evaluating many worlds.
+    pub fn touched_cached<'a>(
+        &self,
+        regions: &mut RegionCache<'_>,
+        mut path_of: impl FnMut(u32) -> Option<(&'a PathTree, f64)>,
+    ) -> bool {
+        debug_assert!(
+            std::ptr::eq(regions.base(), &self.frustum) || *regions.base() == self.frustum
+        );
         self.objects.iter().any(|&object| {
             path_of(object)
-                .is_some_and(|(tree, radius)| tree.intersects(&self.frustum, self.window, radius))
+                .is_some_and(|(tree, radius)| tree.intersects_cached(regions, self.window, radius))
         })
     }
 

@@ -329,23 +329,10 @@ struct Hull {
 /// Finds the vertices of the region, or `None` when that cannot be done safely: the region may
 /// be unbounded, or there seem to be more than eight vertices (numerical trouble).
 /// A returned set always spans a hull that *contains* the region (feasibility is tested with a
-/// generous tolerance, so a borderline point is kept rather than lost), which is what makes a
-/// separating-axis test against it never reject a box that overlaps the region.
+/// generous tolerance, so a borderline point is kept rather than lost; merged near-duplicates
+/// are at most `tol` apart, which the separating-axis users absorb with their margin), which
+/// is what makes a separating-axis test against it never reject a box that overlaps the region.
 fn compute_hull(planes: &[Plane; 6]) -> Option<Hull> {
-    // Disabled: the proptest `apart_never_separates_overlapping_boxes` found a frustum (seed
-    // 10821258474367936766, r = 0.1665) whose computed vertex set let the separating-axis test
-    // reject a box that overlaps it. Until that is understood, no vertex set is offered, so
-    // every box test falls back to the plane test, which is conservative by construction.
-    if HULL_ENABLED {
-        return hull_vertices(planes);
-    }
-    None
-}
-
-/// See [`compute_hull`].
-const HULL_ENABLED: bool = false;
-
-fn hull_vertices(planes: &[Plane; 6]) -> Option<Hull> {
     // Bounded ⟺ no direction d ≠ 0 with n_i·d ≤ 0 for every plane. Such a recession cone, if
     // any, has an extreme ray on two of its facets: along ±(n_i × n_j).
     let mut any_cross = false;
@@ -376,10 +363,16 @@ fn hull_vertices(planes: &[Plane; 6]) -> Option<Hull> {
                 let (a, b, c) = (planes[i], planes[j], planes[k]);
                 let bc = cross(b.normal, c.normal);
                 let det = dot(a.normal, bc);
-                if det.abs() < 1e-14 {
-                    // Normals in one plane: the three planes share a direction and meet in a
-                    // line or nowhere, never in an isolated vertex.
+                if det.abs() < 1e-12 {
+                    // Normals in one plane (up to rounding): the three planes share a direction
+                    // and meet in a line or nowhere, never in an isolated vertex. (Left, right
+                    // and near of a camera frustum are such a triple: all contain "up".)
                     continue;
+                }
+                if det.abs() < 1e-8 {
+                    // Too ill-conditioned to tell a far vertex from rounding: offer no vertex
+                    // set rather than one that might miss part of the region.
+                    return None;
                 }
                 let x = scale(
                     add(
@@ -492,7 +485,8 @@ impl Frustum {
     /// inflated test never miss a path that deviates from the tested one by at most `r`.
     /// A NaN radius means "unknown error": the planes move to infinity and everything is inside,
     /// so a never-miss test stays never-miss. Negative radii are treated as 0. The result has no
-    /// vertex set ([`hull`](Self::hull) is `None`).
+    /// vertex set ([`hull`](Self::hull) is `None`): cheap, for clipping segments; use
+    /// [`inflated_bounded`](Self::inflated_bounded) where boxes are tested against the region.
     pub fn inflated(&self, r: f64) -> Frustum {
         let r = if r.is_nan() {
             f64::INFINITY
@@ -503,10 +497,21 @@ impl Frustum {
         for p in &mut planes {
             p.offset += r;
         }
-        // Only the planes: tests on an inflated frustum clip segments (planes suffice) and box
-        // tests grow the box by `r` against the original frustum instead (`Obb::apart`), so
-        // the vertex set is never needed here and costs nothing.
         Frustum { planes, hull: None }
+    }
+
+    /// [`inflated`](Self::inflated) with the vertex set of the inflated region (when the
+    /// original has one and `r` is finite), so that box tests against it can use the
+    /// separating-axis test. The vertices are those of the region the inflated *planes* bound,
+    /// which near a sharp corner reaches further than "within `r` of the frustum": box tests
+    /// and segment clipping then decide about the very same region. Costs a few hundred
+    /// floating-point operations; [`RegionCache`] keeps one per radius.
+    pub fn inflated_bounded(&self, r: f64) -> Frustum {
+        let mut out = self.inflated(r);
+        if self.hull.is_some() && out.planes.iter().all(|p| p.offset.is_finite()) {
+            out.hull = compute_hull(&out.planes);
+        }
+        out
     }
 
     /// Whether `x` is inside or on the boundary.
@@ -588,6 +593,61 @@ impl Frustum {
     }
 }
 
+/// The regions of one frustum inflated by the radii a query meets, each with its vertex set
+/// ([`Frustum::inflated_bounded`]), computed once per distinct radius. Stores round path radii
+/// up to a grid, so a query over thousands of paths meets only a handful of radii. Holds at most
+/// [`RegionCache::CAPACITY`] regions (then recomputes the oldest slot's radius in turn), so any
+/// mix of radii costs bounded memory.
+#[derive(Debug, Clone)]
+pub struct RegionCache<'a> {
+    base: &'a Frustum,
+    regions: Vec<(u64, Frustum)>,
+    next: usize,
+}
+
+impl<'a> RegionCache<'a> {
+    pub const CAPACITY: usize = 32;
+
+    pub fn new(base: &'a Frustum) -> Self {
+        Self {
+            base,
+            regions: Vec::new(),
+            next: 0,
+        }
+    }
+
+    /// The frustum this cache inflates.
+    pub fn base(&self) -> &'a Frustum {
+        self.base
+    }
+
+    /// The region within `r` of the base frustum's planes, with its vertices. A NaN radius is
+    /// "unknown error" (everything inside), negative radii count as 0 (as in
+    /// [`Frustum::inflated`]).
+    pub fn region(&mut self, r: f64) -> &Frustum {
+        let r = if r.is_nan() {
+            f64::INFINITY
+        } else {
+            r.max(0.0)
+        };
+        let key = r.to_bits();
+        if let Some(i) = self.regions.iter().position(|(k, _)| *k == key) {
+            return &self.regions[i].1;
+        }
+        let region = self.base.inflated_bounded(r);
+        if self.regions.len() < Self::CAPACITY {
+            self.regions.push((key, region));
+            let last = self.regions.len() - 1;
+            &self.regions[last].1
+        } else {
+            let i = self.next;
+            self.next = (self.next + 1) % Self::CAPACITY;
+            self.regions[i] = (key, region);
+            &self.regions[i].1
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -595,7 +655,6 @@ mod tests {
     use proptest::prelude::*;
 
     #[test]
-    #[ignore = "the vertex set is disabled (see compute_hull)"]
     fn hull_only_for_bounded_regions() {
         let b = Frustum::aabb([-1.0, 0.0, 2.0], [1.0, 0.5, 3.0]).expect("valid box");
         let hull = b.hull().expect("a box is bounded");
@@ -618,6 +677,13 @@ mod tests {
             .expect("valid");
         assert_eq!(f.hull().map(<[Vec3]>::len), Some(8));
         assert_eq!(f.inflated(0.05).hull(), None);
+        let g = f.inflated_bounded(0.05);
+        assert_eq!(g.hull().map(<[Vec3]>::len), Some(8));
+        for v in g.hull().into_iter().flatten() {
+            assert!(g.inflated(1e-9).contains(*v), "{v:?}");
+            assert!(!f.contains(*v), "{v:?} is a vertex of the grown region");
+        }
+        assert_eq!(f.inflated_bounded(f64::NAN).hull(), None);
         // Flip the far plane: the region beyond it is unbounded.
         let mut planes = *f.planes();
         planes[5].normal = scale(planes[5].normal, -1.0);
@@ -939,6 +1005,69 @@ mod tests {
             prop_assert!(!f.contains(proj.unproject([centre[0], y0 + 1.25 * rh], depth)));
             prop_assert!(!f.contains(proj.unproject(centre, cam.near * 0.9)));
             prop_assert!(!f.contains(proj.unproject(centre, cam.far * 1.1)));
+        }
+
+        /// The vertex set of an inflated frustum spans a hull that contains the region: every
+        /// true vertex of the region (a point where three planes meet and which no plane
+        /// excludes, found here independently by solving each triple in another way) lies
+        /// within the hull along the coordinate axes and random directions — so no separating
+        /// axis can cut off any of the region.
+        #[test]
+        fn inflated_hull_contains_the_region(
+            cam in arb_camera(),
+            fx in 0.0f64..1.0, fy in 0.0f64..1.0, fw in 0.0005f64..0.5, fh in 0.0005f64..0.5,
+            r in prop_oneof![Just(0.0), 0.0f64..0.5, 1e-6f64..1e-3],
+            dirs in prop::collection::vec(prop::array::uniform3(-1.0f64..1.0), 8),
+        ) {
+            let proj = cam.projection().expect("strategy gives valid cameras");
+            let (w, h) = (f64::from(cam.viewport.width), f64::from(cam.viewport.height));
+            let (x0, y0) = (fx * w, fy * h);
+            let rect = ScreenRect { x0, y0, x1: x0 + fw * w, y1: y0 + fh * h };
+            let region = proj.frustum(&rect).expect("non-empty").inflated_bounded(r);
+            // Sub-pixel rectangles may be too thin for a trustworthy vertex set (then there is
+            // none, and box tests use the planes only); a pixel or more must have one.
+            if fw * w >= 1.0 && fh * h >= 1.0 {
+                prop_assert!(region.hull().is_some(), "no vertex set for a {}×{} px rect", fw * w, fh * h);
+            }
+            let Some(hull) = region.hull() else { return Ok(()) };
+            let planes = region.planes();
+            let scale_m = hull.iter().fold(1.0f64, |m, v| m.max(norm(*v)));
+            let mut axes: Vec<Vec3> = vec![[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+            axes.extend(dirs.iter().filter_map(|d| normalize(*d)));
+            for i in 0..6 {
+                for j in i + 1..6 {
+                    for k in j + 1..6 {
+                        // Cramer's rule on the 3×3 system [n_i; n_j; n_k] x = d.
+                        let (a, b, c) = (planes[i], planes[j], planes[k]);
+                        let m = [a.normal, b.normal, c.normal];
+                        let det3 = |m: [Vec3; 3]| dot(m[0], cross(m[1], m[2]));
+                        let det = det3(m);
+                        if det.abs() < 1e-10 {
+                            continue;
+                        }
+                        let rhs = [a.offset, b.offset, c.offset];
+                        let mut x = [0.0; 3];
+                        for (col, xc) in x.iter_mut().enumerate() {
+                            let mut mc = m;
+                            for row in 0..3 {
+                                mc[row][col] = rhs[row];
+                            }
+                            *xc = det3(mc) / det;
+                        }
+                        let inside = planes.iter().all(|p| p.distance(x) <= 1e-9 * scale_m);
+                        if !inside {
+                            continue;
+                        }
+                        for d in &axes {
+                            let top = hull.iter().map(|v| dot(*d, *v)).fold(f64::NEG_INFINITY, f64::max);
+                            let low = hull.iter().map(|v| dot(*d, *v)).fold(f64::INFINITY, f64::min);
+                            let tol = 1e-6 * (1.0 + scale_m);
+                            prop_assert!(dot(*d, x) <= top + tol && dot(*d, x) >= low - tol,
+                                "vertex {x:?} of planes {i},{j},{k} outside the hull along {d:?}");
+                        }
+                    }
+                }
+            }
         }
     }
 }

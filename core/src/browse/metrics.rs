@@ -54,6 +54,14 @@ pub struct ObjectMetrics {
     pub impacts: u32,
     /// Angle between the final orientation and the goal, radians in [0, π].
     pub orientation_error_rad: f64,
+    /// The final orientation (unit quaternion `[x, y, z, w]`), kept so that a ranking can
+    /// measure the error against a goal chosen at query time ([`RankKey::OrientationTo`]).
+    #[serde(default = "identity")]
+    pub final_rotation: Quat,
+}
+
+fn identity() -> Quat {
+    [0.0, 0.0, 0.0, 1.0]
 }
 
 impl ObjectMetrics {
@@ -130,6 +138,7 @@ impl ObjectMetrics {
             came_to_rest,
             impacts,
             orientation_error_rad: quat_angle_between(goal, rotations[n - 1]),
+            final_rotation: rotations[n - 1],
         })
     }
 
@@ -169,7 +178,7 @@ pub enum Order {
 }
 
 /// What to sort worlds by.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "key", rename_all = "snake_case")]
 pub enum RankKey {
     /// A precomputed metric over the chosen objects.
@@ -181,6 +190,14 @@ pub enum RankKey {
     /// How many live constraints a world satisfies. §4.4.3: with this key the viewer shows all
     /// worlds, not only the survivors, to suggest which ones to refine.
     ConstraintsSatisfied,
+    /// The angle (radians) between each chosen object's final orientation and `goal`, a world-
+    /// frame unit quaternion `[x, y, z, w]` (normalised on use) chosen at query time — "lands
+    /// upright" — where [`Metric::OrientationError`] measures against the starting orientation.
+    OrientationTo {
+        goal: Quat,
+        objects: Vec<u32>,
+        aggregate: Aggregate,
+    },
 }
 
 impl RankKey {
@@ -194,7 +211,31 @@ impl RankKey {
                 aggregate,
             } => score(objects, chosen, *metric, *aggregate),
             RankKey::ConstraintsSatisfied => Some(f64::from(constraints_satisfied)),
+            RankKey::OrientationTo {
+                goal,
+                objects: chosen,
+                aggregate,
+            } => {
+                let goal = quat_normalize(*goal)?;
+                aggregate_over(chosen, *aggregate, |o| {
+                    objects
+                        .get(o as usize)
+                        .map(|m| quat_angle_between(goal, m.final_rotation))
+                })
+            }
         }
+    }
+
+    /// Checks what a shard cannot score: a goal orientation must be a finite, non-zero
+    /// quaternion. The error names the field.
+    pub fn validate(&self) -> Result<(), BrowseError> {
+        if let RankKey::OrientationTo { goal, .. } = self {
+            for &v in goal {
+                finite("goal", v)?;
+            }
+            quat_normalize(*goal).ok_or(BrowseError::ZeroVector { field: "goal" })?;
+        }
+        Ok(())
     }
 }
 
@@ -206,9 +247,18 @@ pub fn score(
     metric: Metric,
     aggregate: Aggregate,
 ) -> Option<f64> {
-    let mut values = chosen
-        .iter()
-        .map(|&o| objects.get(o as usize).map(|m| m.get(metric)));
+    aggregate_over(chosen, aggregate, |o| {
+        objects.get(o as usize).map(|m| m.get(metric))
+    })
+}
+
+/// `value` of the `chosen` objects summed or maxed; `None` if none is chosen or one has no value.
+fn aggregate_over(
+    chosen: &[u32],
+    aggregate: Aggregate,
+    value: impl Fn(u32) -> Option<f64>,
+) -> Option<f64> {
+    let mut values = chosen.iter().map(|&o| value(o));
     let first = values.next()??;
     values.try_fold(first, |acc, v| {
         let v = v?;

@@ -79,8 +79,8 @@ mod session;
 pub use bitset::{WorldSet, WorldSetIter};
 pub use constraint::{Constraint, ConstraintId, Polarity, TimeWindow};
 pub use frustum::{
-    Camera, DEFAULT_FAR_M, DEFAULT_NEAR_M, Frustum, Intrinsics, Plane, Projection, ScreenRect,
-    Viewport,
+    Camera, DEFAULT_FAR_M, DEFAULT_NEAR_M, Frustum, Intrinsics, Plane, Projection, RegionCache,
+    ScreenRect, Viewport,
 };
 pub use geom::{Quat, Vec3, quat_angle_between};
 pub use metrics::{

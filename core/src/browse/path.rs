@@ -17,7 +17,7 @@
 //! the bound hold for time windows too.
 
 use super::constraint::TimeWindow;
-use super::frustum::Frustum;
+use super::frustum::{Frustum, RegionCache};
 use super::geom::{Vec3, add, dot, lerp, norm, scale, sub, sym_eigenvectors};
 use super::{BrowseError, finite};
 
@@ -347,36 +347,32 @@ impl Obb {
         })
     }
 
-    /// Whether the box, grown by `r` on every side, is provably apart from `frustum`: some
-    /// frustum plane has it all outside (the plane test above, with `r` added to the reach), or
-    /// some box axis separates it from the frustum's vertices (a separating-axis test that
-    /// catches the big boxes beside a thin frustum which no single plane rejects). Both tests
-    /// only ever answer "apart" when it is true, so pruning by them loses no hits. The grown box
-    /// contains every point within `r` of the box, so this also decides for the frustum
-    /// inflated by `r` without inflating it (its vertices would have to be recomputed).
-    pub fn apart(&self, frustum: &Frustum, r: f64) -> bool {
-        let planes = frustum.planes().iter().any(|p| {
-            let reach: f64 = (0..3)
-                .map(|k| dot(p.normal, self.axes[k]).abs() * self.half[k])
-                .sum();
-            p.distance(self.center) > reach + r
-        });
-        if planes {
+    /// Whether the box is provably apart from `region` (a frustum, typically inflated with
+    /// [`Frustum::inflated_bounded`]): some plane has the whole box outside (the plane test
+    /// above), or, when the region carries its vertices, some box axis separates the box from
+    /// them (a separating-axis test that catches the big boxes beside a thin frustum which no
+    /// single plane rejects). The vertex set spans a hull containing the region, and the axis
+    /// test keeps a margin of a millionth of the scale, so "apart" is only ever answered when it
+    /// is true: pruning by it loses no hit of a segment test against the same region.
+    pub fn apart(&self, region: &Frustum) -> bool {
+        if self.outside(region) {
             return true;
         }
-        let Some(hull) = frustum.hull() else {
+        let Some(hull) = region.hull() else {
             return false;
         };
         (0..3).any(|k| {
             let c = dot(self.axes[k], self.center);
-            let h = self.half[k] + r;
+            let h = self.half[k];
             let (lo, hi) = hull
                 .iter()
                 .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
                     let x = dot(self.axes[k], *v) - c;
                     (lo.min(x), hi.max(x))
                 });
-            lo > h || hi < -h
+            // |projection of a vertex| ≤ |x| + |c|: a millionth of that scale.
+            let margin = 1e-6 * (1.0 + 2.0 * c.abs() + lo.abs().max(hi.abs()));
+            lo > h + margin || hi < -h - margin
         })
     }
 
@@ -472,49 +468,51 @@ impl PathTree {
     /// polyline; equal to [`Polyline::first_entry`]). Subtrees whose box is outside a plane, or
     /// whose time span misses the window, are skipped.
     pub fn first_entry(&self, frustum: &Frustum, window: Option<TimeWindow>) -> Option<f64> {
-        self.visit(0, frustum, frustum, 0.0, window)
+        self.visit(0, frustum, window)
     }
 
     /// Never-miss test: does the polyline come within the frustum inflated by `radius` (codec
-    /// e_max + the polyline's deviation from the full-rate path) during `window`?
+    /// e_max + the polyline's deviation from the full-rate path) during `window`? Builds the
+    /// inflated region on every call; many tests of one frustum share them through
+    /// [`intersects_cached`](Self::intersects_cached).
     pub fn intersects(&self, frustum: &Frustum, window: Option<TimeWindow>, radius: f64) -> bool {
-        let r = if radius.is_nan() {
-            f64::INFINITY
-        } else {
-            radius.max(0.0)
-        };
-        // Boxes are tested against the frustum with `r` added to them; segments against the
-        // inflated planes.
-        self.visit(0, frustum, &frustum.inflated(r), r, window)
-            .is_some()
+        self.intersects_cached(&mut RegionCache::new(frustum), window, radius)
     }
 
-    /// `frustum` prunes boxes (grown by `r`); `clip` (= `frustum` inflated by `r`) clips the
-    /// segments of the leaves.
-    fn visit(
+    /// [`intersects`](Self::intersects) with the inflated region taken from `regions`.
+    pub fn intersects_cached(
         &self,
-        i: u32,
-        frustum: &Frustum,
-        clip: &Frustum,
-        r: f64,
+        regions: &mut RegionCache<'_>,
         window: Option<TimeWindow>,
-    ) -> Option<f64> {
+        radius: f64,
+    ) -> bool {
+        self.intersects_region(regions.region(radius), window)
+    }
+
+    /// Whether the polyline enters `region` (already inflated) during `window`. Boxes are
+    /// pruned and segments clipped against the same region, so the answer is exactly the
+    /// segment-by-segment answer of [`Polyline::first_entry`] on `region`.
+    pub fn intersects_region(&self, region: &Frustum, window: Option<TimeWindow>) -> bool {
+        self.visit(0, region, window).is_some()
+    }
+
+    fn visit(&self, i: u32, region: &Frustum, window: Option<TimeWindow>) -> Option<f64> {
         let node = &self.nodes[i as usize];
         if let Some(w) = window
             && (node.t_end < w.start() || node.t_start > w.end())
         {
             return None;
         }
-        if node.obb.apart(frustum, r) {
+        if node.obb.apart(region) {
             return None;
         }
         match node.children {
             // Left first: it covers earlier times, so its hit (if any) is the first entry.
             Some([left, right]) => self
-                .visit(left, frustum, clip, r, window)
-                .or_else(|| self.visit(right, frustum, clip, r, window)),
+                .visit(left, region, window)
+                .or_else(|| self.visit(right, region, window)),
             None => (node.first as usize..node.end as usize)
-                .find_map(|s| self.path.segment_entry(s, clip, window)),
+                .find_map(|s| self.path.segment_entry(s, region, window)),
         }
     }
 

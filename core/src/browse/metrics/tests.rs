@@ -150,6 +150,7 @@ fn object(angular: f64, rest_s: f64) -> ObjectMetrics {
         came_to_rest: true,
         impacts: 1,
         orientation_error_rad: 0.0,
+        final_rotation: axis_angle([0.0, 0.0, 1.0], angular),
     }
 }
 
@@ -180,6 +181,56 @@ fn score_sums_or_maxes_over_the_chosen_objects() {
     assert_eq!(key.score(&objs, 4), Some(4.0));
     let text = toml::to_string(&key).expect("serialises");
     assert_eq!(toml::from_str::<RankKey>(&text).expect("parses"), key);
+}
+
+/// A goal chosen at query time: the angle from each object's final orientation to it.
+#[test]
+fn orientation_to_a_goal_chosen_at_query_time() {
+    // Final orientations: 1, 3 and 5 rad about z (the helper's `angular`).
+    let objs = [object(1.0, 2.0), object(3.0, 1.0), object(5.0, 4.0)];
+    let goal = axis_angle([0.0, 0.0, 1.0], 3.0);
+    let key = |objects: Vec<u32>, aggregate| RankKey::OrientationTo {
+        goal,
+        objects,
+        aggregate,
+    };
+    let close = |a: Option<f64>, b: f64| a.is_some_and(|a| (a - b).abs() < 1e-9);
+    assert!(close(key(vec![1], Aggregate::Sum).score(&objs, 0), 0.0));
+    assert!(close(key(vec![0], Aggregate::Sum).score(&objs, 0), 2.0));
+    // 5 rad about z is 2 rad from 3 rad (less than π: the short way).
+    assert!(close(key(vec![0, 2], Aggregate::Max).score(&objs, 0), 2.0));
+    assert!(close(
+        key(vec![0, 1, 2], Aggregate::Sum).score(&objs, 0),
+        4.0
+    ));
+    // An unnormalised goal is normalised; a missing object has no score.
+    let doubled = RankKey::OrientationTo {
+        goal: goal.map(|v| 2.0 * v),
+        objects: vec![0],
+        aggregate: Aggregate::Sum,
+    };
+    assert!(close(doubled.score(&objs, 0), 2.0));
+    assert_eq!(key(vec![7], Aggregate::Sum).score(&objs, 0), None);
+    assert!(key(vec![0], Aggregate::Sum).validate().is_ok());
+    // A zero or non-finite goal is refused by name.
+    for bad in [[0.0; 4], [f64::NAN, 0.0, 0.0, 1.0]] {
+        let k = RankKey::OrientationTo {
+            goal: bad,
+            objects: vec![0],
+            aggregate: Aggregate::Sum,
+        };
+        let err = k.validate().expect_err("refused");
+        assert!(err.to_string().contains("goal"), "{err}");
+    }
+    // JSON (the bus API) round trip.
+    let k = key(vec![0, 2], Aggregate::Max);
+    let text = serde_json::to_string(&k).expect("serialises");
+    assert!(text.contains("orientation_to"), "{text}");
+    assert_eq!(serde_json::from_str::<RankKey>(&text).expect("parses"), k);
+    // Metrics serialised before the field existed read as the identity.
+    let old = r#"{"angular_travel_rad":1.0,"time_to_rest_s":1.0,"came_to_rest":true,"impacts":0,"orientation_error_rad":0.5}"#;
+    let m: ObjectMetrics = serde_json::from_str(old).expect("parses");
+    assert_eq!(m.final_rotation, [0.0, 0.0, 0.0, 1.0]);
 }
 
 #[test]

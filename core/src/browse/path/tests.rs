@@ -483,40 +483,55 @@ fn simplify_collapses_rest_and_keeps_corners() {
 proptest! {
     #![proptest_config(ProptestConfig { cases: 300, ..ProptestConfig::default() })]
 
-    /// `Obb::apart` (plane + separating-axis test on the frustum's vertices) never separates a
-    /// box from a frustum it overlaps: points of the grown box inside the frustum are searched
-    /// by sampling, and whenever one is found the test must say "not apart".
+    /// `Obb::apart` (plane + separating-axis test on the region's vertices) never separates a
+    /// box from the inflated region it overlaps — the region bounded by the planes moved out by
+    /// `r`, corners included, which is what segment clipping tests. Boxes are fitted around
+    /// path points, or put at a corner of the inflated region (where it reaches furthest beyond
+    /// "within r of the frustum"); points of the box inside the region are searched by
+    /// sampling, and whenever one is found the test must say "not apart".
     #[test]
-    fn apart_never_separates_overlapping_boxes(seed in any::<u64>(), r in 0.0f64..0.2) {
+    fn apart_never_separates_overlapping_boxes(seed in any::<u64>(), r in 0.0f64..0.2, at_corner in any::<bool>()) {
         let c = case(seed);
+        let region = c.frustum.inflated_bounded(r);
+        prop_assert!(region.hull().is_some(), "a camera frustum inflated by {r} is bounded");
         let mut rng = Rng(seed ^ 0xA5A5);
-        let pts: Vec<Vec3> = (0..rng.range(1.0, 12.0) as usize)
-            .map(|_| {
+        let (centre, spread) = match (at_corner, region.hull()) {
+            (true, Some(hull)) => {
+                let v = hull[(rng.unit() * hull.len() as f64) as usize % hull.len()];
+                (v, rng.range(0.001, 0.3))
+            }
+            _ => {
                 let k = (rng.unit() * c.decoded.len() as f64) as usize % c.decoded.len();
-                add(c.decoded.points()[k], rng.vec3(-0.5, 0.5))
-            })
+                (c.decoded.points()[k], 0.5)
+            }
+        };
+        let pts: Vec<Vec3> = (0..rng.range(1.0, 12.0) as usize)
+            .map(|_| add(centre, rng.vec3(-spread, spread)))
             .collect();
         let obb = Obb::fit(&pts);
         let mut overlap = false;
         for _ in 0..2000 {
-            // A point of the box, moved by at most r: what `apart(.., r)` must not separate.
             let mut x = obb.center;
             for k in 0..3 {
                 x = add(x, scale(obb.axes[k], rng.range(-1.0, 1.0) * obb.half[k]));
             }
-            let d = rng.vec3(-1.0, 1.0);
-            x = add(x, scale(d, r * rng.unit() / norm(d).max(1e-12)));
-            if c.frustum.contains(x) {
+            if region.contains(x) {
                 overlap = true;
                 break;
             }
         }
         if overlap {
-            prop_assert!(!obb.apart(&c.frustum, r));
+            prop_assert!(!obb.apart(&region));
         }
-        // Growing by r only ever makes "apart" harder.
-        if !obb.apart(&c.frustum, 0.0) {
-            prop_assert!(!obb.apart(&c.frustum, r));
+        // Inflating only ever makes "apart" harder.
+        if !obb.apart(&c.frustum.inflated_bounded(0.0)) {
+            prop_assert!(!obb.apart(&region));
         }
+        // And the tree decides exactly as segment clipping on the same region does.
+        let tree = PathTree::build(c.low.clone());
+        prop_assert_eq!(
+            tree.intersects(&c.frustum, None, r),
+            c.low.first_entry(&c.frustum.inflated(r), None).is_some()
+        );
     }
 }
