@@ -137,6 +137,7 @@ impl AdaptiveRice {
     }
 
     /// Bits `v` would take now.
+    #[cfg(test)]
     pub(crate) fn cost(&self, v: u64) -> u64 {
         rice2_len(v, self.k())
     }
@@ -145,6 +146,7 @@ impl AdaptiveRice {
 /// Format 2 segment types: "same type as before" costs one bit; another type costs one bit and
 /// its rank among the `n − 1` others in truncated binary. Returns the code length for `rank`
 /// after `prev` (both `< n`).
+#[cfg(test)]
 pub(crate) fn type_code_len(n: usize, prev: usize, rank: usize) -> u64 {
     if rank == prev {
         return 1;
@@ -197,6 +199,8 @@ pub(crate) fn read_varint(bytes: &[u8], at: &mut usize) -> Result<u64, CodecErro
     })
 }
 
+/// The format-2 writer (this build writes format 3; kept for the tests of the reader).
+#[cfg(test)]
 #[derive(Default, Debug, Clone)]
 pub(crate) struct BitWriter {
     bytes: Vec<u8>,
@@ -204,6 +208,7 @@ pub(crate) struct BitWriter {
     nacc: u32,
 }
 
+#[cfg(test)]
 impl BitWriter {
     pub(crate) fn new() -> Self {
         Self::default()
