@@ -125,10 +125,15 @@ fn shipped_scene_motion() {
                 parts.rotation_coefficients += b.rotation_coefficients;
                 parts.keys += b.keys;
                 parts.padding += b.padding;
-                let t0 = Instant::now();
-                let decoded = WorldReader::new(&w.bytes).and_then(|r| r.decode_all());
-                decode_secs += t0.elapsed().as_secs_f64();
-                assert_eq!(decoded.expect("decodes").len(), seg.len());
+                // The fastest of three decodes: a busy machine's preemptions are not the codec's.
+                let mut fastest = f64::INFINITY;
+                for _ in 0..3 {
+                    let t0 = Instant::now();
+                    let decoded = WorldReader::new(&w.bytes).and_then(|r| r.decode_all());
+                    fastest = fastest.min(t0.elapsed().as_secs_f64());
+                    assert_eq!(decoded.expect("decodes").len(), seg.len());
+                }
+                decode_secs += fastest;
             }
             let obj_s = frames as f64 * s.dt;
             println!(
