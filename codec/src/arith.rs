@@ -278,7 +278,7 @@ impl<'a> RangeDecoder<'a> {
     }
 }
 
-/// A format-2 Rice code ([`crate::bits::BitWriter::write_rice2`]) as equiprobable bits: the
+/// A format-2 Rice code (`BitWriter::write_rice2`, `bits.rs`) as equiprobable bits: the
 /// start values, three per object, are too few to adapt to (the header holds their parameter).
 pub(crate) fn encode_rice2_direct(e: &mut RangeEncoder, v: u64, k: u32) {
     let q = v >> k;

@@ -61,7 +61,7 @@ pub(crate) fn best_rice_k(values: &[u64]) -> u32 {
 /// (6 bits) and the value without its leading one. Caps a code word at 16 + 6 + 63 bits.
 pub(crate) const RICE2_ESCAPE: u64 = 16;
 
-/// Length in bits of `v` coded by [`BitWriter::write_rice2`] with parameter `k`.
+/// Length in bits of `v` coded by `BitWriter::write_rice2` (the format-2 writer) with parameter `k`.
 pub(crate) fn rice2_len(v: u64, k: u32) -> u64 {
     let q = v >> k;
     if q < RICE2_ESCAPE {
@@ -71,7 +71,7 @@ pub(crate) fn rice2_len(v: u64, k: u32) -> u64 {
     }
 }
 
-/// The parameter `≤ max_k` that codes `values` in the fewest bits with [`BitWriter::write_rice2`].
+/// The parameter `≤ max_k` that codes `values` in the fewest bits with `BitWriter::write_rice2`.
 pub(crate) fn best_rice2_k(values: &[u64], max_k: u32) -> u32 {
     (0..=max_k)
         .min_by_key(|&k| values.iter().map(|&v| rice2_len(v, k)).sum::<u64>())
@@ -426,7 +426,7 @@ impl<'a> BitReader<'a> {
         Ok(v)
     }
 
-    /// Reads a segment type written by [`BitWriter::write_type`]; always `< n`.
+    /// Reads a segment type written by `BitWriter::write_type`; always `< n`.
     pub(crate) fn read_type(&mut self, n: usize, prev: usize) -> Result<usize, CodecError> {
         if !self.read_bit()? {
             return Ok(prev);
