@@ -61,7 +61,7 @@ pub(crate) fn best_rice_k(values: &[u64]) -> u32 {
 /// (6 bits) and the value without its leading one. Caps a code word at 16 + 6 + 63 bits.
 pub(crate) const RICE2_ESCAPE: u64 = 16;
 
-/// Length in bits of `v` coded by [`BitWriter::write_rice2`] with parameter `k`.
+/// Length in bits of `v` coded by `BitWriter::write_rice2` (the format-2 writer) with parameter `k`.
 pub(crate) fn rice2_len(v: u64, k: u32) -> u64 {
     let q = v >> k;
     if q < RICE2_ESCAPE {
@@ -71,7 +71,7 @@ pub(crate) fn rice2_len(v: u64, k: u32) -> u64 {
     }
 }
 
-/// The parameter `≤ max_k` that codes `values` in the fewest bits with [`BitWriter::write_rice2`].
+/// The parameter `≤ max_k` that codes `values` in the fewest bits with `BitWriter::write_rice2`.
 pub(crate) fn best_rice2_k(values: &[u64], max_k: u32) -> u32 {
     (0..=max_k)
         .min_by_key(|&k| values.iter().map(|&v| rice2_len(v, k)).sum::<u64>())
@@ -137,6 +137,7 @@ impl AdaptiveRice {
     }
 
     /// Bits `v` would take now.
+    #[cfg(test)]
     pub(crate) fn cost(&self, v: u64) -> u64 {
         rice2_len(v, self.k())
     }
@@ -145,6 +146,7 @@ impl AdaptiveRice {
 /// Format 2 segment types: "same type as before" costs one bit; another type costs one bit and
 /// its rank among the `n − 1` others in truncated binary. Returns the code length for `rank`
 /// after `prev` (both `< n`).
+#[cfg(test)]
 pub(crate) fn type_code_len(n: usize, prev: usize, rank: usize) -> u64 {
     if rank == prev {
         return 1;
@@ -197,6 +199,8 @@ pub(crate) fn read_varint(bytes: &[u8], at: &mut usize) -> Result<u64, CodecErro
     })
 }
 
+/// The format-2 writer (this build writes format 3; kept for the tests of the reader).
+#[cfg(test)]
 #[derive(Default, Debug, Clone)]
 pub(crate) struct BitWriter {
     bytes: Vec<u8>,
@@ -204,6 +208,7 @@ pub(crate) struct BitWriter {
     nacc: u32,
 }
 
+#[cfg(test)]
 impl BitWriter {
     pub(crate) fn new() -> Self {
         Self::default()
@@ -421,7 +426,7 @@ impl<'a> BitReader<'a> {
         Ok(v)
     }
 
-    /// Reads a segment type written by [`BitWriter::write_type`]; always `< n`.
+    /// Reads a segment type written by `BitWriter::write_type`; always `< n`.
     pub(crate) fn read_type(&mut self, n: usize, prev: usize) -> Result<usize, CodecError> {
         if !self.read_bit()? {
             return Ok(prev);

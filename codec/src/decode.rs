@@ -8,7 +8,7 @@
 //! have been validated against the input length.
 
 mod v1;
-mod v2;
+pub(crate) mod v2;
 
 use crate::Track;
 use crate::bits::{BitReader, read_varint};
@@ -425,14 +425,24 @@ pub(crate) struct RotationSegment {
 /// One object's segments, whatever the format version: positions first, then rotations.
 enum ObjectStreams<'a> {
     V1(v1::ObjectStreams<'a>),
-    V2(v2::ObjectStream<'a>),
+    V2(v2::ObjectStream<v2::RiceSymbols<'a>>),
+    V3(Box<v2::ObjectStream<v2::RangeSymbols<'a>>>),
 }
 
 impl<'a> ObjectStreams<'a> {
     fn open(bytes: &'a [u8], frames: u32, header: &Header) -> Result<Self, CodecError> {
         Ok(match header.version {
             1 => Self::V1(v1::ObjectStreams::open(bytes, frames, header)?),
-            _ => Self::V2(v2::ObjectStream::open(bytes, frames, header)?),
+            2 => Self::V2(v2::ObjectStream::open(
+                v2::RiceSymbols::new(bytes),
+                frames,
+                header,
+            )?),
+            _ => Self::V3(Box::new(v2::ObjectStream::open(
+                v2::RangeSymbols::new(bytes)?,
+                frames,
+                header,
+            )?)),
         })
     }
 
@@ -440,6 +450,7 @@ impl<'a> ObjectStreams<'a> {
         match self {
             Self::V1(s) => s.positions.start,
             Self::V2(s) => s.position_start,
+            Self::V3(s) => s.position_start,
         }
     }
 
@@ -447,6 +458,7 @@ impl<'a> ObjectStreams<'a> {
         match self {
             Self::V1(s) => s.positions.next_segment(),
             Self::V2(s) => s.next_position(),
+            Self::V3(s) => s.next_position(),
         }
     }
 
@@ -455,6 +467,7 @@ impl<'a> ObjectStreams<'a> {
         match self {
             Self::V1(s) => Ok(s.rotations.start),
             Self::V2(s) => s.start_rotations(),
+            Self::V3(s) => s.start_rotations(),
         }
     }
 
@@ -462,6 +475,7 @@ impl<'a> ObjectStreams<'a> {
         match self {
             Self::V1(s) => s.rotations.next_segment(),
             Self::V2(s) => s.next_rotation(),
+            Self::V3(s) => s.next_rotation(),
         }
     }
 }

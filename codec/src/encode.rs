@@ -7,7 +7,9 @@
 //! coders' current state, and writes the one with the fewest bits per frame (§4.3 extends the
 //! segment as far as it goes; measured on the shipped scenes, pricing is 5–12 % smaller).
 
-use crate::bits::{AdaptiveRice, BitWriter, best_rice2_k, type_code_len, write_varint, zigzag};
+use crate::arith::{Bit, COST_SCALE, RangeEncoder, TypeModel, ValueModel, encode_rice2_direct};
+use crate::bits::{best_rice2_k, rice2_len, write_varint, zigzag};
+use crate::decode::v2::{FLAG_POS_RAW, FLAG_POS_REST, FLAG_ROT_RAW, FLAG_ROT_REST};
 use crate::decode::{DecodeLimits, WorldReader, start_orientation};
 use crate::error::CodecError;
 use crate::fit::{
@@ -15,8 +17,9 @@ use crate::fit::{
     fit_rotation, rest_length, rotation_rest_length,
 };
 use crate::format::{
-    Header, MAX_START_K, S_POS_LEN, S_POS_LINEAR, S_POS_QUADRATIC, S_POS_STEP, S_ROT_ACC,
-    S_ROT_LEN, S_ROT_STEP, S_ROT_W, STREAMS_V2, adaptive_streams,
+    Header, MAX_START_K, S_POS_LEN, S_POS_LINEAR, S_POS_QUADRATIC, S_POS_REST_LEN, S_POS_STEP,
+    S_ROT_ACC, S_ROT_LEN, S_ROT_REST_LEN, S_ROT_STEP, S_ROT_W, STREAMS_V3_ALL, axis_stream,
+    value_models,
 };
 use crate::lowres::LowResPath;
 use crate::params::{EncodeParams, MAX_TRACK_FRAMES, MotionModel, ROT_BOUND_MARGIN};
@@ -370,11 +373,14 @@ fn validate_track(object: usize, track: &Track) -> Result<Vec<Quat>, CodecError>
         .collect()
 }
 
-/// One object's bit stream under construction: the writer, the adaptive Rice state of every
-/// stream (the decoder mirrors it) and where the bits went.
+/// One object's stream under construction (format 3): the range coder, the context models of
+/// every stream (the decoder mirrors them) and where the bits went (in 1/256 bit while writing:
+/// the coder's estimate of each symbol's cost).
 struct ObjectWriter {
-    w: BitWriter,
-    streams: [AdaptiveRice; STREAMS_V2],
+    e: RangeEncoder,
+    values: Box<[ValueModel; STREAMS_V3_ALL]>,
+    types: [TypeModel; 2],
+    flags: [Bit; 4],
     /// The world's Rice parameters for start positions and orientations.
     start_k: [u32; 2],
     breakdown: SizeBreakdown,
@@ -383,64 +389,109 @@ struct ObjectWriter {
 impl ObjectWriter {
     fn new(start_k: [u32; 2]) -> Self {
         Self {
-            w: BitWriter::new(),
-            streams: adaptive_streams(),
+            e: RangeEncoder::default(),
+            values: value_models(),
+            types: Default::default(),
+            flags: Default::default(),
             start_k,
             breakdown: SizeBreakdown::default(),
         }
     }
 
-    /// A start (flag bit, then quantised values or raw f64s); `which`: 0 position, 1 rotation.
-    fn start(&mut self, which: usize, quantised: Option<[i64; 3]>, raw: &[f64]) {
-        let before = self.w.bit_len();
-        match quantised {
-            Some(q) => {
-                self.w.write_bits(0, 1);
-                for v in q {
-                    self.w.write_rice2(zigzag(v), self.start_k[which]);
-                }
-            }
-            None => {
-                self.w.write_bits(1, 1);
-                self.raw(raw);
-            }
-        }
-        self.breakdown.starts += self.w.bit_len() - before;
+    /// A flag bit; returns its cost.
+    fn flag(&mut self, which: usize, bit: bool) -> u64 {
+        let c = self.flags[which].cost(bit);
+        self.e.bit(&mut self.flags[which], bit);
+        c
     }
 
-    /// Writes `v` on `stream`; returns the bits spent.
+    /// A start (flag, then quantised values or raw f64s); `which`: 0 position, 1 rotation.
+    fn start(&mut self, which: usize, quantised: Option<[i64; 3]>, raw: &[f64]) {
+        let flag = if which == 0 {
+            FLAG_POS_RAW
+        } else {
+            FLAG_ROT_RAW
+        };
+        let mut cost = self.flag(flag, quantised.is_none());
+        match quantised {
+            Some(q) => {
+                for v in q {
+                    let k = self.start_k[which];
+                    encode_rice2_direct(&mut self.e, zigzag(v), k);
+                    cost += rice2_len(zigzag(v), k) * COST_SCALE;
+                }
+            }
+            None => cost += self.raw(raw),
+        }
+        self.breakdown.starts += cost;
+    }
+
+    /// Writes `v` on `stream`; returns its cost.
     fn code(&mut self, stream: usize, v: u64) -> u64 {
-        let before = self.w.bit_len();
-        self.w.write_adaptive(v, &mut self.streams[stream]);
-        self.w.bit_len() - before
+        let c = self.values[stream].cost(v);
+        self.values[stream].encode(&mut self.e, v);
+        c
+    }
+
+    /// Writes a segment type; returns its cost.
+    fn kind(&mut self, rotation: bool, prev: usize, rank: usize) -> u64 {
+        let m = &mut self.types[usize::from(rotation)];
+        let c = m.cost(prev, rank);
+        m.encode(&mut self.e, prev, rank);
+        c
+    }
+
+    fn kind_cost(&self, rotation: bool, prev: usize, rank: usize) -> u64 {
+        self.types[usize::from(rotation)].cost(prev, rank)
+    }
+
+    fn value_cost(&self, stream: usize, v: u64) -> u64 {
+        self.values[stream].cost(v)
     }
 
     fn raw(&mut self, values: &[f64]) -> u64 {
         for v in values {
-            self.w.write_bits(v.to_bits(), 64);
+            self.e.direct(v.to_bits(), 64);
         }
-        64 * values.len() as u64
+        64 * COST_SCALE * values.len() as u64
     }
 
     /// Three residuals against a prediction.
     fn residuals(&mut self, stream: usize, q: [i64; 3], pred: [i64; 3]) -> u64 {
         (0..3)
-            .map(|i| self.code(stream, residual(q[i], pred[i])))
+            .map(|i| self.code(axis_stream(stream, i), residual(q[i], pred[i])))
             .sum()
     }
 
-    /// Bits three residuals would take now (the estimate that ranks candidate segments).
+    /// Cost of three residuals now (the estimate that ranks candidate segments).
     fn residuals_cost(&self, stream: usize, q: [i64; 3], pred: [i64; 3]) -> u64 {
         (0..3)
-            .map(|i| self.streams[stream].cost(residual(q[i], pred[i])))
+            .map(|i| self.values[axis_stream(stream, i)].cost(residual(q[i], pred[i])))
             .sum()
     }
 
     fn finish(self, total: &mut SizeBreakdown) -> Vec<u8> {
-        let bits = self.w.bit_len();
-        let bytes = self.w.into_bytes();
-        let mut b = self.breakdown;
-        b.padding = bytes.len() as u64 * 8 - bits;
+        let bytes = self.e.finish();
+        let b = self.breakdown;
+        let bits = |c: u64| (c + COST_SCALE / 2) / COST_SCALE;
+        let mut b = SizeBreakdown {
+            header_and_index: 0,
+            starts: bits(b.starts),
+            position_segments: bits(b.position_segments),
+            position_coefficients: bits(b.position_coefficients),
+            rotation_segments: bits(b.rotation_segments),
+            rotation_coefficients: bits(b.rotation_coefficients),
+            keys: bits(b.keys),
+            padding: 0,
+        };
+        let coded = b.starts
+            + b.position_segments
+            + b.position_coefficients
+            + b.rotation_segments
+            + b.rotation_coefficients
+            + b.keys;
+        // The coder's flush and the estimates' rounding (signed in truth; clamped at 0).
+        b.padding = (bytes.len() as u64 * 8).saturating_sub(coded);
         total.add(&b);
         bytes
     }
@@ -563,8 +614,7 @@ fn encode_positions(
     }
     // A body at rest for the whole track: one bit.
     let at_rest = rest_length(x, 0, c, e_max) == last;
-    out.w.write_bits(u64::from(at_rest), 1);
-    out.breakdown.position_segments += 1;
+    out.breakdown.position_segments += out.flag(FLAG_POS_REST, at_rest);
     if at_rest {
         stats.position_segments += 1;
         return;
@@ -612,10 +662,13 @@ fn encode_positions(
         let cost = |ch: &PositionChoice| {
             let len = ch.len();
             // Steps are one frame by definition: no length code.
-            let head = type_code_len(types.len(), prev, rank(ch.ty()))
+            let head = out.kind_cost(false, prev, rank(ch.ty()))
                 + match ch {
                     PositionChoice::Step(..) => 0,
-                    _ => out.streams[S_POS_LEN].cost(length_code(s, len, last)),
+                    PositionChoice::Rest(_) => {
+                        out.value_cost(S_POS_REST_LEN, length_code(s, len, last))
+                    }
+                    _ => out.value_cost(S_POS_LEN, length_code(s, len, last)),
                 };
             head + match ch {
                 PositionChoice::Rest(_) => 0,
@@ -638,13 +691,16 @@ fn encode_positions(
             Some(ch) => {
                 let len = ch.len();
                 let r = rank(ch.ty());
-                let head_start = out.w.bit_len();
-                out.w.write_type(types.len(), prev, r);
+                let mut head = out.kind(false, prev, r);
                 prev = r;
-                if !matches!(ch, PositionChoice::Step(..)) {
-                    out.code(S_POS_LEN, length_code(s, len, last));
+                match ch {
+                    PositionChoice::Step(..) => {}
+                    PositionChoice::Rest(_) => {
+                        head += out.code(S_POS_REST_LEN, length_code(s, len, last));
+                    }
+                    _ => head += out.code(S_POS_LEN, length_code(s, len, last)),
                 }
-                out.breakdown.position_segments += out.w.bit_len() - head_start;
+                out.breakdown.position_segments += head;
                 match ch {
                     PositionChoice::Step(q, end) => {
                         let b = out.residuals(S_POS_STEP, q, [0; 3]);
@@ -666,10 +722,8 @@ fn encode_positions(
             None => {
                 // No quantised curve reaches even the next frame: store it exactly.
                 let r = rank(PositionType::Key);
-                let head_start = out.w.bit_len();
-                out.w.write_type(types.len(), prev, r);
+                out.breakdown.position_segments += out.kind(false, prev, r);
                 prev = r;
-                out.breakdown.position_segments += out.w.bit_len() - head_start;
                 out.breakdown.keys += out.raw(&x[s + 1]);
                 stats.key_segments += 1;
                 (1, PositionCurve::Key { end: x[s + 1] })
@@ -734,13 +788,11 @@ fn encode_rotations(
         return;
     }
     let at_rest = rotation_rest_length(q, 0, q0, theta_lim) == last;
-    out.w.write_bits(u64::from(at_rest), 1);
-    out.breakdown.rotation_segments += 1;
+    out.breakdown.rotation_segments += out.flag(FLAG_ROT_REST, at_rest);
     if at_rest {
         stats.rotation_segments += 1;
         return;
     }
-    let n_types = ROTATION_TYPES.len();
     let mut predictor = RotationPredictor::default();
     let mut scratch = RotationScratch::default();
     let mut prev = 0usize;
@@ -775,10 +827,13 @@ fn encode_rotations(
         }
         let cost = |ch: &RotationChoice| {
             let len = ch.len();
-            let head = type_code_len(n_types, prev, rotation_rank(ch.ty()))
+            let head = out.kind_cost(true, prev, rotation_rank(ch.ty()))
                 + match ch {
                     RotationChoice::Step(..) => 0,
-                    _ => out.streams[S_ROT_LEN].cost(length_code(s, len, last)),
+                    RotationChoice::Rest(_) => {
+                        out.value_cost(S_ROT_REST_LEN, length_code(s, len, last))
+                    }
+                    _ => out.value_cost(S_ROT_LEN, length_code(s, len, last)),
                 };
             head + match ch {
                 RotationChoice::Rest(_) => 0,
@@ -802,13 +857,16 @@ fn encode_rotations(
             Some(ch) => {
                 let len = ch.len();
                 let r = rotation_rank(ch.ty());
-                let head_start = out.w.bit_len();
-                out.w.write_type(n_types, prev, r);
+                let mut head = out.kind(true, prev, r);
                 prev = r;
-                if !matches!(ch, RotationChoice::Step(..)) {
-                    out.code(S_ROT_LEN, length_code(s, len, last));
+                match ch {
+                    RotationChoice::Step(..) => {}
+                    RotationChoice::Rest(_) => {
+                        head += out.code(S_ROT_REST_LEN, length_code(s, len, last));
+                    }
+                    _ => head += out.code(S_ROT_LEN, length_code(s, len, last)),
                 }
-                out.breakdown.rotation_segments += out.w.bit_len() - head_start;
+                out.breakdown.rotation_segments += head;
                 match ch {
                     RotationChoice::Step(v, w) => {
                         let b = out.residuals(S_ROT_STEP, v, [0; 3]);
@@ -830,10 +888,8 @@ fn encode_rotations(
             }
             None => {
                 let r = rotation_rank(RotationType::Key);
-                let head_start = out.w.bit_len();
-                out.w.write_type(n_types, prev, r);
+                out.breakdown.rotation_segments += out.kind(true, prev, r);
                 prev = r;
-                out.breakdown.rotation_segments += out.w.bit_len() - head_start;
                 out.breakdown.keys += out.raw(&q[s + 1]);
                 stats.key_segments += 1;
                 // The decoder re-normalises what it reads.

@@ -1,4 +1,33 @@
-//! The versioned byte layout of an encoded world. This build writes version 2 and reads 1 and 2.
+//! The versioned byte layout of an encoded world. This build writes version 3 and reads 1, 2
+//! and 3.
+//!
+//! # Version 3
+//!
+//! The header, the index and the symbols of a payload are version 2's (below, with the version
+//! field 3); what differs is how a payload codes its symbols. It is one range-coded stream per
+//! object (`arith`: the LZMA binary coder, its always-zero first byte and up to 8 trailing zero
+//! bytes not stored — the reader reads zeros past the end), every model starting afresh at the
+//! object's first byte (objects stay independently decodable):
+//!
+//! ```text
+//! flag bits        (start raw/quantised and at rest, for positions and for rotations) one
+//!                  adaptive context each
+//! start values     the version-2 Rice code with the header's parameter, as equiprobable bits
+//! raw f64          64 equiprobable bits
+//! segment type     a bit "not the previous type" (context: the previous type), then the rank
+//!                  among the other types as 3 bits of a context tree (one tree per previous
+//!                  type); positions and rotations have their own models
+//! integers         per stream (the version-2 streams, plus two for the lengths of rest
+//!                  segments, `S_POS_REST_LEN` and `S_ROT_REST_LEN`): m = v + 1 as the bit
+//!                  length n of m in unary — bit j's context is j − k + 3 clamped to 0..=7,
+//!                  k the stream's version-2 adaptive Rice parameter (starting from
+//!                  `PRIORS_V3`), one set for k = 0 and one for k > 0 — then the two bits below
+//!                  m's leading one with contexts (by n capped at 19, the second also by the
+//!                  first), then the other n − 2 bits equiprobable
+//! ```
+//!
+//! Contexts start at probability ½ (the unary ones at `arith::PREFIX_INIT`) and adapt at rate
+//! 1/2, 1/4, … settling at 1/32 (`arith::Bit`).
 //!
 //! # Version 2
 //!
@@ -55,7 +84,10 @@
 //!
 //! Residuals are quantised coefficients minus a prediction from the previous segment (see
 //! `segment`). Every segment consumes at least one bit and covers at least one frame, so a hostile
-//! stream ends in an error after at most as many segments as it has bits.
+//! stream ends in an error after at most as many segments as it has bits. (Version 3: a symbol
+//! consumes at least ~1/1400 bit, no probability being above 1 − 2⁻¹¹, and the reader fails 8
+//! bytes past the end, so a hostile stream ends after a number of segments proportional to its
+//! length.)
 //!
 //! # Version 1
 //!
@@ -81,6 +113,7 @@
 //! a future encoder may choose them differently and old readers still decode its output. Per-
 //! segment CRCs live one layer up, on the bus (DESIGN.md).
 
+use crate::arith::ValueModel;
 use crate::bits::{AdaptiveRice, read_varint, write_varint};
 use crate::error::CodecError;
 use crate::params::{MotionModel, POS_STEP_RATIO, Quality, ROT_STEP_RATIO};
@@ -88,7 +121,7 @@ use crate::params::{MotionModel, POS_STEP_RATIO, Quality, ROT_STEP_RATIO};
 /// First four bytes of every encoded world.
 pub const MAGIC: [u8; 4] = *b"MWBM";
 /// The format version this build writes (and the newest it reads).
-pub const FORMAT_VERSION: u16 = 2;
+pub const FORMAT_VERSION: u16 = 3;
 pub(crate) const HEADER_LEN_V1: usize = 80;
 pub(crate) const INDEX_ENTRY_LEN_V1: usize = 8;
 
@@ -106,6 +139,31 @@ pub(crate) const S_ROT_ACC: usize = 7;
 pub(crate) const S_POS_STEP: usize = 8;
 pub(crate) const S_ROT_STEP: usize = 9;
 pub(crate) const STREAMS_V2: usize = 10;
+/// Version 3 codes the lengths of rest segments apart from those of curves (a rest lasts until
+/// the next impact; a curve until the bound breaks). In version 2 they are `S_POS_LEN`, `S_ROT_LEN`.
+pub(crate) const S_POS_REST_LEN: usize = 10;
+pub(crate) const S_ROT_REST_LEN: usize = 11;
+pub(crate) const STREAMS_V3: usize = 12;
+
+/// Version 3: the number of integer streams (every axis of a triple on its stream, as in
+/// version 2; separate streams per axis measured no better).
+pub(crate) const STREAMS_V3_ALL: usize = STREAMS_V3;
+
+pub(crate) fn axis_stream(stream: usize, _axis: usize) -> usize {
+    stream
+}
+
+/// The version-2 stream that codes what version 3 codes on `stream`.
+pub(crate) fn v2_stream(stream: usize) -> usize {
+    match stream {
+        S_POS_REST_LEN => S_POS_LEN,
+        S_ROT_REST_LEN => S_ROT_LEN,
+        s => s,
+    }
+}
+
+/// Version 3: the priors of the value models' magnitude classes (by stream index).
+pub(crate) const PRIORS_V3: [u64; STREAMS_V3] = [24, 6, 6, 0, 12, 12, 0, 6, 3, 3, 24, 24];
 
 /// Version 2: the expected value of each stream before it has seen any (by stream index above).
 /// Only a prior — the parameter adapts within a few values — chosen from the shipped scenes at
@@ -116,6 +174,13 @@ pub(crate) const ADAPTIVE_PRIORS: [u64; STREAMS_V2] = [24, 6, 6, 0, 12, 12, 0, 6
 /// The adaptive coders of one object's payload (version 2), all at their priors.
 pub(crate) fn adaptive_streams() -> [AdaptiveRice; STREAMS_V2] {
     ADAPTIVE_PRIORS.map(AdaptiveRice::new)
+}
+
+/// The value models of one object's payload (version 3), all at their priors.
+pub(crate) fn value_models() -> Box<[ValueModel; STREAMS_V3_ALL]> {
+    Box::new(std::array::from_fn(|s| {
+        ValueModel::new(PRIORS_V3[v2_stream(s)])
+    }))
 }
 
 /// Largest start Rice parameter a version-2 header may hold.
@@ -236,7 +301,7 @@ impl Header {
         let header_len = usize::from(u16::from_le_bytes([bytes[6], bytes[7]]));
         let header = match version {
             1 => Self::parse_v1(bytes, header_len)?,
-            2 => Self::parse_v2(bytes, header_len)?,
+            2 | 3 => Self::parse_v2(bytes, header_len, version)?,
             _ => {
                 return Err(CodecError::UnsupportedVersion {
                     found: version,
@@ -272,7 +337,7 @@ impl Header {
         })
     }
 
-    fn parse_v2(bytes: &[u8], header_len: usize) -> Result<Self, CodecError> {
+    fn parse_v2(bytes: &[u8], header_len: usize, version: u16) -> Result<Self, CodecError> {
         need(bytes, header_len)?;
         // Every field is read from the header's own bytes: a field running past H is corrupt.
         let h = &bytes[..header_len];
@@ -366,7 +431,7 @@ impl Header {
             None
         };
         Ok(Header {
-            version: 2,
+            version,
             header_len,
             model: model(model_id, g)?,
             object_count,

@@ -87,6 +87,7 @@
 //! (adaptive Rice codes) → `format` (versioned layout) → `decode` (`decode/v1`, `decode/v2`).
 //! `lowres` builds the few-Hz path; `baseline` gives the raw size and a quantised-frames reference.
 
+mod arith;
 mod baseline;
 mod bits;
 mod decode;

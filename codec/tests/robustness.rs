@@ -89,6 +89,13 @@ fn v2_header(model: u8, objects: u32, common_frames: Option<u32>) -> Vec<u8> {
     h
 }
 
+/// The same header as format 3 (its header layout is format 2's).
+fn v3_header(model: u8, objects: u32, common_frames: Option<u32>) -> Vec<u8> {
+    let mut h = v2_header(model, objects, common_frames);
+    h[4..6].copy_from_slice(&3u16.to_le_bytes());
+    h
+}
+
 fn valid_world() -> Vec<u8> {
     let dt = 1.0 / 120.0;
     let tracks: Vec<_> = (0..4)
@@ -131,7 +138,8 @@ proptest! {
     }
 
     #[test]
-    fn arbitrary_payload_behind_a_valid_v2_header(
+    fn arbitrary_payload_behind_a_valid_v2_or_v3_header(
+        version in 2u16..4,
         objects in 0u32..6,
         frames in proptest::collection::vec(any::<u32>(), 6),
         common in any::<bool>(),
@@ -141,6 +149,7 @@ proptest! {
         // A real header and an index whose lengths add up, so the segment decoder is reached.
         let common_frames = common.then_some(frames[0] % 3000);
         let mut bytes = v2_header(model, objects, common_frames);
+        bytes[4..6].copy_from_slice(&version.to_le_bytes());
         let per = payload.len() / objects.max(1) as usize;
         for (i, f) in frames.iter().enumerate().take(objects as usize) {
             let len = if i + 1 == objects as usize { payload.len() - per * i } else { per };
@@ -191,8 +200,8 @@ fn the_valid_world_passes_every_entry_point() {
 
 #[test]
 fn hostile_frame_counts_are_refused_before_allocating() {
-    // One object claiming 4 billion frames, covered by a single Rice-coded segment — in either
-    // format version.
+    // One object claiming 4 billion frames, covered by a single segment — in every format
+    // version.
     let mut v1 = v1_header();
     v1[12..16].copy_from_slice(&1u32.to_le_bytes());
     v1.extend_from_slice(&0u32.to_le_bytes());
@@ -201,7 +210,10 @@ fn hostile_frame_counts_are_refused_before_allocating() {
     let mut v2 = v2_header(1, 1, Some(u32::MAX));
     v2.push(64);
     v2.extend_from_slice(&[0x00; 64]);
-    for bytes in [v1, v2] {
+    let mut v3 = v3_header(1, 1, Some(u32::MAX));
+    v3.push(64);
+    v3.extend_from_slice(&[0x00; 64]);
+    for bytes in [v1, v2, v3] {
         let r = WorldReader::new(&bytes).unwrap();
         assert_eq!(r.frame_count(), u32::MAX as usize);
         assert!(matches!(
@@ -218,10 +230,51 @@ fn hostile_frame_counts_are_refused_before_allocating() {
     }
 }
 
+/// Format 3 is range-coded: a symbol may take a small fraction of a bit, so what ends a hostile
+/// stream is the end of its bytes (the decoder reads a few zeros past it, then fails). Random
+/// and patterned payloads under a header claiming 4 billion frames end, and quickly.
+#[test]
+fn hostile_range_coded_payloads_end() {
+    let mut seed = 0x5EEDu64;
+    let mut next = || {
+        seed = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (seed >> 33) as u8
+    };
+    let mut payloads: Vec<Vec<u8>> = [0x00u8, 0xFF, 0x55, 0x80, 0x7F]
+        .iter()
+        .map(|&b| vec![b; 200])
+        .collect();
+    payloads.extend((0..300).map(|i| (0..(i % 200) + 1).map(|_| next()).collect()));
+    let start = std::time::Instant::now();
+    for payload in payloads {
+        for model in [0u8, 1] {
+            let mut bytes = v3_header(model, 1, Some(u32::MAX));
+            let mut len = Vec::new();
+            let mut v = payload.len() as u64;
+            while v >= 0x80 {
+                len.push((v as u8) | 0x80);
+                v >>= 7;
+            }
+            len.push(v as u8);
+            bytes.extend_from_slice(&len);
+            bytes.extend_from_slice(&payload);
+            let r = WorldReader::new(&bytes).unwrap();
+            let _ = r.sample_frame(0, u32::MAX - 1);
+            let _ = r.sample(0, 1e6);
+        }
+    }
+    println!("{:?}", start.elapsed());
+}
+
 #[test]
 fn unknown_versions_and_magic_are_named() {
     let mut bytes = valid_world();
-    assert_eq!(WorldReader::new(&bytes).unwrap().version(), 2);
+    assert_eq!(
+        WorldReader::new(&bytes).unwrap().version(),
+        mwb_codec::FORMAT_VERSION
+    );
     bytes[4] = 9;
     assert!(matches!(
         WorldReader::new(&bytes),

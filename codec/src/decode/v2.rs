@@ -1,14 +1,16 @@
-//! Version-2 object payloads: one bit stream per object, positions then rotations, every integer
-//! adaptively Rice-coded (layout in `format`).
+//! Version-2 and version-3 object payloads: one stream per object, positions then rotations
+//! (layout in `format`). The two versions code the same symbols in the same order; version 2
+//! writes every integer adaptively Rice-coded ([`RiceSymbols`]), version 3 range-codes them with
+//! context models ([`RangeSymbols`], see `arith`).
 
-use super::{
-    PositionSegment, RotationSegment, finite_position, read_f64, read_quat, start_orientation,
-};
+use super::{PositionSegment, RotationSegment, finite_position, read_f64, start_orientation};
+use crate::arith::{RangeDecoder, TypeModel, ValueModel};
 use crate::bits::{AdaptiveRice, BitReader};
 use crate::error::CodecError;
 use crate::format::{
-    Header, S_POS_LEN, S_POS_LINEAR, S_POS_QUADRATIC, S_POS_STEP, S_ROT_ACC, S_ROT_LEN, S_ROT_STEP,
-    S_ROT_W, STREAMS_V2, adaptive_streams,
+    Header, S_POS_LEN, S_POS_LINEAR, S_POS_QUADRATIC, S_POS_REST_LEN, S_POS_STEP, S_ROT_ACC,
+    S_ROT_LEN, S_ROT_REST_LEN, S_ROT_STEP, S_ROT_W, STREAMS_V2, STREAMS_V3_ALL, adaptive_streams,
+    axis_stream, v2_stream, value_models,
 };
 use crate::params::MotionModel;
 use crate::rotation::{Quat, Vec3};
@@ -19,10 +21,106 @@ use crate::segment::{
     step_end, step_linear, unresidual,
 };
 
-/// The decoding state of one version-2 object.
-pub(crate) struct ObjectStream<'a> {
+/// Where a payload's symbols come from: what differs between versions 2 and 3.
+pub(crate) trait Symbols {
+    /// A flag bit; `which`: the `FLAG_*` constants (each its own context in version 3).
+    fn flag(&mut self, which: usize) -> Result<bool, CodecError>;
+    /// A segment type among `n` after `prev` (positions or rotations).
+    fn kind(&mut self, rotation: bool, n: usize, prev: usize) -> Result<usize, CodecError>;
+    /// The next value of integer stream `stream`.
+    fn value(&mut self, stream: usize) -> Result<u64, CodecError>;
+    /// A start value, Rice-coded with the header's parameter `k`.
+    fn start_value(&mut self, k: u32) -> Result<u64, CodecError>;
+    /// A raw `f64`.
+    fn float(&mut self) -> Result<f64, CodecError>;
+}
+
+pub(crate) const FLAG_POS_RAW: usize = 0;
+pub(crate) const FLAG_POS_REST: usize = 1;
+pub(crate) const FLAG_ROT_RAW: usize = 2;
+pub(crate) const FLAG_ROT_REST: usize = 3;
+
+/// Version 2: a bit stream of adaptive Rice codes.
+pub(crate) struct RiceSymbols<'a> {
     r: BitReader<'a>,
     streams: [AdaptiveRice; STREAMS_V2],
+}
+
+impl<'a> RiceSymbols<'a> {
+    pub(crate) fn new(bytes: &'a [u8]) -> Self {
+        Self {
+            r: BitReader::new(bytes),
+            streams: adaptive_streams(),
+        }
+    }
+}
+
+impl Symbols for RiceSymbols<'_> {
+    fn flag(&mut self, _which: usize) -> Result<bool, CodecError> {
+        self.r.read_bit()
+    }
+
+    fn kind(&mut self, _rotation: bool, n: usize, prev: usize) -> Result<usize, CodecError> {
+        self.r.read_type(n, prev)
+    }
+
+    fn value(&mut self, stream: usize) -> Result<u64, CodecError> {
+        self.r.read_adaptive(&mut self.streams[v2_stream(stream)])
+    }
+
+    fn start_value(&mut self, k: u32) -> Result<u64, CodecError> {
+        self.r.read_rice2(k)
+    }
+
+    fn float(&mut self) -> Result<f64, CodecError> {
+        read_f64(&mut self.r)
+    }
+}
+
+/// Version 3: a range-coded stream with context models.
+pub(crate) struct RangeSymbols<'a> {
+    d: RangeDecoder<'a>,
+    values: Box<[ValueModel; STREAMS_V3_ALL]>,
+    types: [TypeModel; 2],
+    flags: [crate::arith::Bit; 4],
+}
+
+impl<'a> RangeSymbols<'a> {
+    pub(crate) fn new(bytes: &'a [u8]) -> Result<Self, CodecError> {
+        Ok(Self {
+            d: RangeDecoder::new(bytes)?,
+            values: value_models(),
+            types: Default::default(),
+            flags: Default::default(),
+        })
+    }
+}
+
+impl Symbols for RangeSymbols<'_> {
+    fn flag(&mut self, which: usize) -> Result<bool, CodecError> {
+        self.d.bit(&mut self.flags[which])
+    }
+
+    fn kind(&mut self, rotation: bool, n: usize, prev: usize) -> Result<usize, CodecError> {
+        self.types[usize::from(rotation)].decode(&mut self.d, n, prev)
+    }
+
+    fn value(&mut self, stream: usize) -> Result<u64, CodecError> {
+        self.values[stream].decode(&mut self.d)
+    }
+
+    fn start_value(&mut self, k: u32) -> Result<u64, CodecError> {
+        crate::arith::decode_rice2_direct(&mut self.d, k)
+    }
+
+    fn float(&mut self) -> Result<f64, CodecError> {
+        Ok(f64::from_bits(self.d.direct(64)?))
+    }
+}
+
+/// The decoding state of one version-2 or version-3 object.
+pub(crate) struct ObjectStream<S> {
+    r: S,
     coding: PositionCoding,
     rot_step: f64,
     /// Rice parameter of the start orientation (from the header).
@@ -56,34 +154,43 @@ struct RotationState {
 
 /// Reads three residuals of `stream` against `pred`.
 fn residuals(
-    r: &mut BitReader<'_>,
-    state: &mut AdaptiveRice,
+    r: &mut impl Symbols,
+    stream: usize,
     pred: [i64; 3],
     what: &'static str,
 ) -> Result<[i64; 3], CodecError> {
     let mut q = [0i64; 3];
-    for (v, p) in q.iter_mut().zip(pred) {
-        *v = unresidual(r.read_adaptive(state)?, p).ok_or(CodecError::Corrupt { what })?;
+    for (axis, (v, p)) in q.iter_mut().zip(pred).enumerate() {
+        *v = unresidual(r.value(axis_stream(stream, axis))?, p)
+            .ok_or(CodecError::Corrupt { what })?;
     }
     Ok(q)
 }
 
 /// Three zig-zagged start values, Rice-coded with the header's parameter `k`.
-fn start_values(r: &mut BitReader<'_>, k: u32, what: &'static str) -> Result<[i64; 3], CodecError> {
+fn start_values(r: &mut impl Symbols, k: u32, what: &'static str) -> Result<[i64; 3], CodecError> {
     let mut q = [0i64; 3];
     for v in &mut q {
-        *v = unresidual(r.read_rice2(k)?, 0).ok_or(CodecError::Corrupt { what })?;
+        *v = unresidual(r.start_value(k)?, 0).ok_or(CodecError::Corrupt { what })?;
     }
     Ok(q)
 }
 
+/// Three raw f64s.
+fn floats(r: &mut impl Symbols) -> Result<Vec3, CodecError> {
+    Ok([r.float()?, r.float()?, r.float()?])
+}
+
+fn quat(r: &mut impl Symbols) -> Result<Quat, CodecError> {
+    let q = [r.float()?, r.float()?, r.float()?, r.float()?];
+    crate::rotation::normalise(q).ok_or(CodecError::Corrupt {
+        what: "stored quaternion cannot be normalised",
+    })
+}
+
 /// Segment length: 0 = the rest of the track, else `L ≤ remaining`.
-fn length(
-    r: &mut BitReader<'_>,
-    state: &mut AdaptiveRice,
-    remaining: u32,
-) -> Result<u32, CodecError> {
-    match r.read_adaptive(state)? {
+fn length(r: &mut impl Symbols, stream: usize, remaining: u32) -> Result<u32, CodecError> {
+    match r.value(stream)? {
         0 => Ok(remaining),
         l if l <= u64::from(remaining) => Ok(l as u32),
         _ => Err(CodecError::Corrupt {
@@ -92,17 +199,15 @@ fn length(
     }
 }
 
-impl<'a> ObjectStream<'a> {
-    pub(crate) fn open(bytes: &'a [u8], frames: u32, header: &Header) -> Result<Self, CodecError> {
-        let mut r = BitReader::new(bytes);
-        let streams = adaptive_streams();
+impl<S: Symbols> ObjectStream<S> {
+    pub(crate) fn open(mut r: S, frames: u32, header: &Header) -> Result<Self, CodecError> {
         let gravity = match header.model {
             MotionModel::General => None,
             MotionModel::FreeFlightGravity { g } => Some(g),
         };
         let coding = PositionCoding::new(header.pos_step, gravity, header.frame_dt);
-        let start = if r.read_bit()? {
-            [read_f64(&mut r)?, read_f64(&mut r)?, read_f64(&mut r)?]
+        let start = if r.flag(FLAG_POS_RAW)? {
+            floats(&mut r)?
         } else {
             let q = start_values(&mut r, header.start_k[0], "start position out of range")?;
             dequantise3(q, coding.start_step())
@@ -110,10 +215,9 @@ impl<'a> ObjectStream<'a> {
         let start = finite_position(start)?;
         let steps = frames - 1;
         // A track at rest throughout: one rest segment, no codes.
-        let at_rest = steps > 0 && r.read_bit()?;
+        let at_rest = steps > 0 && r.flag(FLAG_POS_REST)?;
         Ok(Self {
             r,
-            streams,
             coding,
             rot_step: header.rot_step,
             start_k: header.start_k[1],
@@ -148,15 +252,11 @@ impl<'a> ObjectStream<'a> {
             }));
         }
         let types = position_types(self.coding.gravity_term.is_some());
-        let rank = self.r.read_type(types.len(), p.prev_type)?;
+        let rank = self.r.kind(false, types.len(), p.prev_type)?;
         p.prev_type = rank;
         let (len, curve) = match types[rank] {
             PositionType::Key => {
-                let end = [
-                    read_f64(&mut self.r)?,
-                    read_f64(&mut self.r)?,
-                    read_f64(&mut self.r)?,
-                ];
+                let end = floats(&mut self.r)?;
                 (
                     1,
                     PositionCurve::Key {
@@ -165,13 +265,13 @@ impl<'a> ObjectStream<'a> {
                 )
             }
             PositionType::Rest => (
-                length(&mut self.r, &mut self.streams[S_POS_LEN], remaining)?,
+                length(&mut self.r, S_POS_REST_LEN, remaining)?,
                 PositionCurve::Rest,
             ),
             PositionType::Step => {
                 let pred = position_step_prediction(p.c, p.before, p.predictor.velocity());
                 let what = "position step out of range";
-                let q = residuals(&mut self.r, &mut self.streams[S_POS_STEP], [0; 3], what)?;
+                let q = residuals(&mut self.r, S_POS_STEP, [0; 3], what)?;
                 let end = step_end(pred, q, self.coding.step);
                 (
                     1,
@@ -181,20 +281,15 @@ impl<'a> ObjectStream<'a> {
                 )
             }
             kind => {
-                let len = length(&mut self.r, &mut self.streams[S_POS_LEN], remaining)?;
+                let len = length(&mut self.r, S_POS_LEN, remaining)?;
                 let k = bucket(len);
                 let (pb, pa) = p.predictor.predict(&self.coding, k);
                 let what = "position coefficient out of range";
-                let bq = residuals(&mut self.r, &mut self.streams[S_POS_LINEAR], pb, what)?;
+                let bq = residuals(&mut self.r, S_POS_LINEAR, pb, what)?;
                 let term = match kind {
                     PositionType::Gravity => QuadraticTerm::Gravity,
                     PositionType::Linear => QuadraticTerm::Zero,
-                    _ => QuadraticTerm::Fitted(residuals(
-                        &mut self.r,
-                        &mut self.streams[S_POS_QUADRATIC],
-                        pa,
-                        what,
-                    )?),
+                    _ => QuadraticTerm::Fitted(residuals(&mut self.r, S_POS_QUADRATIC, pa, what)?),
                 };
                 (len, QuadraticQ { bq, term }.curve(&self.coding, k))
             }
@@ -219,13 +314,13 @@ impl<'a> ObjectStream<'a> {
             return Ok(rot.q);
         }
         while self.next_position()?.is_some() {}
-        let start = if self.r.read_bit()? {
-            read_quat(&mut self.r)?
+        let start = if self.r.flag(FLAG_ROT_RAW)? {
+            quat(&mut self.r)?
         } else {
             let q = start_values(&mut self.r, self.start_k, "start orientation out of range")?;
             start_orientation(q, self.rot_step)
         };
-        let at_rest = self.steps > 0 && self.r.read_bit()?;
+        let at_rest = self.steps > 0 && self.r.flag(FLAG_ROT_REST)?;
         self.rotations = Some(RotationState {
             at_rest,
             predictor: RotationPredictor::default(),
@@ -256,24 +351,24 @@ impl<'a> ObjectStream<'a> {
                 curve: RotationCurve::Rest,
             }));
         }
-        let rank = self.r.read_type(ROTATION_TYPES.len(), rot.prev_type)?;
+        let rank = self.r.kind(true, ROTATION_TYPES.len(), rot.prev_type)?;
         rot.prev_type = rank;
         let (len, curve) = match ROTATION_TYPES[rank] {
             RotationType::Key => (
                 1,
                 RotationCurve::Key {
-                    end: read_quat(&mut self.r)?,
+                    end: quat(&mut self.r)?,
                 },
             ),
             RotationType::Rest => (
-                length(&mut self.r, &mut self.streams[S_ROT_LEN], remaining)?,
+                length(&mut self.r, S_ROT_REST_LEN, remaining)?,
                 RotationCurve::Rest,
             ),
             RotationType::Step => {
                 let pred =
                     rotation_step_prediction(rot.q, rot.before, rot.predictor.angular_velocity());
                 let what = "rotation step out of range";
-                let q = residuals(&mut self.r, &mut self.streams[S_ROT_STEP], [0; 3], what)?;
+                let q = residuals(&mut self.r, S_ROT_STEP, [0; 3], what)?;
                 (
                     1,
                     RotationCurve::Linear {
@@ -282,15 +377,15 @@ impl<'a> ObjectStream<'a> {
                 )
             }
             kind => {
-                let len = length(&mut self.r, &mut self.streams[S_ROT_LEN], remaining)?;
+                let len = length(&mut self.r, S_ROT_LEN, remaining)?;
                 let k = bucket(len);
                 let what = "angular velocity residual out of range";
                 let pred = rot.predictor.predict(self.rot_step, k);
-                let wq = residuals(&mut self.r, &mut self.streams[S_ROT_W], pred, what)?;
+                let wq = residuals(&mut self.r, S_ROT_W, pred, what)?;
                 let w = dequantise3(wq, step_linear(self.rot_step, k));
                 let curve = if kind == RotationType::Quadratic {
                     let pred = rot.predictor.predict_acceleration(self.rot_step, k);
-                    let aq = residuals(&mut self.r, &mut self.streams[S_ROT_ACC], pred, what)?;
+                    let aq = residuals(&mut self.r, S_ROT_ACC, pred, what)?;
                     RotationCurve::Quadratic {
                         w,
                         a: dequantise3(aq, step_angular_acceleration(self.rot_step, k)),

@@ -1,0 +1,82 @@
+//! Old recordings stay readable: streams written by the version-2 encoder (before format 3, saved
+//! as fixtures) still decode, through every read path, to exactly the poses they decoded to when
+//! they were written — and so stay within the bounds of the motion they were made from.
+
+mod common;
+
+use common::{G, distance, generate, normalise, rotation_angle};
+use mwb_codec::{MotionModel, Quality, Track, WorldReader};
+
+/// `(fixture, preset, model)`: six objects, one per test generator (seeds 31..37), 120 frames at
+/// 120 Hz, encoded with `EncodeParams::from_quality(preset, 1/120, model)` by the format-2 encoder
+/// of commit d1ba8c1 (tracks `common::generate(object, 31 + object, 120, 1/120)`); the `.poses`
+/// files are what that build decoded.
+const FIXTURES: [(&str, Quality, MotionModel); 2] = [
+    (
+        "v2_gravity_standard",
+        Quality::Standard,
+        MotionModel::FreeFlightGravity { g: G },
+    ),
+    ("v2_general_draft", Quality::Draft, MotionModel::General),
+];
+
+fn fixture(name: &str, ext: &str) -> Vec<u8> {
+    let path = format!("{}/tests/fixtures/{name}.{ext}", env!("CARGO_MANIFEST_DIR"));
+    std::fs::read(&path).unwrap_or_else(|e| panic!("{path}: {e}"))
+}
+
+/// The poses as written beside each fixture: per object, per frame, 7 little-endian f64s.
+fn poses(bytes: &[u8]) -> Vec<[f64; 7]> {
+    bytes
+        .chunks_exact(56)
+        .map(|c| {
+            std::array::from_fn(|i| f64::from_le_bytes(c[8 * i..8 * i + 8].try_into().unwrap()))
+        })
+        .collect()
+}
+
+#[test]
+fn version_2_streams_decode_to_the_same_poses() {
+    let dt = 1.0 / 120.0;
+    for (name, quality, model) in FIXTURES {
+        let bytes = fixture(name, "mwbm");
+        let want = poses(&fixture(name, "poses"));
+        let reader = WorldReader::new(&bytes).unwrap();
+        assert_eq!(reader.version(), 2, "{name}");
+        assert_eq!(reader.quality(), Some(quality));
+        assert_eq!(reader.model(), model);
+        assert_eq!((reader.object_count(), reader.frame_count()), (6, 120));
+        let all = reader.decode_all().unwrap();
+        let got: Vec<[f64; 7]> = all
+            .iter()
+            .flat_map(|t| {
+                t.positions
+                    .iter()
+                    .zip(&t.rotations)
+                    .map(|(p, q)| [p[0], p[1], p[2], q[0], q[1], q[2], q[3]])
+            })
+            .collect();
+        assert_eq!(got.len(), want.len());
+        for (i, (g, w)) in got.iter().zip(&want).enumerate() {
+            assert_eq!(g.map(f64::to_bits), w.map(f64::to_bits), "{name}: pose {i}");
+        }
+        for (object, decoded) in all.iter().enumerate() {
+            assert_eq!(&reader.decode_object(object).unwrap(), decoded);
+            for f in [0u32, 1, 59, 119] {
+                let (p, q) = reader.sample_frame(object, f).unwrap();
+                assert_eq!(p, decoded.positions[f as usize]);
+                assert_eq!(q, decoded.rotations[f as usize]);
+            }
+            // Within the bounds of the motion the fixture was made from.
+            let input: Track = generate(object, 31 + object as u64, 120, dt);
+            for f in 0..120 {
+                assert!(distance(decoded.positions[f], input.positions[f]) <= quality.e_max());
+                let a = rotation_angle(decoded.rotations[f], normalise(input.rotations[f]));
+                assert!(
+                    a <= quality.theta_max(),
+                    "{name}: object {object} frame {f}"
+                );
+            }
+        }
+    }
+}
