@@ -4,6 +4,7 @@
 pub mod bench;
 pub mod bench_codec;
 pub mod bench_query;
+pub mod bench_stepper;
 pub mod bus;
 pub mod check;
 pub mod client;

@@ -143,6 +143,13 @@ enum JobCommand {
 
 #[derive(Subcommand)]
 enum BenchCommand {
+    /// Our LCP stepper (forward) and rapier on the same simple scenes vs analytic answers:
+    /// rest height, bounce apex, slide distance, rolling speed.
+    Stepper {
+        /// Accepted for symmetry with the other benches (the output is always one JSON line).
+        #[arg(long)]
+        json: bool,
+    },
     /// Raw rapier stepping vs the full sampling pipeline into a store over the bus.
     /// Our LCP stepper forward vs backward (ch. 5): step cost, round trip, energy growth.
     Reverse {
@@ -457,6 +464,10 @@ async fn run(cli: Cli) -> Result<()> {
             );
         }
         Command::Bench { command } => match command {
+            BenchCommand::Stepper { json: _ } => {
+                let b = tokio::task::spawn_blocking(mwb::bench_stepper::run).await??;
+                print_json(&b)?;
+            }
             BenchCommand::Reverse {
                 worlds,
                 no_balls,
