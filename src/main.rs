@@ -31,7 +31,7 @@ enum Command {
         worlds: u32,
         #[arg(long, default_value_t = 2)]
         samplers: usize,
-        /// Store memory cap, MiB.
+        /// Store memory cap, MiB (stored motion and the browsing index).
         #[arg(long, default_value_t = 2048)]
         memory_cap_mib: u64,
         /// Print the summary as one JSON line.
