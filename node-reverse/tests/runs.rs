@@ -52,6 +52,7 @@ fn shipped_scenes_parse_and_convert() {
         ("balls", 2744),
         ("balls_small", 27),
         ("crash", 5),
+        ("gate", 5),
     ];
     for ((name, src), (want_name, bodies)) in builtin::ALL.iter().zip(expect) {
         assert_eq!(*name, want_name);
