@@ -44,6 +44,11 @@
 //! Round bodies (balls, capsules, cylinders) get rolling-friction rows (5.15)–(5.18), bounded by
 //! [`Body::rolling_resistance`] times the normal impulse, forward and backward.
 //!
+//! Bodies joined by a joint do not collide with each other (their contacts would repeat the
+//! joint rows). Joint rows are always active in the pivoting solver; an island whose active
+//! contact rows are redundant with them (several boxes, four coplanar corners each, settling
+//! while chained) can still come back `Degenerate` (flagged in the report, never a panic).
+//!
 //! Not in this round: any position correction of penetration (as in the thesis, contact
 //! conditions are on velocities; only joints have a Baumgarte term), joint limits and motors,
 //! and the §5.3.4 heuristics for articulated bodies (restitution 1 along a jointed chain).
