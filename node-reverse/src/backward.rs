@@ -55,6 +55,18 @@
 //!   `v_N / α`, or the forward step would bounce it; an impulse-free neighbour can break either
 //!   (see `repair_cutoffs`).
 //!
+//! # Joints (§5.3.4)
+//!
+//! Joint rows enter the island's LCP unchanged, as equality rows, except that the Baumgarte
+//! term changes sign: the backward step asks `J v_{t−Δt} = +β e / Δt` of a row with position
+//! error `e` at the poses of `t − Δt`, so that the error shrinks as the run goes further back
+//! (the next poses are `x − Δt v_{t−Δt}`). The forward step that would replay this one asks
+//! `J v_t` of the same rows, which the state at `t` fixes; the report's contact set records
+//! that value as each row's goal ([`crate::JointRow::goal`]), so that
+//! [`World::step_forward_with`] returns exactly `v_t`. How far it is from the forward
+//! Baumgarte goal `−β e / Δt` is part of [`BackwardReport::forward_residual`]: zero for a state
+//! a forward step produced, about `2 β |e| / Δt` (tiny: `e` is the drift) along a backward run.
+//!
 //! What is left unexplained is measured every step: [`BackwardReport::forward_residual`].
 //! None of the plausibility heuristics of §5.3 (reverse damping, restitution pushed to 1,
 //! sticky stacks) are applied here.
@@ -196,12 +208,14 @@ pub struct BackwardReport {
     pub contacts: ContactSet,
     /// Impulses in the forward sense, one per contact.
     pub impulses: Vec<ContactImpulse>,
+    /// Joint impulses in the forward sense, one per row of `contacts.joints`.
+    pub joint_impulses: Vec<f64>,
     /// One decision per contact.
     pub choices: Vec<ContactChoice>,
     /// One entry per island.
     pub islands: Vec<IslandSolve>,
-    /// Forward-LCP residual of `impulses` at the new state ([`World::forward_residual`]):
-    /// about zero when the step is forward-valid.
+    /// Forward-LCP residual of `impulses` and `joint_impulses` at the new state
+    /// ([`World::forward_residual_with_joints`]): about zero when the step is forward-valid.
     pub forward_residual: f64,
     /// Contacts whose normal velocity at `t` approaches faster than `δ`. No forward step ends
     /// like that (it stops every approach in its contact set), so such a state has no exact
@@ -261,6 +275,8 @@ enum Var {
     U(usize),
     W(usize),
     Roll(usize, usize),
+    /// A joint row (index into `ContactSet::joints`).
+    Joint(usize),
 }
 
 impl World {
@@ -295,6 +311,7 @@ impl World {
     pub fn step_backward(&mut self, dt: f64, choices: &BackwardChoices) -> BackwardReport {
         let before = self.bodies.clone();
         let v_plus: Vec<[f64; 6]> = self.bodies.iter().map(velocity6).collect();
+        let v_t = v_plus.clone();
         // Positions first, exactly inverting (3.17)–(3.18).
         for b in self.bodies.iter_mut().filter(|b| b.enabled) {
             b.position -= b.linvel * dt;
@@ -427,6 +444,7 @@ impl World {
         let mut solutions: Vec<IslandOutcome> = Vec::with_capacity(set.islands.len());
         let mut dirty = vec![true; set.islands.len()];
         let mut impulses = vec![ContactImpulse::default(); n_contacts];
+        let mut joint_impulses = vec![0.0; set.joints.len()];
         for round in 0..=CORRECTION_ROUNDS {
             for (i, island) in set.islands.iter().enumerate() {
                 if !dirty[i] {
@@ -455,7 +473,14 @@ impl World {
                 for &k in &island.contacts {
                     impulses[k] = ContactImpulse::default();
                 }
-                outcome.write_impulses(&set, (&decisions, &rolling_slip), &mut impulses);
+                for &k in &island.joints {
+                    joint_impulses[k] = 0.0;
+                }
+                outcome.write_impulses(
+                    &set,
+                    (&decisions, &rolling_slip),
+                    (&mut impulses, &mut joint_impulses),
+                );
                 if i < solutions.len() {
                     solutions[i] = outcome;
                 } else {
@@ -497,10 +522,17 @@ impl World {
         let islands = solutions.iter().map(|o| o.solve).collect();
         store_velocities(&mut self.bodies, &vel);
         let disabled = disable_non_finite(&mut self.bodies, &before);
-        let forward_residual = self.forward_residual(&set, &impulses, dt);
+        let forward_residual =
+            self.forward_residual_with_joints(&set, &impulses, &joint_impulses, dt);
+        // The replay's joint goals: what the forward step from here must end with, J v_t at
+        // these poses (see the module docs).
+        for jr in &mut set.joints {
+            jr.goal = Some(row_velocity(&jr.row, &v_t));
+        }
         BackwardReport {
             contacts: set,
             impulses,
+            joint_impulses,
             choices: decisions,
             islands,
             forward_residual,
@@ -612,6 +644,17 @@ impl World {
                 b.push(-row_velocity(&row, vel));
                 vars.push(Var::Roll(k, axis));
             }
+        }
+        // §5.3.4: joint rows as in the forward step, with the Baumgarte sign reversed:
+        // w = −J v⁻ + β e / Δt = 0.
+        let erp = self.params.joint_erp;
+        for &k in &island.joints {
+            let jr = &set.joints[k];
+            rows.push(jr.row);
+            dirs.push(jr.row);
+            kinds.push(RowKind::Equality);
+            b.push(-row_velocity(&jr.row, vel) + jr.backward_goal(erp, dt));
+            vars.push(Var::Joint(k));
         }
         let n = rows.len();
         let failed = |responses: Vec<Response>, vars: Vec<Var>| IslandOutcome {
@@ -928,7 +971,7 @@ impl IslandOutcome {
         &self,
         set: &ContactSet,
         (decisions, rolling_slip): (&[ContactChoice], &[bool]),
-        impulses: &mut [ContactImpulse],
+        (impulses, joint_impulses): (&mut [ContactImpulse], &mut [f64]),
     ) {
         let Some(x) = &self.x else { return };
         for (j, var) in self.vars.iter().enumerate() {
@@ -947,6 +990,7 @@ impl IslandOutcome {
                 Var::Roll(k, axis) => impulses[k].rolling[axis] = x[j],
                 Var::U(k) => impulses[k].tangent_u = x[j],
                 Var::W(k) => impulses[k].tangent_w = x[j],
+                Var::Joint(k) => joint_impulses[k] = x[j],
             }
         }
     }

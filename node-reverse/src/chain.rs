@@ -147,6 +147,8 @@ impl ContactChain {
             let mut solo = World {
                 bodies: vec![body],
                 statics: world.statics.clone(),
+                // One body dropped alone: the contact-count chain learns its contacts only.
+                joints: Vec::new(),
                 gravity: world.gravity,
                 params: world.params,
                 narrow_phase: Default::default(),

@@ -7,8 +7,8 @@
 //! coordinates, with a normal that pushes its first body (`body`) away from the other and two
 //! tangents `u`, `w` spanning the (box-approximated) friction pyramid. Contacts form islands,
 //! the connected components of the graph whose nodes are dynamic bodies and whose edges are
-//! contacts between two dynamic bodies; each island is its own LCP (static geometry does not
-//! join islands).
+//! contacts and joints between two dynamic bodies; each island is its own LCP (static geometry
+//! and the world end of a joint do not join islands).
 
 use std::collections::BTreeMap;
 
@@ -18,6 +18,7 @@ use parry3d::query::PersistentQueryDispatcher;
 use parry3d::query::{ContactManifold, ContactManifoldsWorkspace, DefaultQueryDispatcher};
 
 use crate::body::{Body, Material, StaticBody, from_vec3};
+use crate::joint::JointRow;
 
 /// Contact points of one pair closer than this (m) with the same normal are merged.
 pub const DUPLICATE_DISTANCE: f64 = 1e-6;
@@ -119,22 +120,27 @@ pub fn default_tangents(n: &Vector3<f64>) -> (Vector3<f64>, Vector3<f64>) {
     (u, w)
 }
 
-/// An island: bodies coupled by contacts, solved as one LCP.
+/// An island: bodies coupled by contacts and joints, solved as one LCP.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
 pub struct Island {
     /// Dynamic bodies, ascending.
     pub bodies: Vec<usize>,
     /// Indices into [`ContactSet::contacts`], ascending.
     pub contacts: Vec<usize>,
+    /// Indices into [`ContactSet::joints`] (joint rows), ascending.
+    pub joints: Vec<usize>,
 }
 
-/// The contacts of one step and their islands. Carried by step reports so that a step can be
-/// replayed with exactly the same contact set and Jacobian ([`crate::World::step_forward_with`]).
+/// The contacts and joint rows of one step and their islands. Carried by step reports so that
+/// a step can be replayed with exactly the same contact set, Jacobian and joint goals
+/// ([`crate::World::step_forward_with`]).
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct ContactSet {
     /// All contacts.
     pub contacts: Vec<Contact>,
-    /// Connected components that have at least one contact.
+    /// All joint rows (§5.3.4), each an equality row of its island's LCP.
+    pub joints: Vec<JointRow>,
+    /// Connected components that have at least one contact or joint row.
     pub islands: Vec<Island>,
 }
 
@@ -142,6 +148,12 @@ impl ContactSet {
     /// Builds the islands of `contacts` over `n_bodies` dynamic bodies (union–find).
     /// Contacts naming a body index out of range are dropped.
     pub fn new(contacts: Vec<Contact>, n_bodies: usize) -> Self {
+        Self::with_joints(contacts, Vec::new(), n_bodies)
+    }
+
+    /// As [`ContactSet::new`], with joint rows: bodies joined by a joint share an island.
+    /// Contacts and rows naming a body index out of range are dropped.
+    pub fn with_joints(contacts: Vec<Contact>, joints: Vec<JointRow>, n_bodies: usize) -> Self {
         let contacts: Vec<Contact> = contacts
             .into_iter()
             .filter(|c| {
@@ -152,6 +164,12 @@ impl ContactSet {
                     }
             })
             .collect();
+        let joints: Vec<JointRow> = joints
+            .into_iter()
+            .filter(|j| {
+                j.row.a.0 < n_bodies && j.row.b.is_none_or(|(b, _)| b < n_bodies && b != j.row.a.0)
+            })
+            .collect();
         let mut parent: Vec<usize> = (0..n_bodies).collect();
         fn find(parent: &mut [usize], mut i: usize) -> usize {
             while parent[i] != i {
@@ -160,21 +178,34 @@ impl ContactSet {
             }
             i
         }
-        for c in &contacts {
-            if let Partner::Body(b) = c.partner {
-                let (ra, rb) = (find(&mut parent, c.body), find(&mut parent, b));
-                // Smallest index as root keeps island order deterministic.
-                if ra < rb {
-                    parent[rb] = ra;
-                } else if rb < ra {
-                    parent[ra] = rb;
-                }
+        let edges = contacts
+            .iter()
+            .filter_map(|c| match c.partner {
+                Partner::Body(b) => Some((c.body, b)),
+                Partner::Static(_) => None,
+            })
+            .chain(
+                joints
+                    .iter()
+                    .filter_map(|j| j.row.b.map(|(b, _)| (j.row.a.0, b))),
+            );
+        for (a, b) in edges {
+            let (ra, rb) = (find(&mut parent, a), find(&mut parent, b));
+            // Smallest index as root keeps island order deterministic.
+            if ra < rb {
+                parent[rb] = ra;
+            } else if rb < ra {
+                parent[ra] = rb;
             }
         }
         let mut by_root: BTreeMap<usize, Island> = BTreeMap::new();
         for (k, c) in contacts.iter().enumerate() {
             let root = find(&mut parent, c.body);
             by_root.entry(root).or_default().contacts.push(k);
+        }
+        for (k, j) in joints.iter().enumerate() {
+            let root = find(&mut parent, j.row.a.0);
+            by_root.entry(root).or_default().joints.push(k);
         }
         for b in 0..n_bodies {
             let root = find(&mut parent, b);
@@ -184,6 +215,7 @@ impl ContactSet {
         }
         Self {
             contacts,
+            joints,
             islands: by_root.into_values().collect(),
         }
     }

@@ -3,12 +3,16 @@
 //!
 //! Everything but [`node`] is pure computation, with no I/O and no async:
 //!
-//! * [`World`] ([`world`]): dynamic [`Body`]s (box, sphere, capsule, cylinder, convex hull) and
-//!   [`StaticBody`]s (plane, box, triangle mesh), gravity and [`StepParams`] (restitution cutoff
-//!   `ε`, rest threshold `δ`, prediction distance, LCP options).
+//! * [`World`] ([`world`]): dynamic [`Body`]s (box, sphere, capsule, cylinder, convex hull),
+//!   [`StaticBody`]s (plane, box, triangle mesh), [`Joint`]s, gravity and [`StepParams`]
+//!   (restitution cutoff `ε`, rest threshold `δ`, prediction distance, joint Baumgarte factor,
+//!   LCP options).
 //! * [`contact`]: parry3d contact manifolds kept per pair across steps, the contact Jacobian
 //!   (normal + two tangents, one aligned with the slip) and islands (one LCP per connected
-//!   component of the contact graph).
+//!   component of the graph of contacts and joints).
+//! * [`joint`]: spherical, revolute and fixed joints (§5.3.4) as equality rows of the same LCP
+//!   as the contacts, with a Baumgarte term on their position error whose sign is reversed when
+//!   stepping backward.
 //! * [`step`]: the forward Stewart–Trinkle / Anitescu–Potra step (§3.3–3.6):
 //!   [`World::step_forward`], and [`World::step_forward_with`] to replay a given contact set.
 //! * [`backward`]: the backward step of §5.2 (Figure 5.5): [`World::step_backward`], whose
@@ -40,9 +44,14 @@
 //! Round bodies (balls, capsules, cylinders) get rolling-friction rows (5.15)–(5.18), bounded by
 //! [`Body::rolling_resistance`] times the normal impulse, forward and backward.
 //!
-//! Not in this round: joints (the LCP has equality rows, the stepper does not build them yet)
-//! and any position correction of penetration (as in the thesis, all conditions are on
-//! velocities).
+//! Bodies joined by a joint do not collide with each other (their contacts would repeat the
+//! joint rows). Joint rows are always active in the pivoting solver; an island whose active
+//! contact rows are redundant with them (several boxes, four coplanar corners each, settling
+//! while chained) can still come back `Degenerate` (flagged in the report, never a panic).
+//!
+//! Not in this round: any position correction of penetration (as in the thesis, contact
+//! conditions are on velocities; only joints have a Baumgarte term), joint limits and motors,
+//! and the §5.3.4 heuristics for articulated bodies (restitution 1 along a jointed chain).
 //!
 //! # Example: a backward step and its forward check (§5.2)
 //!
@@ -165,6 +174,7 @@ pub mod body;
 pub mod broad_phase;
 pub mod chain;
 pub mod contact;
+pub mod joint;
 pub mod lcp;
 pub mod node;
 pub mod qr;
@@ -182,6 +192,7 @@ pub use bench::{BenchOptions, ReverseBench, bench};
 pub use body::{Body, Material, StaticBody};
 pub use chain::{ChainLearning, ContactChain};
 pub use contact::{Contact, ContactSet, Island, Partner};
+pub use joint::{Joint, JointError, JointKind, JointRow, JointType};
 pub use node::{ReverseConfig, ReverseHandle, ReverseNodeError, run_reverse};
 pub use run::{
     BackwardRun, BackwardRunReport, Frame, Heuristics, HintMotion, MixedRun, Pose, ReverseSettings,

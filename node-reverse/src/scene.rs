@@ -10,12 +10,12 @@
 //! # Ok::<(), mwb_reverse::SceneConvertError>(())
 //! ```
 
-use mwb_core::scene::{self as core_scene, Scene, SceneTemplate, Shape};
+use mwb_core::scene::{self as core_scene, BodyRef, JointKind, Scene, SceneTemplate, Shape};
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 use parry3d::shape::SharedShape;
 
 use crate::body::to_vec3;
-use crate::{Body, BodyError, Material, StaticBody, World};
+use crate::{Body, BodyError, Joint, JointError, Material, StaticBody, World};
 
 /// The scenes of `scenes/reverse/`, compiled in.
 pub mod builtin {
@@ -29,6 +29,8 @@ pub mod builtin {
     pub const BALLS_SMALL: &str = include_str!("../../scenes/reverse/balls_small.toml");
     /// Boxes in mid-air, for a mixed run (§5.4.4).
     pub const CRASH: &str = include_str!("../../scenes/reverse/crash.toml");
+    /// A hinged gate and a chain of boxes joined by ball joints, on the ground (§5.3.4).
+    pub const GATE: &str = include_str!("../../scenes/reverse/gate.toml");
 
     /// `(name, source)` of every shipped reverse scene.
     pub const ALL: &[(&str, &str)] = &[
@@ -37,6 +39,7 @@ pub mod builtin {
         ("balls", BALLS),
         ("balls_small", BALLS_SMALL),
         ("crash", CRASH),
+        ("gate", GATE),
     ];
 }
 
@@ -46,11 +49,16 @@ pub enum SceneConvertError {
     /// The TOML was refused by the scene parser.
     #[error(transparent)]
     Parse(#[from] core_scene::SceneError),
-    /// The backward stepper has no joint rows yet.
-    #[error("scene has {count} joint(s); the reverse stepper does not support joints yet")]
-    Joints {
-        /// Number of joints.
-        count: usize,
+    /// A joint could not be built (cannot come from a parsed scene except through numbers
+    /// that are not finite).
+    #[error("joint {name:?}: field `{field}`: {source}")]
+    Joint {
+        /// Its name.
+        name: String,
+        /// The scene field at fault (`body1`, `body2`, `anchor1`, `anchor2`, `axis`).
+        field: &'static str,
+        /// Why.
+        source: JointError,
     },
     /// A body could not be built.
     #[error("body {name:?}: {source}")]
@@ -107,12 +115,10 @@ fn material<'a>(
 /// The world of a concrete scene, its bodies at the scene's poses and velocities (for a
 /// backward run: the final state). Gravity comes from the scene (y up by convention).
 pub fn world_from_scene(scene: &Scene) -> Result<World, SceneConvertError> {
-    if !scene.joints.is_empty() {
-        return Err(SceneConvertError::Joints {
-            count: scene.joints.len(),
-        });
-    }
     let mut world = World::new();
+    // Per body, its centre of mass in its own frame: joint anchors are given relative to the
+    // body's frame, our bodies' frames sit at the centre of mass.
+    let mut centres = Vec::with_capacity(scene.bodies.len());
     world.gravity = v3(&scene.settings.gravity);
     for b in &scene.bodies {
         let m = material(scene, b.material, "body", &b.name)?;
@@ -144,6 +150,7 @@ pub fn world_from_scene(scene: &Scene) -> Result<World, SceneConvertError> {
         }
         .map_err(err)?;
         // A hull's body position is its centre of mass in the points' frame.
+        centres.push(body.position);
         let com = rot * body.position;
         world.add_body(
             body.with_material(Material {
@@ -208,7 +215,79 @@ pub fn world_from_scene(scene: &Scene) -> Result<World, SceneConvertError> {
             restitution: m.restitution,
         }));
     }
+    for j in &scene.joints {
+        let joint = joint_from_scene(j, &centres)?;
+        world
+            .add_joint(joint)
+            .map_err(|source| joint_error(&j.name, source))?;
+    }
     Ok(world)
+}
+
+/// The scene field a [`JointError`] is about.
+fn joint_error(name: &str, source: JointError) -> SceneConvertError {
+    let field = match &source {
+        JointError::BodyOutOfRange { which, .. } => which,
+        JointError::SameBody(_) | JointError::NoBody => "body2",
+        JointError::NonFinite(what) | JointError::ZeroAxis(what) => match *what {
+            "anchor1" => "anchor1",
+            "anchor2" => "anchor2",
+            _ => "axis",
+        },
+    };
+    SceneConvertError::Joint {
+        name: name.to_owned(),
+        field,
+        source,
+    }
+}
+
+/// One scene joint, read as the forward sampler (rapier) reads it: anchors in each body's
+/// frame (world coordinates for `"world"`), a revolute axis in both frames alike, and a weld
+/// that keeps the two frames' orientations equal. A joint whose first end is the world is
+/// turned around (our joints name a dynamic body first); every kind is symmetric under that.
+fn joint_from_scene(
+    j: &core_scene::Joint,
+    centres: &[Vector3<f64>],
+) -> Result<Joint, SceneConvertError> {
+    let err = |source| joint_error(&j.name, source);
+    let end = |r: BodyRef, anchor: &core_scene::Vec3, which: &'static str| match r {
+        BodyRef::World => Ok((None, v3(anchor))),
+        BodyRef::Body(i) => match centres.get(i) {
+            Some(com) => Ok((Some(i), v3(anchor) - com)),
+            None => Err(err(JointError::BodyOutOfRange {
+                which,
+                index: i,
+                len: centres.len(),
+            })),
+        },
+    };
+    let first = end(j.body1, &j.anchor1, "body1")?;
+    let second = end(j.body2, &j.anchor2, "body2")?;
+    let ((body1, anchor1), (body2, anchor2)) = match (first, second) {
+        ((Some(b1), a1), second) => ((b1, a1), second),
+        (first, (Some(b2), a2)) => ((b2, a2), first),
+        ((None, _), (None, _)) => {
+            return Err(err(JointError::NoBody));
+        }
+    };
+    match j.kind {
+        JointKind::Spherical => Ok(Joint::spherical(body1, body2, anchor1, anchor2)),
+        JointKind::Revolute { axis } => {
+            let axis = v3(&axis);
+            Joint::revolute(body1, body2, (anchor1, anchor2), (axis, axis)).map_err(|e| match e {
+                JointError::NonFinite(_) => err(JointError::NonFinite("axis")),
+                JointError::ZeroAxis(_) => err(JointError::ZeroAxis("axis")),
+                other => err(other),
+            })
+        }
+        JointKind::Fixed => Ok(Joint::fixed(
+            body1,
+            body2,
+            (anchor1, anchor2),
+            UnitQuaternion::identity(),
+        )),
+    }
 }
 
 /// Parses a scene (`file` names it in errors), instantiates it with seed 0 (a final state is

@@ -9,11 +9,15 @@
 //! * friction rows: `|f_u|, |f_w| ≤ μ f_N`, bounds coupled to the normal impulse *inside* the
 //!   LCP (§3.6.1), maximal and opposing the post-step slip when it is nonzero (3.23)–(3.24);
 //!
+//! * joint rows (§5.3.4, [`crate::joint`]): `w = 0` with unbounded multipliers, the goal
+//!   being the Baumgarte term `−β e / Δt` of the joint's position error `e` (or the goal a
+//!   replayed set recorded);
+//!
 //! then `v⁺ = v⁻ + Δt M⁻¹ f_ext + M⁻¹ Jᵀ f` (3.15)–(3.16) and the semi-implicit position update
 //! `x⁺ = x⁻ + Δt v⁺`, `Θ⁺ = exp(Δt ω⁺) Θ⁻` (3.17)–(3.18). No gyroscopic term: angular velocity
 //! only changes through impulses, which keeps the step exactly invertible given its contacts.
-//! Positions are not projected out of penetration (there is no Baumgarte/ERP term): as in the
-//! thesis, the conditions are on velocities only.
+//! Contacts are not projected out of penetration (no Baumgarte term on contacts): as in the
+//! thesis, their conditions are on velocities only; only joints get one.
 
 use nalgebra::{DVector, Vector3};
 
@@ -45,12 +49,22 @@ pub(crate) struct ForwardIsland {
     /// Per contact of the island (in island order), its first row and whether it has
     /// rolling rows (normal, u, w, then three rolling rows).
     pub(crate) slots: Vec<(usize, bool)>,
+    /// LCP row of the island's first joint row; the others follow in island order.
+    pub(crate) first_joint: usize,
 }
 
 impl ForwardIsland {
     /// The island's impulses as an LCP vector.
-    pub(crate) fn pack(&self, island: &Island, impulses: &[ContactImpulse]) -> DVector<f64> {
+    pub(crate) fn pack(
+        &self,
+        island: &Island,
+        impulses: &[ContactImpulse],
+        joint_impulses: &[f64],
+    ) -> DVector<f64> {
         let mut x = DVector::zeros(self.problem.len());
+        for (j, &k) in island.joints.iter().enumerate() {
+            x[self.first_joint + j] = joint_impulses[k];
+        }
         for (&(row, rolling), &k) in self.slots.iter().zip(&island.contacts) {
             let i = impulses[k];
             x[row] = i.normal;
@@ -120,12 +134,14 @@ impl World {
         (vel, free)
     }
 
+    /// `replay`: joint rows take their recorded goals (else their Baumgarte goals).
     pub(crate) fn forward_island(
         &self,
         set: &ContactSet,
         island: &Island,
         inv: &[InvMass],
         (vel, free): (&[[f64; 6]], &[[f64; 6]]),
+        (dt, replay): (f64, bool),
     ) -> Result<ForwardIsland, crate::LcpError> {
         let eps = self.params.restitution_cutoff;
         let mut rows = Vec::with_capacity(3 * island.contacts.len());
@@ -168,6 +184,21 @@ impl World {
                 rows.push(row);
             }
         }
+        // §5.3.4: joints are extra unknowns of the same LCP (Lagrange multipliers), rows with
+        // w = J v⁺ − goal = 0 and no bounds.
+        let first_joint = kinds.len();
+        let erp = self.params.joint_erp;
+        for &k in &island.joints {
+            let jr = &set.joints[k];
+            let goal = if replay {
+                jr.forward_goal(erp, dt)
+            } else {
+                jr.baumgarte(erp, dt)
+            };
+            b.push(row_velocity(&jr.row, free) - goal);
+            kinds.push(RowKind::Equality);
+            rows.push(jr.row);
+        }
         let responses: Vec<Response> = rows.iter().map(|r| Response::new(r, inv)).collect();
         let a = delassus(&rows, &responses);
         let problem = LcpProblem::new(a, DVector::from_vec(b), kinds)?;
@@ -175,6 +206,7 @@ impl World {
             problem,
             responses,
             slots,
+            first_joint,
         })
     }
 
@@ -195,17 +227,19 @@ impl World {
         report
     }
 
-    /// One forward step with a given contact set and Jacobian directions (no detection): the
-    /// replay half of the round-trip check of §5.2.
+    /// One forward step with a given contact set, Jacobian directions and joint rows (no
+    /// detection): the replay half of the round-trip check of §5.2. Joint rows with a recorded
+    /// goal (from a backward step) enforce it; the others their Baumgarte goal.
     pub fn step_forward_with(&mut self, set: &ContactSet, dt: f64) -> StepReport {
         let inv: Vec<InvMass> = self.bodies.iter().map(InvMass::of).collect();
         let (pre, free) = self.free_velocities(dt);
         let mut vel = free.clone();
         let mut impulses = vec![ContactImpulse::default(); set.contacts.len()];
+        let mut joint_impulses = vec![0.0; set.joints.len()];
         let mut islands = Vec::with_capacity(set.islands.len());
         for island in &set.islands {
             let solved = self
-                .forward_island(set, island, &inv, (&pre, &free))
+                .forward_island(set, island, &inv, (&pre, &free), (dt, true))
                 .and_then(|fi| Ok((lcp::solve(&fi.problem, &self.params.lcp)?, fi)));
             match solved {
                 Ok((sol, fi)) => {
@@ -216,6 +250,9 @@ impl World {
                         }
                         for (slot, &k) in island.contacts.iter().enumerate() {
                             impulses[k] = fi.unpack(slot, &sol.x);
+                        }
+                        for (j, &k) in island.joints.iter().enumerate() {
+                            joint_impulses[k] = sol.x[fi.first_joint + j];
                         }
                     }
                     islands.push(IslandSolve {
@@ -232,7 +269,7 @@ impl World {
                 Err(_) => islands.push(IslandSolve {
                     status: lcp::LcpStatus::Degenerate,
                     residual: f64::NAN,
-                    rows: 3 * island.contacts.len(),
+                    rows: 3 * island.contacts.len() + island.joints.len(),
                     pivots: 0,
                 }),
             }
@@ -247,6 +284,7 @@ impl World {
         StepReport {
             contacts: set.clone(),
             impulses,
+            joint_impulses,
             islands,
             unsupported_pairs: 0,
             disabled,
@@ -256,19 +294,33 @@ impl World {
     /// The largest forward-LCP complementarity residual of `impulses` (one per contact of
     /// `set`) over all islands, evaluated at the world's current state as the start of a
     /// forward step: zero exactly when the impulses are a valid forward solution. `NaN` if an
-    /// island's problem cannot be built or the lengths disagree.
+    /// island's problem cannot be built or the lengths disagree; a set with joint rows needs
+    /// their impulses: [`World::forward_residual_with_joints`].
     pub fn forward_residual(&self, set: &ContactSet, impulses: &[ContactImpulse], dt: f64) -> f64 {
-        if impulses.len() != set.contacts.len() {
+        self.forward_residual_with_joints(set, impulses, &[], dt)
+    }
+
+    /// [`World::forward_residual`] with joint impulses (one per row of `set.joints`). Joint rows
+    /// are measured against their Baumgarte goals, not recorded ones: the residual says how
+    /// far an ordinary forward step is from these impulses.
+    pub fn forward_residual_with_joints(
+        &self,
+        set: &ContactSet,
+        impulses: &[ContactImpulse],
+        joint_impulses: &[f64],
+        dt: f64,
+    ) -> f64 {
+        if impulses.len() != set.contacts.len() || joint_impulses.len() != set.joints.len() {
             return f64::NAN;
         }
         let inv: Vec<InvMass> = self.bodies.iter().map(InvMass::of).collect();
         let (pre, free) = self.free_velocities(dt);
         let mut worst = 0.0f64;
         for island in &set.islands {
-            let Ok(fi) = self.forward_island(set, island, &inv, (&pre, &free)) else {
+            let Ok(fi) = self.forward_island(set, island, &inv, (&pre, &free), (dt, false)) else {
                 return f64::NAN;
             };
-            let x = fi.pack(island, impulses);
+            let x = fi.pack(island, impulses, joint_impulses);
             let r = lcp::complementarity_residual(&fi.problem, &x);
             if r.is_nan() {
                 return f64::NAN;

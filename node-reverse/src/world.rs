@@ -5,6 +5,7 @@ use nalgebra::{DMatrix, Matrix3, UnitQuaternion, Vector3};
 
 use crate::body::{Body, StaticBody};
 use crate::contact::{ContactSet, JacobianRow, NarrowPhase};
+use crate::joint::{Joint, JointError, JointRow, JointType};
 use crate::lcp::{LcpOptions, LcpStatus};
 
 /// Default restitution cutoff `ε` (§3.5): an approach slower than this is treated as inelastic.
@@ -14,6 +15,9 @@ pub const DEFAULT_REST_THRESHOLD: f64 = 1e-5;
 /// Default contact prediction distance (m): points closer than this enter the LCP. Kept tiny,
 /// because the velocity-level conditions treat a predicted point as touching.
 pub const DEFAULT_PREDICTION: f64 = 1e-5;
+/// Default Baumgarte factor `β` of the joint rows (§5.3.4): the fraction of a joint's position
+/// error a step removes.
+pub const DEFAULT_JOINT_ERP: f64 = 0.2;
 
 /// Stepper settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -24,6 +28,9 @@ pub struct StepParams {
     pub rest_threshold: f64,
     /// Contact prediction distance.
     pub prediction: f64,
+    /// Baumgarte factor `β ∈ [0, 1)` of the joint rows: a forward step asks `J v⁺ = −β e / Δt`
+    /// of a joint with position error `e`, a backward step `J v⁻ = +β e / Δt` (§5.3.4).
+    pub joint_erp: f64,
     /// LCP solver settings.
     pub lcp: LcpOptions,
 }
@@ -34,6 +41,7 @@ impl Default for StepParams {
             restitution_cutoff: DEFAULT_RESTITUTION_CUTOFF,
             rest_threshold: DEFAULT_REST_THRESHOLD,
             prediction: DEFAULT_PREDICTION,
+            joint_erp: DEFAULT_JOINT_ERP,
             // Stacks of boxes give redundant contact rows (four coplanar corners per face);
             // the pivoting path then gets stuck more often and another row order helps.
             lcp: LcpOptions {
@@ -78,6 +86,8 @@ pub struct StepReport {
     pub contacts: ContactSet,
     /// One entry per contact of `contacts`.
     pub impulses: Vec<ContactImpulse>,
+    /// Joint impulses (Lagrange multipliers), one per row of `contacts.joints`.
+    pub joint_impulses: Vec<f64>,
     /// One entry per island.
     pub islands: Vec<IslandSolve>,
     /// Shape pairs parry could not handle (skipped).
@@ -102,6 +112,8 @@ pub struct World {
     pub bodies: Vec<Body>,
     /// Static geometry.
     pub statics: Vec<StaticBody>,
+    /// Joints (§5.3.4); add them with [`World::add_joint`], which checks them.
+    pub joints: Vec<Joint>,
     /// Gravitational acceleration.
     pub gravity: Vector3<f64>,
     /// Stepper settings.
@@ -121,6 +133,7 @@ impl World {
         Self {
             bodies: Vec::new(),
             statics: Vec::new(),
+            joints: Vec::new(),
             gravity: Vector3::new(0.0, 0.0, -9.81),
             params: StepParams::default(),
             narrow_phase: NarrowPhase::default(),
@@ -139,13 +152,96 @@ impl World {
         self.statics.len() - 1
     }
 
-    /// Contacts at the current poses (default tangents), with islands. Updates the persistent
-    /// manifolds. The second value counts shape pairs parry could not handle.
+    /// Adds a joint after checking it against the bodies; returns its index.
+    pub fn add_joint(&mut self, joint: Joint) -> Result<usize, JointError> {
+        joint.validate(self.bodies.len())?;
+        self.joints.push(joint);
+        Ok(self.joints.len() - 1)
+    }
+
+    /// A joint between `body1` and `body2` (`None`: the world) at the world point `point`,
+    /// given in the world frame at the bodies' current poses: local anchors (and axes) are
+    /// computed from them, and a fixed joint keeps the current relative orientation.
+    pub fn joint_at(
+        &self,
+        kind: JointType,
+        body1: usize,
+        body2: Option<usize>,
+        point: Vector3<f64>,
+    ) -> Result<Joint, JointError> {
+        let len = self.bodies.len();
+        let out = |which, index| JointError::BodyOutOfRange { which, index, len };
+        let b1 = self.bodies.get(body1).ok_or(out("body1", body1))?;
+        let b2 = match body2 {
+            Some(i) => Some(self.bodies.get(i).ok_or(out("body2", i))?),
+            None => None,
+        };
+        if !point.iter().all(|x| x.is_finite()) {
+            return Err(JointError::NonFinite("point"));
+        }
+        let local = |b: Option<&Body>, p: Vector3<f64>| match b {
+            Some(b) => b.orientation.inverse() * (p - b.position),
+            None => p,
+        };
+        let anchors = (local(Some(b1), point), local(b2, point));
+        let q2 = b2.map_or(UnitQuaternion::identity(), |b| b.orientation);
+        let joint = match kind {
+            JointType::Spherical => Joint::spherical(body1, body2, anchors.0, anchors.1),
+            JointType::Revolute { axis } => Joint::revolute(
+                body1,
+                body2,
+                anchors,
+                (b1.orientation.inverse() * axis, q2.inverse() * axis),
+            )?,
+            JointType::Fixed => Joint::fixed(body1, body2, anchors, b1.orientation.inverse() * q2),
+        };
+        joint.validate(len)?;
+        Ok(joint)
+    }
+
+    /// The rows of every joint at the current poses (no recorded goals).
+    pub fn joint_rows(&self) -> Vec<JointRow> {
+        self.joints
+            .iter()
+            .enumerate()
+            .flat_map(|(i, j)| j.rows(i, &self.bodies))
+            .collect()
+    }
+
+    /// Contacts at the current poses (default tangents) and joint rows, with islands. Updates
+    /// the persistent manifolds. The second value counts shape pairs parry could not handle.
     pub fn detect_contacts(&mut self) -> (ContactSet, usize) {
-        let (contacts, unsupported) =
+        let (mut contacts, unsupported) =
             self.narrow_phase
                 .detect(&self.bodies, &self.statics, self.params.prediction);
-        (ContactSet::new(contacts, self.bodies.len()), unsupported)
+        // Two bodies joined by a joint do not collide (as in ODE): their contacts would only
+        // repeat what the joint rows hold, and make the LCP degenerate.
+        if !self.joints.is_empty() {
+            let joined: std::collections::BTreeSet<(usize, usize)> = self
+                .joints
+                .iter()
+                .filter_map(|j| j.body2.map(|b| (j.body1.min(b), j.body1.max(b))))
+                .collect();
+            contacts.retain(|c| match c.partner {
+                crate::Partner::Body(p) => !joined.contains(&(c.body.min(p), c.body.max(p))),
+                crate::Partner::Static(_) => true,
+            });
+        }
+        let joints = self.joint_rows();
+        (
+            ContactSet::with_joints(contacts, joints, self.bodies.len()),
+            unsupported,
+        )
+    }
+
+    /// The largest anchor separation (m) of the world's joints at the current poses.
+    pub fn joint_separation(&self) -> f64 {
+        crate::joint::max_separation(&self.joints, &self.bodies)
+    }
+
+    /// The largest angular error (rad) of the world's revolute and fixed joints.
+    pub fn joint_angular_error(&self) -> f64 {
+        crate::joint::max_angular_error(&self.joints, &self.bodies)
     }
 
     /// Total kinetic energy.
