@@ -311,7 +311,10 @@ impl SimWorld {
                 BodyRef::Body(i) => bodies[i],
             };
             for j in &scene.joints {
-                let data: GenericJoint = match j.kind {
+                // Two bodies joined by a joint do not collide with each other (their shapes
+                // usually overlap at the hinge): the same rule as our own stepper
+                // (`mwb_reverse::joint`), so forward and backward worlds of a scene agree.
+                let mut data: GenericJoint = match j.kind {
                     JointKind::Revolute { axis } => RevoluteJointBuilder::new(v3(axis).normalize())
                         .local_anchor1(v3(j.anchor1))
                         .local_anchor2(v3(j.anchor2))
@@ -328,6 +331,7 @@ impl SimWorld {
                         .build()
                         .into(),
                 };
+                data.set_contacts_enabled(false);
                 world
                     .impulse_joints
                     .insert(handle(j.body1), handle(j.body2), data, true);
