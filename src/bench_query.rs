@@ -297,6 +297,7 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
             rested: true,
             objects: objs,
             metrics,
+            world_metrics: Default::default(),
         };
         synthetic.push(w.clone());
         shard.insert(w);

@@ -9,7 +9,7 @@ use clap::{Args, Subcommand, ValueEnum};
 use mwb_core::browse::api::{Reply, Request};
 use mwb_core::browse::{
     Aggregate, Camera, Constraint, ConstraintId, Frustum, Metric, Order, Polarity, RankKey,
-    ScreenRect, TimeWindow,
+    ScreenRect, TimeWindow, WorldMetric,
 };
 use mwb_core::keys::Keys;
 use serde::Deserialize;
@@ -44,6 +44,10 @@ pub enum RankBy {
     OrientationError,
     /// Number of live constraints satisfied (ranks every world, not only survivors).
     Constraints,
+    /// Backward worlds: metres of drop height gained going back (§5.3.1; least first).
+    EnergyGrowth,
+    /// Backward worlds: rad/s of angular speed gained going back (§5.3.1; least first).
+    AngularSpeedGrowth,
 }
 
 #[derive(Debug, Subcommand)]
@@ -312,6 +316,12 @@ pub async fn run(command: QueryCommand) -> Result<()> {
             let client = Client::open(&s).await?;
             let key = match by {
                 RankBy::Constraints => Ok(RankKey::ConstraintsSatisfied),
+                RankBy::EnergyGrowth => Ok(RankKey::World {
+                    metric: WorldMetric::EnergyGrowth,
+                }),
+                RankBy::AngularSpeedGrowth => Ok(RankKey::World {
+                    metric: WorldMetric::AngularSpeedGrowth,
+                }),
                 RankBy::OrientationError if let Some(goal) = goal => client
                     .objects(&objects)
                     .await
@@ -575,6 +585,12 @@ fn print_reply(s: &SessionArgs, reply: &Reply, headline: Option<&str>) -> Result
                     "not in the result"
                 }
             );
+            if let Some(e) = w.world_metrics.energy_growth {
+                println!("energy growth going back: {e:.3} m of drop height (§5.3.1)");
+            }
+            if let Some(a) = w.world_metrics.angular_speed_growth {
+                println!("angular-speed growth going back: {a:.3} rad/s");
+            }
             println!("object  turned[rad]  rest[s]  impacts  orient.err[rad]  path±[mm]");
             for (i, (m, r)) in w.objects.iter().zip(&w.path_radius).enumerate() {
                 println!(

@@ -430,6 +430,7 @@ impl Shard {
                     rested: w.rested,
                     objects: w.metrics.clone(),
                     path_radius: w.objects.iter().map(|o| o.radius).collect(),
+                    world_metrics: w.world_metrics,
                     constraints_satisfied: set.satisfied_count(w.world),
                     in_result: set.result().contains(w.world),
                     shard: self.name.clone(),
@@ -448,7 +449,7 @@ fn world_heap_bytes(w: &IndexedWorld) -> usize {
 }
 
 fn score(key: &RankKey, world: &IndexedWorld, satisfied: u32) -> Option<f64> {
-    key.score(&world.metrics, satisfied)
+    key.score_with(&world.metrics, &world.world_metrics, satisfied)
 }
 
 /// Whether a world satisfies a constraint; a world that could not be indexed satisfies none.
@@ -511,6 +512,7 @@ mod tests {
                 orientation_error_rad: 0.0,
                 final_rotation: [0.0, 0.0, 0.0, 1.0],
             }],
+            world_metrics: Default::default(),
         }
     }
 

@@ -4,7 +4,7 @@
 
 use crate::assembly::StoredWorld;
 use mwb_codec::WorldReader;
-use mwb_core::browse::{ObjectMetrics, PathTree, Polyline, RestThresholds, Track};
+use mwb_core::browse::{ObjectMetrics, PathTree, Polyline, RestThresholds, Track, WorldMetrics};
 use mwb_proto::v1::{Encoding, MotionSegment};
 
 /// One object of an indexed world.
@@ -31,6 +31,8 @@ pub struct IndexedWorld {
     pub objects: Vec<IndexedObject>,
     /// Per object, the §4.4.3 ranking metrics (a slice, as rankings combine them).
     pub metrics: Vec<ObjectMetrics>,
+    /// Per-world measurements from the world's summary (plausibility of backward worlds).
+    pub world_metrics: WorldMetrics,
 }
 
 impl IndexedWorld {
@@ -219,5 +221,6 @@ pub fn index_world(
         rested: done.rested,
         objects,
         metrics: all_metrics,
+        world_metrics: WorldMetrics::default(),
     })
 }

@@ -16,7 +16,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::constraint::{Constraint, ConstraintId, Polarity, TimeWindow};
-use super::metrics::{ObjectMetrics, Order, RankKey, Ranked, merge_top_k};
+use super::metrics::{ObjectMetrics, Order, RankKey, Ranked, WorldMetrics, merge_top_k};
 
 /// A browsing request, as a user or the viewer sends it to node-query.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -112,6 +112,9 @@ pub struct WorldSummary {
     pub objects: Vec<ObjectMetrics>,
     /// Path-index inflation per object: codec e_max + low-res deviation, metres.
     pub path_radius: Vec<f64>,
+    /// Per-world measurements (plausibility of backward worlds).
+    #[serde(default)]
+    pub world_metrics: WorldMetrics,
     pub constraints_satisfied: u32,
     pub in_result: bool,
     /// The shard (store node) holding it.

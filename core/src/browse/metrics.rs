@@ -177,6 +177,36 @@ pub enum Order {
     Descending,
 }
 
+/// Per-world measurements (not per object): the §5.3.1 plausibility of a backward or mixed
+/// world, as its reverse node measured it. `None` when not measured (forward worlds).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct WorldMetrics {
+    /// Metres of drop height the whole mass gained over the backward part (see
+    /// `WorldDone.energy_growth`); the larger, the less plausible.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub energy_growth: Option<f64>,
+    /// rad/s: the largest angular speed over the backward part minus the given state's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub angular_speed_growth: Option<f64>,
+}
+
+/// A per-world measurement to rank by.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum WorldMetric {
+    EnergyGrowth,
+    AngularSpeedGrowth,
+}
+
+impl WorldMetrics {
+    pub fn get(&self, metric: WorldMetric) -> Option<f64> {
+        match metric {
+            WorldMetric::EnergyGrowth => self.energy_growth,
+            WorldMetric::AngularSpeedGrowth => self.angular_speed_growth,
+        }
+    }
+}
+
 /// What to sort worlds by.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "key", rename_all = "snake_case")]
@@ -198,13 +228,27 @@ pub enum RankKey {
         objects: Vec<u32>,
         aggregate: Aggregate,
     },
+    /// A per-world measurement; worlds without it (forward worlds for the plausibility
+    /// measures) have no score and sort last. Ascending = most plausible first.
+    World { metric: WorldMetric },
 }
 
 impl RankKey {
     /// The score of a world with these per-object metrics (indexed by object) that satisfies
     /// `constraints_satisfied` live constraints.
     pub fn score(&self, objects: &[ObjectMetrics], constraints_satisfied: u32) -> Option<f64> {
+        self.score_with(objects, &WorldMetrics::default(), constraints_satisfied)
+    }
+
+    /// [`score`](Self::score) for a world with per-world measurements `world`.
+    pub fn score_with(
+        &self,
+        objects: &[ObjectMetrics],
+        world: &WorldMetrics,
+        constraints_satisfied: u32,
+    ) -> Option<f64> {
         match self {
+            RankKey::World { metric } => world.get(*metric),
             RankKey::Metric {
                 metric,
                 objects: chosen,

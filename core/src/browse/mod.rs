@@ -84,8 +84,8 @@ pub use frustum::{
 };
 pub use geom::{Quat, Vec3, quat_angle_between};
 pub use metrics::{
-    Aggregate, Metric, ObjectMetrics, Order, RankKey, Ranked, RestThresholds, Track, merge_top_k,
-    score, top_k,
+    Aggregate, Metric, ObjectMetrics, Order, RankKey, Ranked, RestThresholds, Track, WorldMetric,
+    WorldMetrics, merge_top_k, score, top_k,
 };
 pub use path::{MAX_TREE_DEPTH, MIN_SPLIT_SEGMENTS, Obb, PathTree, Polyline};
 pub use session::ConstraintSet;

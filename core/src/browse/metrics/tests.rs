@@ -301,3 +301,34 @@ proptest! {
         prop_assert_eq!(&merged, &reference);
     }
 }
+
+/// Per-world plausibility: scored where measured, unscored (sorted last) where not.
+#[test]
+fn world_metrics_rank_backward_worlds_and_leave_forward_ones_unscored() {
+    let objs = [object(1.0, 2.0)];
+    let key = RankKey::World {
+        metric: WorldMetric::EnergyGrowth,
+    };
+    let forward = WorldMetrics::default();
+    let backward = WorldMetrics {
+        energy_growth: Some(0.7),
+        angular_speed_growth: Some(3.0),
+    };
+    assert_eq!(key.score_with(&objs, &forward, 0), None);
+    assert_eq!(key.score_with(&objs, &backward, 0), Some(0.7));
+    let key = RankKey::World {
+        metric: WorldMetric::AngularSpeedGrowth,
+    };
+    assert_eq!(key.score_with(&objs, &backward, 0), Some(3.0));
+    // Per-object keys ignore the world's measurements.
+    let by_object = RankKey::Metric {
+        metric: Metric::AngularTravel,
+        objects: vec![0],
+        aggregate: Aggregate::Sum,
+    };
+    assert_eq!(by_object.score_with(&objs, &backward, 0), Some(1.0));
+    let text = serde_json::to_string(&key).expect("serialises");
+    assert_eq!(serde_json::from_str::<RankKey>(&text).expect("parses"), key);
+    // Absent measurements are not written (forward summaries stay as they were).
+    assert_eq!(serde_json::to_string(&forward).expect("serialises"), "{}");
+}
