@@ -9,13 +9,17 @@
 //!   nodes that run elsewhere.
 //!
 //! Every form needs a store on the bus (`mwb store`); the worlds are browsed like any others.
+//! A scene's optional `[reverse]` table (`mwb_reverse::settings_toml`) asks for a mixed run
+//! (`mode = "mixed"`, `forward_time`: the state is an intermediate frame, §5.4.4) and per-body
+//! hints (`[[reverse.hint]]`); the nodes read it from the job's scene text.
 
 use crate::bus::BusArgs;
 use crate::client::{self, QualityArg};
 use anyhow::{Context, Result, bail};
 use mwb_core::keys::Keys;
 use mwb_proto::v1::{Job, JobKind, JobState, Quality};
-use mwb_reverse::scene::{builtin, world_from_toml};
+use mwb_reverse::scene::{builtin, world_from_scene};
+use mwb_reverse::settings_toml::{parse_reverse_scene, strip_reverse_table};
 use std::time::{Duration, Instant};
 
 /// Arguments of `mwb reverse`.
@@ -24,8 +28,9 @@ pub struct ReverseArgs {
     #[command(flatten)]
     pub bus: BusArgs,
     /// Final-state scene: a TOML file, or a shipped reverse scene (word, stack, balls,
-    /// balls_small, crash). The run goes back `[settings] end_time` seconds. Without it, the
-    /// node serves reverse jobs from the bus until Ctrl-C.
+    /// balls_small, crash, crash_mixed). The run goes back `[settings] end_time` seconds; a `[reverse]`
+    /// table may make it mixed and add hints. Without it, the node serves reverse jobs from the
+    /// bus until Ctrl-C.
     #[arg(long)]
     pub scene: Option<String>,
     /// Worlds to sample.
@@ -56,6 +61,13 @@ pub struct ReverseArgs {
     pub json: bool,
 }
 
+/// Shipped reverse scenes with a `[reverse]` table, which the plain scene parser (and so
+/// `builtin::ALL`'s users) refuses: only `mwb reverse` and the reverse nodes read them.
+pub const WITH_REVERSE_TABLE: &[(&str, &str)] = &[(
+    "crash_mixed",
+    include_str!("../scenes/reverse/crash_mixed.toml"),
+)];
+
 /// Reads a final-state scene argument: a path to a TOML file, or the name of a shipped
 /// reverse scene (`scenes/reverse/`).
 pub fn load_reverse_scene(arg: &str) -> Result<(String, String)> {
@@ -67,21 +79,19 @@ pub fn load_reverse_scene(arg: &str) -> Result<(String, String)> {
     }
     let name = arg.trim_end_matches(".toml");
     let name = name.rsplit('/').next().unwrap_or(name);
-    match builtin::ALL.iter().find(|(n, _)| *n == name) {
+    let shipped = || builtin::ALL.iter().chain(WITH_REVERSE_TABLE);
+    match shipped().find(|(n, _)| *n == name) {
         Some((n, text)) => Ok((format!("scenes/reverse/{n}.toml"), (*text).to_owned())),
         None => bail!(
             "scene {arg:?}: no such file, and not a shipped reverse scene ({})",
-            builtin::ALL
-                .iter()
-                .map(|(n, _)| *n)
-                .collect::<Vec<_>>()
-                .join(", ")
+            shipped().map(|(n, _)| *n).collect::<Vec<_>>().join(", ")
         ),
     }
 }
 
 /// A reverse job for `target` worlds of the final-state scene text. Checks first that the
-/// reverse stepper can build the scene, so a bad scene fails here and not on every node.
+/// reverse stepper can build the scene and that its `[reverse]` table is valid, so a bad scene
+/// fails here and not on every node.
 pub fn make_reverse_job(
     file: &str,
     text: &str,
@@ -90,8 +100,17 @@ pub fn make_reverse_job(
     id: Option<String>,
     quality: QualityArg,
 ) -> Result<Job> {
-    world_from_toml(text, file).with_context(|| format!("{file}: not a reverse scene"))?;
-    let mut job = client::make_job(file, text, target, priority, id)?;
+    let (template, _) =
+        parse_reverse_scene(text, file).with_context(|| format!("{file}: not a reverse scene"))?;
+    world_from_scene(&template.instantiate(0))
+        .with_context(|| format!("{file}: not a reverse scene"))?;
+    // The plain scene parser (make_job's) refuses the `[reverse]` table; the job carries the
+    // whole text, for the nodes.
+    let mut job = client::make_job(file, &strip_reverse_table(text), target, priority, id)?;
+    if let Some(scene) = job.scene.as_mut() {
+        scene.toml = text.to_owned();
+        scene.content_hash = mwb_core::content_hash(text);
+    }
     job.kind = JobKind::Reverse as i32;
     job.quality = match quality {
         QualityArg::Draft => Quality::Draft,

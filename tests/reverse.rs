@@ -2,7 +2,9 @@
 //! no scouting), a reverse node and a forward sampler (clients) and a CLI-side client. A reverse
 //! job of the word scene is taken by the reverse node only; the store assembles, verifies and
 //! indexes its worlds; fetched worlds pass the CLI's verification (CRC, contiguity, decode) and
-//! play forward into the scene's final state.
+//! play forward into the scene's final state, and carry their plausibility numbers. A mixed job
+//! (a scene with a `[reverse] mode = "mixed"` table) gives worlds of backward + forward frames
+//! that pass through the scene's intermediate state.
 
 use mwb::bench::free_port;
 use mwb::bus::{BusArgs, Mode};
@@ -174,6 +176,16 @@ async fn a_reverse_job_is_sampled_stored_and_plays_forward_into_the_final_state(
         assert_eq!(done.impacts.len(), 16);
         assert_eq!(done.body_rested, vec![true; 16]);
         assert!(done.rested);
+        // §5.3.1 plausibility, on the wire for the store to rank by.
+        for (what, x) in [
+            ("energy_growth", done.energy_growth),
+            ("angular_speed_growth", done.angular_speed_growth),
+        ] {
+            assert!(
+                x.is_some_and(|x| x.is_finite() && x >= 0.0),
+                "world {index}: {what} = {x:?}"
+            );
+        }
 
         // Played forward, the last frame is the user's final state (within the codec bound).
         let Some(last) = world.segments.last() else {
@@ -225,6 +237,158 @@ async fn a_reverse_job_is_sampled_stored_and_plays_forward_into_the_final_state(
     assert_eq!(stats.crc_failures, 0, "{stats:?}");
 
     within("sampler stop", T, sampler.stop()).await;
+    within("reverse stop", T, reverse.stop()).await;
+    store.stop();
+    for s in [client_session, node_session, store_session] {
+        let _ = tokio::time::timeout(Duration::from_secs(5), s.close()).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_mixed_job_from_the_scene_table_stores_backward_plus_forward_frames() {
+    const MIXED: u32 = 2;
+    let port = free_port().unwrap_or_else(|e| panic!("{e}"));
+    let keys = Keys::new(SPACE).unwrap_or_else(|e| panic!("{e}"));
+    let store_session = open(Mode::Router, port).await;
+    let store = within(
+        "store start",
+        T,
+        run_store(
+            store_session.clone(),
+            StoreConfig {
+                space: SPACE.into(),
+                node_id: Some("store".into()),
+                ..Default::default()
+            },
+        ),
+    )
+    .await
+    .unwrap_or_else(|e| panic!("{e}"));
+    let node_session = open(Mode::Client, port).await;
+    let reverse = within(
+        "reverse start",
+        T,
+        run_reverse(
+            node_session.clone(),
+            ReverseConfig {
+                space: SPACE.into(),
+                workers: 1,
+                node_id: Some("rev-m".into()),
+                refresh: Duration::from_millis(300),
+                ..Default::default()
+            },
+        ),
+    )
+    .await
+    .unwrap_or_else(|e| panic!("{e}"));
+
+    // The shipped mixed scene (`mwb reverse --scene crash_mixed`), 0.5 s back into the frame and
+    // 0.5 s forward out of it.
+    let (file, text) = load_reverse_scene("crash_mixed").unwrap_or_else(|e| panic!("{e:#}"));
+    let text = text
+        .replace("end_time = 2.0", "end_time = 0.5")
+        .replace("forward_time = 2.0", "forward_time = 0.5");
+    let job = make_reverse_job(
+        &file,
+        &text,
+        MIXED,
+        0,
+        Some("rev-crash".into()),
+        QualityArg::Standard,
+    )
+    .unwrap_or_else(|e| panic!("{e:#}"));
+    let Some(scene) = &job.scene else {
+        panic!("job without a scene")
+    };
+    assert!(scene.toml.contains("mode = \"mixed\""), "the table travels");
+    let client_session = open(Mode::Client, port).await;
+    within(
+        "submit",
+        T,
+        client::submit_job(&client_session, &keys, &job),
+    )
+    .await
+    .unwrap_or_else(|e| panic!("{e:#}"));
+    let state = within(
+        "job",
+        Duration::from_secs(240),
+        client::wait_job(
+            &client_session,
+            &keys,
+            &job.id,
+            Some(Duration::from_secs(200)),
+            |_| {},
+        ),
+    )
+    .await
+    .unwrap_or_else(|e| panic!("{e:#}"));
+    assert!(state.closed, "{state:?}");
+    assert_eq!(state.worlds_done, MIXED, "{state:?}");
+    assert_eq!(state.worlds_rejected, 0, "{state:?}");
+
+    let (template, _) =
+        mwb_reverse::parse_reverse_scene(&text, &file).unwrap_or_else(|e| panic!("{e}"));
+    let (e_max, _) = Quality::Standard.bounds();
+    // 60 backward steps, the given frame, 60 forward steps.
+    let (join, frames) = (60usize, 121u32);
+    for index in 0..MIXED {
+        let world = within(
+            "fetch",
+            T,
+            client::fetch_world(&client_session, &keys, index),
+        )
+        .await
+        .unwrap_or_else(|e| panic!("{e:#}"))
+        .unwrap_or_else(|| panic!("world {index} not served"));
+        let check = verify_world(&world).unwrap_or_else(|e| panic!("{e:#}"));
+        let Some(done) = &world.done else {
+            panic!("world {index}: no summary")
+        };
+        assert_eq!(done.node_id, "rev-m");
+        assert_eq!(check.frames, frames);
+        assert_eq!(done.frame_count, frames);
+        assert_eq!(done.sim_steps, u64::from(frames - 1));
+        assert_eq!(done.impacts.len(), 5);
+        assert_eq!(done.rest_time_s.len(), 5);
+        assert!(done.energy_growth.is_some_and(f64::is_finite), "{done:?}");
+        assert!(
+            done.angular_speed_growth.is_some_and(f64::is_finite),
+            "{done:?}"
+        );
+
+        // Played forward, frame `join` is the scene's intermediate state, and the world goes on
+        // after it (the boxes were rising; 0.5 s later they have fallen below it).
+        let mut paths: Vec<Vec<[f64; 3]>> = vec![Vec::new(); 5];
+        for seg in &world.segments {
+            let tracks = WorldReader::new(&seg.payload)
+                .and_then(|r| r.decode_all())
+                .unwrap_or_else(|e| panic!("{e}"));
+            for (p, t) in paths.iter_mut().zip(tracks) {
+                p.extend(t.positions);
+            }
+        }
+        let given = template.instantiate(done.seed);
+        for (b, body) in given.bodies.iter().enumerate() {
+            let d = paths[b][join]
+                .iter()
+                .zip(&body.position)
+                .map(|(x, y)| (x - y).powi(2))
+                .sum::<f64>()
+                .sqrt();
+            assert!(
+                d <= e_max * (1.0 + 1e-9),
+                "world {index} body {b}: {d} m off"
+            );
+            let Some(end) = paths[b].last() else {
+                panic!("world {index} body {b}: empty path")
+            };
+            assert!(
+                end[1] < body.position[1] - 0.2,
+                "world {index} body {b}: {end:?}"
+            );
+        }
+    }
+
     within("reverse stop", T, reverse.stop()).await;
     store.stop();
     for s in [client_session, node_session, store_session] {

@@ -34,10 +34,12 @@
 //!   rattling, stacking, user hints) and per-world plausibility measurements
 //!   ([`BackwardRunReport`]); mixed runs from an intermediate frame (§5.4.4).
 //! * [`scene`]: the ordinary scene format read as a final state, and `scenes/reverse/`.
+//! * [`settings_toml`]: a reverse scene's optional `[reverse]` table: backward or mixed run,
+//!   per-body user hints by body name.
 //! * [`bench`]: the numbers of `mwb bench reverse`.
-//! * [`sample`]: one backward world as a stored world — time-reversed so that playback runs
-//!   forward, cut into self-contained codec segments, with the per-body summary (impacts,
-//!   rest) of the world as played forward. Pure.
+//! * [`sample`]: one backward (or mixed) world as a stored world — time-reversed so that
+//!   playback runs forward, cut into self-contained codec segments, with the per-body summary
+//!   (impacts, rest) of the world as played forward and its plausibility numbers. Pure.
 //! * [`node`]: the bus node around it: takes `JOB_KIND_REVERSE` jobs and publishes their
 //!   worlds exactly as a forward sampler publishes its own (the only part with I/O).
 //!
@@ -181,6 +183,7 @@ pub mod qr;
 pub mod run;
 pub mod sample;
 pub mod scene;
+pub mod settings_toml;
 pub mod step;
 pub mod world;
 
@@ -200,6 +203,7 @@ pub use run::{
 };
 pub use sample::{ReverseScene, ReverseWorldSummary, SampleError, sample_world};
 pub use scene::{SceneConvertError, world_from_scene};
+pub use settings_toml::{ReverseTable, RunMode, parse_reverse_scene};
 pub use world::{ContactImpulse, IslandSolve, StepParams, StepReport, World};
 
 /// Errors building a [`Body`] or [`StaticBody`].

@@ -8,7 +8,9 @@
 //! Joining and leaving follow the sampler (§4.2): open jobs are learned from announcements and
 //! from the stores (for jobs announced before the node joined); a node that dies loses only the
 //! worlds it was computing. A job's scene is prepared (parsed, chain learned) once, by the first
-//! worker that needs it.
+//! worker that needs it; its `[reverse]` table ([`crate::settings_toml`]) makes the job's worlds
+//! mixed (§5.4.4) and/or hinted. `WorldDone` carries each world's §5.3.1 plausibility numbers
+//! (`energy_growth`, `angular_speed_growth`).
 
 use crate::sample::{ReverseScene, SampleError, Segment, provenance, sample_world};
 use mwb_core::keys::{Keys, role};
@@ -294,7 +296,7 @@ impl ReverseHandle {
     pub fn failed(&self) -> u64 {
         self.shared.failed.load(Ordering::Relaxed)
     }
-    /// Backward steps of the published worlds.
+    /// Stepper steps of the published worlds (backward, and forward for mixed worlds).
     pub fn steps(&self) -> u64 {
         self.shared.steps.load(Ordering::Relaxed)
     }
@@ -601,22 +603,10 @@ fn worker(shared: &Shared, tx: &mpsc::Sender<Put>, keys: &Keys, node: &str) {
                     "backward world done"
                 );
                 let done = WorldDone {
-                    job_id: job_id.clone(),
-                    node_id: node.to_owned(),
-                    world_counter: counter,
-                    seed,
-                    frame_count: summary.frame_count,
-                    segment_count: summary.segment_count,
-                    frame_dt: summary.frame_dt,
-                    rested: summary.rested,
-                    impacts: summary.impacts,
-                    perturbations: summary.lifts,
-                    sim_steps: summary.steps,
                     cpu_seconds: cpu_time() - started,
                     provenance: provenance.clone(),
                     scene_hash,
-                    rest_time_s: summary.rest_time_s,
-                    body_rested: summary.body_rested,
+                    ..summary.world_done(&job_id, node, counter)
                 };
                 let put = Put {
                     key: keys.done(&job_id, node, counter),

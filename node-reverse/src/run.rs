@@ -259,6 +259,8 @@ pub struct MixedRun {
     pub frames: Vec<Frame>,
     /// Index of the given state in `frames`.
     pub join: usize,
+    /// Per body, `(linear, angular)` velocity in `frames[0]` (the earliest state).
+    pub first_velocities: Vec<(Vector3<f64>, Vector3<f64>)>,
     /// Measurements of the backward half.
     pub report: BackwardRunReport,
 }
@@ -577,6 +579,7 @@ pub fn run_mixed(
 ) -> MixedRun {
     let start = world.clone();
     let back = run_backward(world, seed, settings);
+    let first_velocities = world.bodies.iter().map(|b| (b.linvel, b.angvel)).collect();
     *world = start;
     let dt = if settings.dt.is_finite() && settings.dt > 0.0 {
         settings.dt
@@ -598,6 +601,7 @@ pub fn run_mixed(
     MixedRun {
         frames,
         join,
+        first_velocities,
         report: back.report,
     }
 }

@@ -3,7 +3,12 @@
 //! earliest state, the last frame is the state the user gave), cut into ~1 s segments that are
 //! each a self-contained `mwb-codec` stream (`ENCODING_SPLINE_V1`), exactly like the forward
 //! sampler's, plus the per-body summary the store indexes (impacts, rest) described *as played
-//! forward*.
+//! forward*, and the run's §5.3.1 plausibility numbers.
+//!
+//! A scene's optional `[reverse]` table ([`crate::settings_toml`]) asks for user hints and for a
+//! mixed world instead (§5.4.4, [`run_mixed`]): the scene's state is then an intermediate frame,
+//! `end_time` seconds of backward run lead into it and `forward_time` seconds of forward steps
+//! out of it — one world, played forward across both parts.
 //!
 //! Pure computation, no bus: [`ReverseScene::prepare`] once per job (parse, convert, learn the
 //! contact-count chain of §5.3.6), then [`sample_world`] per seed. Deterministic: the same binary,
@@ -32,11 +37,13 @@ use std::ops::ControlFlow;
 use mwb_codec::{EncodeParams, LowResPath, MotionModel, Quality, Track, encode_world};
 use mwb_core::perturb;
 use mwb_core::scene::{Scene, SceneTemplate};
+use mwb_proto::v1::WorldDone;
 use nalgebra::{UnitQuaternion, Vector3};
 
 use crate::chain::{ChainLearning, ContactChain};
-use crate::run::{BackwardRunReport, Frame, ReverseSettings, run_backward};
+use crate::run::{BackwardRunReport, Frame, ReverseSettings, run_backward, run_mixed};
 use crate::scene::{SceneConvertError, world_from_scene};
+use crate::settings_toml::{ReverseTable, RunMode, parse_reverse_scene};
 
 /// What the reverse stepper is, recorded in every world's provenance: a world is regenerated
 /// bit for bit only by the same binary.
@@ -83,11 +90,12 @@ pub enum SampleError {
     Stopped,
 }
 
-/// A final-state scene ready for backward sampling: parsed once per job.
+/// A final-state (or, mixed, intermediate-state) scene ready for sampling: parsed once per job.
 #[derive(Debug, Clone)]
 pub struct ReverseScene {
     template: SceneTemplate,
     settings: ReverseSettings,
+    mode: RunMode,
 }
 
 impl ReverseScene {
@@ -97,9 +105,11 @@ impl ReverseScene {
     ///
     /// The run goes back `[settings] end_time` seconds with the scene's `dt`, the default §5.3
     /// heuristics, and without the per-step departure measurement (it costs a forward step per
-    /// step; `mwb bench reverse` measures it).
+    /// step; `mwb bench reverse` measures it). The scene's `[reverse]` table, if any, sets the
+    /// user hints and the mode ([`crate::settings_toml`]).
     pub fn prepare(text: &str, file: &str) -> Result<Self, SampleError> {
-        let template = SceneTemplate::parse(text, file).map_err(SceneConvertError::from)?;
+        let (template, ReverseTable { mode, hints }) =
+            parse_reverse_scene(text, file).map_err(SceneConvertError::from)?;
         let s = template.settings();
         for (name, value) in [("dt", s.dt), ("end_time", s.end_time)] {
             if !(value.is_finite() && value > 0.0) {
@@ -116,10 +126,20 @@ impl ReverseScene {
             dt: s.dt,
             duration: s.end_time,
             chain: Some(chain),
+            hints,
             measure_departure: false,
             ..ReverseSettings::default()
         };
-        Ok(Self { template, settings })
+        Ok(Self {
+            template,
+            settings,
+            mode,
+        })
+    }
+
+    /// Backward from the scene's state, or mixed through it.
+    pub fn mode(&self) -> RunMode {
+        self.mode
     }
 
     /// The run settings (editable: hints, heuristics, sampling ranges).
@@ -161,13 +181,15 @@ pub struct Segment {
 pub struct ReverseWorldSummary {
     /// The world's seed.
     pub seed: u64,
-    /// Frames: the given final state plus one per backward step.
+    /// Frames: the given state plus one per backward step (and, mixed, one per forward step).
     pub frame_count: u32,
+    /// Index of the given state among the frames (`frame_count − 1` for a backward world).
+    pub join: u32,
     /// Segments emitted.
     pub segment_count: u32,
     /// Seconds between frames.
     pub frame_dt: f64,
-    /// Every body at rest in the last frame (the given state).
+    /// Every body at rest in the last frame (for a backward world, the given state).
     pub rested: bool,
     /// Per body, impacts played forward: onsets of a contact acceleration above the scene's
     /// `c_v` / `c_omega` (the forward sampler's §4.1.2 rule, gravity removed).
@@ -180,12 +202,41 @@ pub struct ReverseWorldSummary {
     /// Contact lift-offs the run sampled: the random choices that make backward worlds differ,
     /// as perturbations make forward worlds differ.
     pub lifts: u32,
-    /// Backward steps.
+    /// Steps: backward, plus forward for a mixed world (`frame_count − 1`).
     pub steps: u64,
     /// Encoded bytes over all segments.
     pub payload_bytes: u64,
-    /// The run's plausibility measurements (§5.3.1: energy and angular-speed growth, …).
+    /// The run's plausibility measurements (§5.3.1: energy and angular-speed growth, …); of the
+    /// backward part only for a mixed world.
     pub report: BackwardRunReport,
+}
+
+impl ReverseWorldSummary {
+    /// The wire summary of world `(job, node, counter)`, with the §5.3.1 plausibility numbers
+    /// (`energy_growth`, m; `angular_speed_growth`, rad/s) that only backward and mixed worlds
+    /// carry; a non-finite measurement is sent as +∞ (ranks as least plausible). CPU time,
+    /// provenance and scene hash are the caller's to add.
+    pub fn world_done(&self, job_id: &str, node: &str, counter: u64) -> WorldDone {
+        let measured = |x: f64| Some(if x.is_nan() { f64::INFINITY } else { x });
+        WorldDone {
+            job_id: job_id.to_owned(),
+            node_id: node.to_owned(),
+            world_counter: counter,
+            seed: self.seed,
+            frame_count: self.frame_count,
+            segment_count: self.segment_count,
+            frame_dt: self.frame_dt,
+            rested: self.rested,
+            impacts: self.impacts.clone(),
+            perturbations: self.lifts,
+            sim_steps: self.steps,
+            rest_time_s: self.rest_time_s.clone(),
+            body_rested: self.body_rested.clone(),
+            energy_growth: measured(self.report.energy_growth),
+            angular_speed_growth: measured(self.report.angular_speed_growth),
+            ..Default::default()
+        }
+    }
 }
 
 /// The codec's position model: the stepper has no damping and no joints, and its free flight
@@ -229,9 +280,9 @@ fn arr(v: &Vector3<f64>) -> [f64; 3] {
     [v.x, v.y, v.z]
 }
 
-/// Samples the backward world of `scene` for `seed` and hands its segments, in playback
-/// order, to `emit` (which may stop the world with `ControlFlow::Break`: then
-/// [`SampleError::Stopped`]).
+/// Samples the backward (or, per the scene's `[reverse] mode`, mixed) world of `scene` for
+/// `seed` and hands its segments, in playback order, to `emit` (which may stop the world with
+/// `ControlFlow::Break`: then [`SampleError::Stopped`]).
 ///
 /// The scene is instantiated with `seed` (a final state with distributions varies per world)
 /// and the backward run draws its free choices from the same seed. Segments hold
@@ -256,20 +307,31 @@ pub fn sample_world(
         })
         .collect();
     let settings = &scene.settings;
-    let run = run_backward(&mut world, seed, settings);
+    // Frames in time order, the index of the given state, velocities of frame 0, the report.
+    let (frames, join, first, report) = match scene.mode {
+        RunMode::Backward => {
+            let run = run_backward(&mut world, seed, settings);
+            let first: Vec<_> = world.bodies.iter().map(|b| (b.linvel, b.angvel)).collect();
+            let join = run.frames.len().saturating_sub(1);
+            (run.frames, join, first, run.report)
+        }
+        RunMode::Mixed { forward_time } => {
+            let run = run_mixed(&mut world, seed, settings, forward_time);
+            (run.frames, run.join, run.first_velocities, run.report)
+        }
+    };
     let dt = settings.dt;
     let s = &concrete.settings;
     let n = world.bodies.len();
-    let first: Vec<_> = world.bodies.iter().map(|b| (b.linvel, b.angvel)).collect();
 
     // Poses in playback order, checked finite before anything is encoded.
     let mut tracks: Vec<Track> = (0..n)
         .map(|_| Track {
-            positions: Vec::with_capacity(run.frames.len()),
-            rotations: Vec::with_capacity(run.frames.len()),
+            positions: Vec::with_capacity(frames.len()),
+            rotations: Vec::with_capacity(frames.len()),
         })
         .collect();
-    for (f, frame) in run.frames.iter().enumerate() {
+    for (f, frame) in frames.iter().enumerate() {
         for (b, (pose, t)) in frame.poses.iter().zip(tracks.iter_mut()).enumerate() {
             let q: UnitQuaternion<f64> = pose.orientation;
             let origin = pose.position - q * com_offset[b];
@@ -284,7 +346,7 @@ pub fn sample_world(
     }
 
     // Impacts and rest as a viewer of the played-forward world sees them.
-    let vel = velocities(&run.frames, &first, dt);
+    let vel = velocities(&frames, &first, dt);
     let rest =
         |v: &Vector3<f64>, w: &Vector3<f64>| v.norm() < s.rest_linear && w.norm() < s.rest_angular;
     let mut impacts = vec![0u32; n];
@@ -319,7 +381,7 @@ pub fn sample_world(
         .collect();
 
     // Segments of ~segment_seconds, each its own codec stream.
-    let frame_count = run.frames.len();
+    let frame_count = frames.len();
     let per_segment = ((s.segment_seconds / dt).round() as usize).max(1);
     let params = EncodeParams::from_quality(quality, dt, motion_model(&concrete));
     let mut payload_bytes = 0u64;
@@ -354,15 +416,16 @@ pub fn sample_world(
     Ok(ReverseWorldSummary {
         seed,
         frame_count: frame_count as u32,
+        join: join as u32,
         segment_count,
         frame_dt: dt,
         rested: body_rested.iter().all(|&r| r),
         impacts,
         rest_time_s,
         body_rested,
-        lifts: u32::try_from(run.report.lifts).unwrap_or(u32::MAX),
-        steps: run.report.steps as u64,
+        lifts: u32::try_from(report.lifts).unwrap_or(u32::MAX),
+        steps: frame_count.saturating_sub(1) as u64,
         payload_bytes,
-        report: run.report,
+        report,
     })
 }

@@ -194,3 +194,152 @@ fn a_stopped_world_emits_nothing_more() {
     assert!(matches!(r, Err(mwb_reverse::SampleError::Stopped)));
     assert_eq!(seen, 1);
 }
+
+/// Every frame of a world, decoded: per body, positions in playback order.
+fn positions(segments: &[Segment]) -> Vec<Vec<[f64; 3]>> {
+    let mut out: Vec<Vec<[f64; 3]>> = Vec::new();
+    for s in segments {
+        let tracks = WorldReader::new(&s.payload)
+            .and_then(|r| r.decode_all())
+            .unwrap_or_else(|e| panic!("segment {}: {e}", s.seq));
+        out.resize(tracks.len(), Vec::new());
+        for (all, t) in out.iter_mut().zip(tracks) {
+            all.extend(t.positions);
+        }
+    }
+    out
+}
+
+#[test]
+fn the_wire_summary_carries_the_plausibility_numbers() {
+    let scene = prepare(&word(0.5));
+    let (_, summary) = sample(&scene, 11);
+    let done = summary.world_done("job", "node", 3);
+    assert_eq!(done.frame_count, summary.frame_count);
+    assert_eq!(done.sim_steps, 60);
+    assert_eq!(done.body_rested, summary.body_rested);
+    let (Some(energy), Some(angular)) = (done.energy_growth, done.angular_speed_growth) else {
+        panic!("plausibility numbers missing: {done:?}")
+    };
+    assert!(energy.is_finite() && energy >= 0.0, "{energy}");
+    assert!(angular.is_finite() && angular >= 0.0, "{angular}");
+    assert_eq!(energy, summary.report.energy_growth);
+    assert_eq!(angular, summary.report.angular_speed_growth);
+    // They survive the wire, and a forward world (no numbers) stays distinguishable from 0.
+    use mwb_proto::v1::{Message, WorldDone};
+    let back = WorldDone::decode(done.encode_to_vec().as_slice()).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(back.energy_growth, Some(energy));
+    assert_eq!(back.angular_speed_growth, Some(angular));
+    let forward = WorldDone {
+        energy_growth: None,
+        angular_speed_growth: Some(0.0),
+        ..Default::default()
+    };
+    let forward =
+        WorldDone::decode(forward.encode_to_vec().as_slice()).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(forward.energy_growth, None);
+    assert_eq!(forward.angular_speed_growth, Some(0.0));
+}
+
+/// The shipped mixed crash scene, `back` s backward into the frame and `forward` s out of it.
+fn crash_mixed(back: f64, forward: f64) -> String {
+    let text = include_str!("../../scenes/reverse/crash_mixed.toml");
+    let short = text
+        .replace("end_time = 2.0", &format!("end_time = {back:?}"))
+        .replace("forward_time = 2.0", &format!("forward_time = {forward:?}"));
+    assert_eq!(
+        short.matches(" = 2.0").count() + 2,
+        text.matches(" = 2.0").count()
+    );
+    short
+}
+
+#[test]
+fn a_mixed_world_plays_forward_through_the_given_frame() {
+    let text = crash_mixed(0.5, 0.75);
+    let scene = prepare(&text);
+    assert_eq!(
+        scene.mode(),
+        mwb_reverse::RunMode::Mixed { forward_time: 0.75 }
+    );
+    assert_eq!(scene.settings().hints.len(), 1, "the shipped hint on A");
+    let template = mwb_reverse::parse_reverse_scene(&text, "crash_mixed")
+        .unwrap_or_else(|e| panic!("{e}"))
+        .0;
+    let (e_max, _) = Quality::Standard.bounds();
+    for seed in [1u64, 2] {
+        let (segments, summary) = sample(&scene, seed);
+        // 0.5 s back and 0.75 s forward at 1/120 s: 60 + 1 + 90 frames, the given one at 60.
+        assert_eq!(summary.frame_count, 151);
+        assert_eq!(summary.join, 60);
+        assert_eq!(summary.steps, 150);
+        assert_eq!(segments.iter().map(|s| s.frame_count).sum::<u32>(), 151);
+        assert_eq!(summary.segment_count as usize, segments.len());
+        let done = summary.world_done("j", "n", 0);
+        assert_eq!(done.frame_count, 151);
+        assert!(done.energy_growth.is_some_and(f64::is_finite), "{done:?}");
+        assert!(done.angular_speed_growth.is_some_and(f64::is_finite));
+        let paths = positions(&segments);
+        let given = template.instantiate(seed);
+        for (b, body) in given.bodies.iter().enumerate() {
+            let path = &paths[b];
+            assert_eq!(path.len(), 151);
+            // Frame 60 is the user's intermediate state ...
+            let d = dist(path[60], body.position);
+            assert!(d <= e_max * (1.0 + 1e-9), "seed {seed} body {b}: {d} m off");
+            // ... and the world goes on: played forward, the boxes rise and then fall, so
+            // 0.75 s later they are lower than at the frame (v_y ≤ 1.4 m/s: apex within 0.15 s).
+            assert!(
+                path[150][1] < body.position[1] - 0.5,
+                "seed {seed} body {b}"
+            );
+            // Played forward it is one motion: no jump at the join.
+            assert!(dist(path[59], path[60]) < 0.05 && dist(path[60], path[61]) < 0.05);
+        }
+    }
+}
+
+#[test]
+fn a_slide_hint_brings_the_body_in_along_its_direction() {
+    // M0 is the left-most box of the word: with a slide hint along +x it arrives from −x.
+    let hinted = format!(
+        "{}\n[reverse]\n[[reverse.hint]]\nbody = \"M0\"\nmotion = \"slide\"\ndirection = [1, 0, 0]\n",
+        word(1.0)
+    );
+    let plain = prepare(&word(1.0));
+    let scene = prepare(&hinted);
+    assert_eq!(scene.mode(), mwb_reverse::RunMode::Backward);
+    for seed in [1u64, 2, 3] {
+        let (segments, summary) = sample(&scene, seed);
+        assert_eq!(summary.frame_count, 121);
+        let path = &positions(&segments)[0];
+        let (Some(first), Some(last)) = (path.first(), path.last()) else {
+            panic!("empty path")
+        };
+        let along = first[0] - last[0];
+        let across = (first[2] - last[2]).abs();
+        assert!(along < -0.05, "seed {seed}: M0 came from {along} m along x");
+        assert!(
+            across < 0.25 * along.abs(),
+            "seed {seed}: {across} m across"
+        );
+        let (unhinted, _) = sample(&plain, seed);
+        assert_ne!(
+            positions(&unhinted)[0],
+            *path,
+            "seed {seed}: the hint changed nothing"
+        );
+    }
+}
+
+#[test]
+fn a_bad_reverse_table_is_refused_before_any_world() {
+    let text = format!("{}\n[reverse]\nmode = \"both\"\n", word(0.5));
+    match ReverseScene::prepare(&text, "word.toml") {
+        Ok(_) => panic!("accepted mode = both"),
+        Err(e) => {
+            let e = e.to_string();
+            assert!(e.contains("field `mode`"), "{e}");
+        }
+    }
+}
