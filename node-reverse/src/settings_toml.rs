@@ -40,7 +40,7 @@
 //! assert_eq!(table.mode, RunMode::Mixed { forward_time: 0.5 });
 //! assert_eq!(table.hints.len(), 1);
 //!
-//! let bad = text.replace("\"M0\"", "\"M99\"");
+//! let bad = text.replace("body = \"M0\"", "body = \"M99\"");
 //! let err = parse_reverse_scene(&bad, "word.toml").unwrap_err();
 //! assert_eq!(err.field.as_deref(), Some("body"));
 //! # Ok::<(), mwb_core::scene::SceneError>(())
