@@ -12,9 +12,12 @@ use mwb::check::verify_world;
 use mwb::client::{self, QualityArg};
 use mwb::reverse_cmd::{load_reverse_scene, make_reverse_job};
 use mwb_codec::{Quality, WorldReader};
+use mwb_core::browse::api::{Reply, Request};
+use mwb_core::browse::{Order, RankKey, WorldMetric};
 use mwb_core::keys::Keys;
 use mwb_core::scene::SceneTemplate;
 use mwb_proto::v1::{JobKind, Message, NodeStats};
+use mwb_query::{QueryConfig, run_query};
 use mwb_reverse::{ReverseConfig, run_reverse};
 use mwb_sampler::{SamplerConfig, run_sampler};
 use mwb_store::{StoreConfig, run_store};
@@ -153,6 +156,7 @@ async fn a_reverse_job_is_sampled_stored_and_plays_forward_into_the_final_state(
 
     let template = SceneTemplate::parse(&text, &file).unwrap_or_else(|e| panic!("{e}"));
     let (e_max, theta_max) = Quality::Standard.bounds();
+    let mut growth: Vec<(u32, f64)> = Vec::new();
     for index in 0..WORLDS {
         let world = within(
             "fetch",
@@ -186,6 +190,7 @@ async fn a_reverse_job_is_sampled_stored_and_plays_forward_into_the_final_state(
                 "world {index}: {what} = {x:?}"
             );
         }
+        growth.extend(done.energy_growth.map(|g| (index, g)));
 
         // Played forward, the last frame is the user's final state (within the codec bound).
         let Some(last) = world.segments.last() else {
@@ -235,6 +240,42 @@ async fn a_reverse_job_is_sampled_stored_and_plays_forward_into_the_final_state(
     assert_eq!(stats.worlds, u64::from(WORLDS), "{stats:?}");
     assert_eq!(stats.index_failures, 0, "{stats:?}");
     assert_eq!(stats.crc_failures, 0, "{stats:?}");
+
+    // … and ranks them by their plausibility over the browse API (least energy gained first).
+    let query = within(
+        "query start",
+        T,
+        run_query(
+            store_session.clone(),
+            QueryConfig {
+                space: SPACE.to_owned(),
+                node_id: Some("reverse-query".into()),
+                ..Default::default()
+            },
+        ),
+    )
+    .await
+    .unwrap_or_else(|e| panic!("{e}"));
+    let request = Request::Rank {
+        key: RankKey::World {
+            metric: WorldMetric::EnergyGrowth,
+        },
+        order: Order::Ascending,
+        k: WORLDS as usize,
+        all_worlds: false,
+    };
+    let reply = within("rank", T, query.request("t", request))
+        .await
+        .unwrap_or_else(|e| panic!("{e}"));
+    let Reply::Ranking { candidates, rows } = reply else {
+        panic!("{reply:?}")
+    };
+    assert_eq!(candidates, u64::from(WORLDS));
+    growth.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
+    let ranked: Vec<(u32, Option<f64>)> = rows.iter().map(|r| (r.world, r.score)).collect();
+    let expected: Vec<(u32, Option<f64>)> = growth.iter().map(|&(w, g)| (w, Some(g))).collect();
+    assert_eq!(ranked, expected);
+    query.stop();
 
     within("sampler stop", T, sampler.stop()).await;
     within("reverse stop", T, reverse.stop()).await;

@@ -221,6 +221,11 @@ pub fn index_world(
         rested: done.rested,
         objects,
         metrics: all_metrics,
-        world_metrics: WorldMetrics::default(),
+        // Reverse nodes measure a backward world's plausibility (§5.3.1); forward worlds leave
+        // the fields absent. A NaN would sort unpredictably: it counts as not measured.
+        world_metrics: WorldMetrics {
+            energy_growth: done.energy_growth.filter(|v| !v.is_nan()),
+            angular_speed_growth: done.angular_speed_growth.filter(|v| !v.is_nan()),
+        },
     })
 }

@@ -590,7 +590,10 @@ pub(crate) fn parse(src: Source<'_>) -> Result<SceneTemplate, SceneError> {
         span: 0..0,
         table: doc.get_ref(),
     };
-    root.check_keys(&["name", "description", "settings", "material", "static", "body", "joint"], &|k| {
+    // `reverse`: the backward-run table of a final-state scene, read and validated by
+    // mwb-reverse (`settings_toml`); every other reader (samplers, the store's rest thresholds,
+    // `mwb scene`) ignores it.
+    root.check_keys(&["name", "description", "settings", "material", "static", "body", "joint", "reverse"], &|k| {
         matches!(k, "materials" | "statics" | "bodies" | "joints").then(|| {
             "unknown table (tables are singular: [[material]], [[static]], [[body]], [[joint]])".to_owned()
         })

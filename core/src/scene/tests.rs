@@ -992,3 +992,19 @@ fn examples_in_the_format_reference_parse() {
     );
     assert_eq!(example.body_count(), 193);
 }
+
+/// A final-state scene's `[reverse]` table belongs to mwb-reverse: every other reader ignores
+/// it, and the rest of the scene is read exactly as without it.
+#[test]
+fn a_reverse_table_is_ignored_by_the_core_reader() {
+    let base = "name = \"r\"\n[[material]]\nname = \"m\"\n[[body]]\nname = \"b\"\nshape = \"sphere\"\nradius = 0.1\nmaterial = \"m\"\nposition = [0, 1, 0]\n";
+    let with = format!(
+        "{base}[reverse]\nmode = \"mixed\"\nforward_time = 1.0\n[[reverse.hint]]\nbody = \"b\"\nmotion = \"stay\"\n"
+    );
+    assert_eq!(
+        parse_ok(&with).instantiate(7),
+        parse_ok(base).instantiate(7)
+    );
+    // Other unknown tables are still refused.
+    assert!(parse(&format!("{base}[reverso]\nmode = 1\n")).is_err());
+}
