@@ -28,7 +28,7 @@ pub struct ReverseArgs {
     #[command(flatten)]
     pub bus: BusArgs,
     /// Final-state scene: a TOML file, or a shipped reverse scene (word, stack, balls,
-    /// balls_small, crash, crash_mixed). The run goes back `[settings] end_time` seconds; a `[reverse]`
+    /// balls_small, crash, crash_mixed, gate). The run goes back `[settings] end_time` seconds; a `[reverse]`
     /// table may make it mixed and add hints. Without it, the node serves reverse jobs from the
     /// bus until Ctrl-C.
     #[arg(long)]
