@@ -62,16 +62,14 @@ fn angle(a: [f64; 4], b: [f64; 4]) -> f64 {
     2.0 * d.abs().min(1.0).acos()
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_reverse_job_is_sampled_stored_and_plays_forward_into_the_final_state() {
-    let port = free_port().unwrap_or_else(|e| panic!("{e}"));
-    let keys = Keys::new(SPACE).unwrap_or_else(|e| panic!("{e}"));
-    let store_session = open(Mode::Router, port).await;
+/// A store (router) on `port`: its session and handle.
+async fn start_store(port: u16) -> (zenoh::Session, mwb_store::StoreHandle) {
+    let session = open(Mode::Router, port).await;
     let store = within(
         "store start",
         T,
         run_store(
-            store_session.clone(),
+            session.clone(),
             StoreConfig {
                 space: SPACE.into(),
                 node_id: Some("store".into()),
@@ -81,23 +79,40 @@ async fn a_reverse_job_is_sampled_stored_and_plays_forward_into_the_final_state(
     )
     .await
     .unwrap_or_else(|e| panic!("{e}"));
-    let node_session = open(Mode::Client, port).await;
-    let reverse = within(
+    (session, store)
+}
+
+/// A reverse node with `workers` threads on `session`.
+async fn start_reverse(
+    session: &zenoh::Session,
+    workers: usize,
+    node_id: &str,
+) -> mwb_reverse::ReverseHandle {
+    within(
         "reverse start",
         T,
         run_reverse(
-            node_session.clone(),
+            session.clone(),
             ReverseConfig {
                 space: SPACE.into(),
-                workers: 2,
-                node_id: Some("rev-a".into()),
+                workers,
+                node_id: Some(node_id.into()),
                 refresh: Duration::from_millis(300),
                 ..Default::default()
             },
         ),
     )
     .await
-    .unwrap_or_else(|e| panic!("{e}"));
+    .unwrap_or_else(|e| panic!("{e}"))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reverse_job_is_sampled_stored_and_plays_forward_into_the_final_state() {
+    let port = free_port().unwrap_or_else(|e| panic!("{e}"));
+    let keys = Keys::new(SPACE).unwrap_or_else(|e| panic!("{e}"));
+    let (store_session, store) = start_store(port).await;
+    let node_session = open(Mode::Client, port).await;
+    let reverse = start_reverse(&node_session, 2, "rev-a").await;
     // A forward sampler on the same bus must leave the reverse job alone.
     let sampler = within(
         "sampler start",
@@ -290,38 +305,9 @@ async fn a_mixed_job_from_the_scene_table_stores_backward_plus_forward_frames() 
     const MIXED: u32 = 2;
     let port = free_port().unwrap_or_else(|e| panic!("{e}"));
     let keys = Keys::new(SPACE).unwrap_or_else(|e| panic!("{e}"));
-    let store_session = open(Mode::Router, port).await;
-    let store = within(
-        "store start",
-        T,
-        run_store(
-            store_session.clone(),
-            StoreConfig {
-                space: SPACE.into(),
-                node_id: Some("store".into()),
-                ..Default::default()
-            },
-        ),
-    )
-    .await
-    .unwrap_or_else(|e| panic!("{e}"));
+    let (store_session, store) = start_store(port).await;
     let node_session = open(Mode::Client, port).await;
-    let reverse = within(
-        "reverse start",
-        T,
-        run_reverse(
-            node_session.clone(),
-            ReverseConfig {
-                space: SPACE.into(),
-                workers: 1,
-                node_id: Some("rev-m".into()),
-                refresh: Duration::from_millis(300),
-                ..Default::default()
-            },
-        ),
-    )
-    .await
-    .unwrap_or_else(|e| panic!("{e}"));
+    let reverse = start_reverse(&node_session, 1, "rev-m").await;
 
     // The shipped mixed scene (`mwb reverse --scene crash_mixed`), 0.5 s back into the frame and
     // 0.5 s forward out of it.

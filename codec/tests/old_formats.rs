@@ -1,6 +1,7 @@
-//! Old recordings stay readable: streams written by the version-2 encoder (before format 3, saved
-//! as fixtures) still decode, through every read path, to exactly the poses they decoded to when
-//! they were written — and so stay within the bounds of the motion they were made from.
+//! Old recordings stay readable: streams written by the version-1 and version-2 encoders (saved
+//! as fixtures before formats 2 and 3 replaced them) still decode, through every read path, to
+//! exactly the poses they decoded to when they were written — and so stay within the bounds of
+//! the motion they were made from.
 
 mod common;
 
@@ -8,10 +9,18 @@ use common::{G, distance, generate, normalise, rotation_angle};
 use mwb_codec::{MotionModel, Quality, Track, WorldReader};
 
 /// `(fixture, preset, model)`: six objects, one per test generator (seeds 31..37), 120 frames at
-/// 120 Hz, encoded with `EncodeParams::from_quality(preset, 1/120, model)` by the format-2 encoder
-/// of commit d1ba8c1 (tracks `common::generate(object, 31 + object, 120, 1/120)`); the `.poses`
-/// files are what that build decoded.
-const FIXTURES: [(&str, Quality, MotionModel); 2] = [
+/// 120 Hz (tracks `common::generate(object, 31 + object, 120, 1/120)`), encoded with
+/// `EncodeParams::from_quality(preset, 1/120, model)`; the `.poses` files are what the writing
+/// build decoded. Version 1: format-1 code; version 2: the encoder of commit d1ba8c1.
+const V1: [(&str, Quality, MotionModel); 2] = [
+    (
+        "v1_gravity_standard",
+        Quality::Standard,
+        MotionModel::FreeFlightGravity { g: G },
+    ),
+    ("v1_general_draft", Quality::Draft, MotionModel::General),
+];
+const V2: [(&str, Quality, MotionModel); 2] = [
     (
         "v2_gravity_standard",
         Quality::Standard,
@@ -19,6 +28,16 @@ const FIXTURES: [(&str, Quality, MotionModel); 2] = [
     ),
     ("v2_general_draft", Quality::Draft, MotionModel::General),
 ];
+
+#[test]
+fn version_1_streams_decode_to_the_same_poses() {
+    check(1, &V1);
+}
+
+#[test]
+fn version_2_streams_decode_to_the_same_poses() {
+    check(2, &V2);
+}
 
 fn fixture(name: &str, ext: &str) -> Vec<u8> {
     let path = format!("{}/tests/fixtures/{name}.{ext}", env!("CARGO_MANIFEST_DIR"));
@@ -35,14 +54,15 @@ fn poses(bytes: &[u8]) -> Vec<[f64; 7]> {
         .collect()
 }
 
-#[test]
-fn version_2_streams_decode_to_the_same_poses() {
+/// Every fixture of `fixtures` reads as format `version` and decodes, through every read path,
+/// to the saved poses bit for bit, within the bounds of the motion it was made from.
+fn check(version: u16, fixtures: &[(&str, Quality, MotionModel)]) {
     let dt = 1.0 / 120.0;
-    for (name, quality, model) in FIXTURES {
+    for &(name, quality, model) in fixtures {
         let bytes = fixture(name, "mwbm");
         let want = poses(&fixture(name, "poses"));
         let reader = WorldReader::new(&bytes).unwrap();
-        assert_eq!(reader.version(), 2, "{name}");
+        assert_eq!(reader.version(), version, "{name}");
         assert_eq!(reader.quality(), Some(quality));
         assert_eq!(reader.model(), model);
         assert_eq!((reader.object_count(), reader.frame_count()), (6, 120));
