@@ -62,6 +62,30 @@ fn angle(a: [f64; 4], b: [f64; 4]) -> f64 {
     2.0 * d.abs().min(1.0).acos()
 }
 
+/// Submits `job` and follows it until it closes (or the wait gives up): its last state.
+async fn submit_and_wait(
+    session: &zenoh::Session,
+    keys: &Keys,
+    job: &mwb_proto::v1::Job,
+) -> mwb_proto::v1::JobState {
+    within("submit", T, client::submit_job(session, keys, job))
+        .await
+        .unwrap_or_else(|e| panic!("{e:#}"));
+    within(
+        "job",
+        Duration::from_secs(240),
+        client::wait_job(
+            session,
+            keys,
+            &job.id,
+            Some(Duration::from_secs(200)),
+            |_| {},
+        ),
+    )
+    .await
+    .unwrap_or_else(|e| panic!("{e:#}"))
+}
+
 /// A store (router) on `port`: its session and handle.
 async fn start_store(port: u16) -> (zenoh::Session, mwb_store::StoreHandle) {
     let session = open(Mode::Router, port).await;
@@ -145,26 +169,7 @@ async fn a_reverse_job_is_sampled_stored_and_plays_forward_into_the_final_state(
     .unwrap_or_else(|e| panic!("{e:#}"));
     assert_eq!(job.kind(), JobKind::Reverse);
     let client_session = open(Mode::Client, port).await;
-    within(
-        "submit",
-        T,
-        client::submit_job(&client_session, &keys, &job),
-    )
-    .await
-    .unwrap_or_else(|e| panic!("{e:#}"));
-    let state = within(
-        "job",
-        Duration::from_secs(240),
-        client::wait_job(
-            &client_session,
-            &keys,
-            &job.id,
-            Some(Duration::from_secs(200)),
-            |_| {},
-        ),
-    )
-    .await
-    .unwrap_or_else(|e| panic!("{e:#}"));
+    let state = submit_and_wait(&client_session, &keys, &job).await;
     assert!(state.closed, "{state:?}");
     assert_eq!(state.worlds_done, WORLDS, "{state:?}");
     assert_eq!(state.worlds_rejected, 0, "{state:?}");
@@ -329,26 +334,7 @@ async fn a_mixed_job_from_the_scene_table_stores_backward_plus_forward_frames() 
     };
     assert!(scene.toml.contains("mode = \"mixed\""), "the table travels");
     let client_session = open(Mode::Client, port).await;
-    within(
-        "submit",
-        T,
-        client::submit_job(&client_session, &keys, &job),
-    )
-    .await
-    .unwrap_or_else(|e| panic!("{e:#}"));
-    let state = within(
-        "job",
-        Duration::from_secs(240),
-        client::wait_job(
-            &client_session,
-            &keys,
-            &job.id,
-            Some(Duration::from_secs(200)),
-            |_| {},
-        ),
-    )
-    .await
-    .unwrap_or_else(|e| panic!("{e:#}"));
+    let state = submit_and_wait(&client_session, &keys, &job).await;
     assert!(state.closed, "{state:?}");
     assert_eq!(state.worlds_done, MIXED, "{state:?}");
     assert_eq!(state.worlds_rejected, 0, "{state:?}");
