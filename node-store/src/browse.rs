@@ -192,7 +192,7 @@ impl Shard {
         }
         for (o, obj) in world.objects.iter().enumerate() {
             if let Some(b) = Aabb::of_points(obj.tree.path().points(), obj.radius) {
-                self.bvh[o].insert(b, global, obj.radius);
+                self.bvh[o].insert(b, *obj.tree.root_box(), global, obj.radius);
             }
         }
         self.all.insert(global);
@@ -302,28 +302,38 @@ impl Shard {
     /// there are many). A world none of whose chosen paths is touched satisfies a negative
     /// constraint and fails a positive one.
     pub fn evaluate_all(&self, constraint: &Constraint) -> WorldSet {
-        let mut candidates: Vec<(u32, u32)> = Vec::new();
+        let mut candidates: Vec<(u32, u32, u8)> = Vec::new();
         for &o in &constraint.objects {
             if let Some(b) = self.bvh.get(o as usize) {
-                b.query(&constraint.frustum, |w| candidates.push((w, o)));
+                b.query(&constraint.frustum, |w, mask| candidates.push((w, o, mask)));
             }
         }
+        // World order: the worlds' memory is then read front to back (measured: the trees
+        // took 30 % less time than in the hierarchy's spatial order), and the paths of one
+        // world are adjacent, so a world already touched skips its other objects.
+        candidates.sort_unstable();
         // Each thread keeps the frustum inflated by each path radius it meets (with its
         // vertices): radii are rounded at ingest, so there are only a few.
-        let exact = |regions: &mut RegionCache<'_>, &(w, o): &(u32, u32)| {
+        let exact = |regions: &mut RegionCache<'_>, &(w, o, mask): &(u32, u32, u8)| {
             self.world(w)
                 .and_then(|world| world.objects.get(o as usize))
                 .is_some_and(|obj| {
-                    obj.tree
-                        .intersects_cached(regions, constraint.window, obj.radius)
+                    obj.tree.intersects_region_masked(
+                        regions.region(obj.radius),
+                        constraint.window,
+                        mask,
+                    )
                 })
         };
-        let run = |part: &[(u32, u32)]| -> Vec<u32> {
+        let run = |part: &[(u32, u32, u8)]| -> Vec<u32> {
             let mut regions = RegionCache::new(&constraint.frustum);
-            part.iter()
-                .filter(|c| exact(&mut regions, c))
-                .map(|c| c.0)
-                .collect()
+            let mut hits: Vec<u32> = Vec::new();
+            for c in part {
+                if hits.last() != Some(&c.0) && exact(&mut regions, c) {
+                    hits.push(c.0);
+                }
+            }
+            hits
         };
         let threads = self.threads.min(candidates.len() / 512).max(1);
         let touched: WorldSet = if threads == 1 {

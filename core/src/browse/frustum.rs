@@ -505,7 +505,7 @@ impl Frustum {
     /// separating-axis test. The vertices are those of the region the inflated *planes* bound,
     /// which near a sharp corner reaches further than "within `r` of the frustum": box tests
     /// and segment clipping then decide about the very same region. Costs a few hundred
-    /// floating-point operations; [`RegionCache`] keeps one per radius.
+    /// floating-point operations (the store's path hierarchy builds one per query).
     pub fn inflated_bounded(&self, r: f64) -> Frustum {
         let mut out = self.inflated(r);
         if self.hull.is_some() && out.planes.iter().all(|p| p.offset.is_finite()) {
@@ -523,8 +523,24 @@ impl Frustum {
     /// parameter interval inside the frustum, if any. This is the exact leaf test of the path
     /// index: each plane either keeps the interval, rejects it or cuts it at its crossing.
     pub fn clip_segment(&self, a: Vec3, b: Vec3, s0: f64, s1: f64) -> Option<(f64, f64)> {
+        self.clip_segment_masked(a, b, s0, s1, 0b11_1111)
+    }
+
+    /// [`clip_segment`](Self::clip_segment) against the planes in `mask` only (bit k = plane
+    /// k), for a segment known to be inside the others.
+    pub fn clip_segment_masked(
+        &self,
+        a: Vec3,
+        b: Vec3,
+        s0: f64,
+        s1: f64,
+        mask: u8,
+    ) -> Option<(f64, f64)> {
         let (mut lo, mut hi) = (s0, s1);
-        for p in &self.planes {
+        for (k, p) in self.planes.iter().enumerate() {
+            if mask & (1 << k) == 0 {
+                continue;
+            }
             let da = p.distance(a);
             let db = p.distance(b);
             match (da > 0.0, db > 0.0) {
@@ -593,8 +609,9 @@ impl Frustum {
     }
 }
 
-/// The regions of one frustum inflated by the radii a query meets, each with its vertex set
-/// ([`Frustum::inflated_bounded`]), computed once per distinct radius. Stores round path radii
+/// The regions of one frustum inflated by the radii a query meets ([`Frustum::inflated`]: the
+/// path trees test boxes and clip segments against planes only), computed once per distinct
+/// radius. Stores round path radii
 /// up to a grid, so a query over thousands of paths meets only a handful of radii. Holds at most
 /// [`RegionCache::CAPACITY`] regions (then recomputes the oldest slot's radius in turn), so any
 /// mix of radii costs bounded memory.
@@ -621,7 +638,7 @@ impl<'a> RegionCache<'a> {
         self.base
     }
 
-    /// The region within `r` of the base frustum's planes, with its vertices. A NaN radius is
+    /// The region within `r` of the base frustum's planes. A NaN radius is
     /// "unknown error" (everything inside), negative radii count as 0 (as in
     /// [`Frustum::inflated`]).
     pub fn region(&mut self, r: f64) -> &Frustum {
@@ -634,7 +651,7 @@ impl<'a> RegionCache<'a> {
         if let Some(i) = self.regions.iter().position(|(k, _)| *k == key) {
             return &self.regions[i].1;
         }
-        let region = self.base.inflated_bounded(r);
+        let region = self.base.inflated(r);
         if self.regions.len() < Self::CAPACITY {
             self.regions.push((key, region));
             let last = self.regions.len() - 1;

@@ -535,3 +535,149 @@ proptest! {
         );
     }
 }
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 300, ..ProptestConfig::default() })]
+
+    /// Plane masking is sound: `classify` drops a plane only when every corner of the box is
+    /// strictly inside it, answers `None` only when one plane has every corner outside, and
+    /// `classify_inflated` on the raw planes answers exactly as `classify` on the inflated
+    /// frustum. The masked entry point of the tree then decides exactly as clipping every
+    /// segment against the region does, windows included. Boxes sit around path points or at a
+    /// corner of the region, where the planes are closest to straddling.
+    #[test]
+    fn plane_masks_are_sound_and_keep_the_tree_exact(
+        seed in any::<u64>(),
+        r in 0.0f64..0.2,
+        at_corner in any::<bool>(),
+        windowed in any::<bool>(),
+    ) {
+        let (c, region, obb) = mask_case(seed, r, at_corner);
+        let corners: Vec<Vec3> = (0..8)
+            .map(|k: usize| {
+                (0..3).fold(obb.center, |x, i| {
+                    let sign = if k >> i & 1 == 1 { 1.0 } else { -1.0 };
+                    add(x, scale(obb.axes[i], sign * obb.half[i]))
+                })
+            })
+            .collect();
+        let got = obb.classify(&region, ALL_PLANES);
+        prop_assert_eq!(got, obb.classify_inflated(c.frustum.planes(), r, ALL_PLANES));
+        match got {
+            None => {
+                let separated = region
+                    .planes()
+                    .iter()
+                    .any(|p| corners.iter().all(|&x| p.distance(x) > 0.0));
+                prop_assert!(separated);
+            }
+            Some(mask) => {
+                for (k, p) in region.planes().iter().enumerate() {
+                    let inside = corners.iter().all(|&x| p.distance(x) < 0.0);
+                    prop_assert!(inside || mask & (1 << k) != 0, "plane {}", k);
+                }
+                // Testing again from the mask changes nothing.
+                prop_assert_eq!(obb.classify(&region, mask), Some(mask));
+            }
+        }
+
+        let tree = PathTree::build(c.low.clone());
+        let window = if windowed { c.window } else { None };
+        let truth = c.low.first_entry(&region, window);
+        let masked = tree
+            .root_box()
+            .classify(&region, ALL_PLANES)
+            .is_some_and(|mask| tree.intersects_region_masked(&region, window, mask));
+        prop_assert_eq!(masked, truth.is_some());
+        prop_assert_eq!(tree.first_entry(&region, window), truth);
+    }
+}
+
+/// A case of [`plane_masks_are_sound_and_keep_the_tree_exact`]: the frustum inflated by `r`
+/// and a box at a corner of that region, or else around its centre or a path point.
+fn mask_case(seed: u64, r: f64, at_corner: bool) -> (Case, Frustum, Obb) {
+    let c = case(seed);
+    let region = c.frustum.inflated(r);
+    let mut rng = Rng(seed ^ 0x5A5A);
+    let centre = match (at_corner, c.frustum.inflated_bounded(r).hull()) {
+        (true, Some(hull)) => hull[(rng.unit() * hull.len() as f64) as usize % hull.len()],
+        // The centroid of the vertices: inside the region.
+        (false, Some(hull)) if rng.unit() < 0.5 => scale(
+            hull.iter().fold([0.0; 3], |a, &v| add(a, v)),
+            1.0 / hull.len() as f64,
+        ),
+        _ => {
+            let k = (rng.unit() * c.decoded.len() as f64) as usize % c.decoded.len();
+            c.decoded.points()[k]
+        }
+    };
+    // Sizes from 1 mm to 1 m, evenly on a log scale.
+    let spread = 10f64.powf(rng.range(-3.0, 0.0));
+    let pts: Vec<Vec3> = (0..rng.range(1.0, 12.0) as usize)
+        .map(|_| add(centre, rng.vec3(-spread, spread)))
+        .collect();
+    (c, region, Obb::fit(&pts))
+}
+
+/// The generator above is not trivial: boxes get rejected, kept wholly inside, and kept
+/// straddling some planes but inside others.
+#[test]
+fn mask_cases_cover_every_outcome() {
+    let (mut outside, mut inside, mut partial) = (0, 0, 0);
+    for seed in 0..400u64 {
+        let (_, region, obb) = mask_case(seed, 0.01 * (seed % 7) as f64, seed % 2 == 0);
+        match obb.classify(&region, ALL_PLANES) {
+            None => outside += 1,
+            Some(0) => inside += 1,
+            Some(m) if m != ALL_PLANES => partial += 1,
+            Some(_) => {}
+        }
+    }
+    assert!(
+        outside > 20 && inside > 20 && partial > 20,
+        "outside {outside}, inside {inside}, partial {partial}"
+    );
+}
+
+/// A frustum holding the whole path: the root box is inside every plane (mask 0), no segment
+/// is clipped, and the answers (first entry, with and without windows) are still exactly the
+/// segment-by-segment ones.
+#[test]
+fn a_box_inside_every_plane_answers_without_clipping() {
+    let points: Vec<Vec3> = (0..60)
+        .map(|i| {
+            let t = f64::from(i) * 0.05;
+            [t, 1.0 + (3.0 * t).sin(), 0.2 * t]
+        })
+        .collect();
+    let times: Vec<f64> = (0..60).map(|i| 0.1 + f64::from(i) / 30.0).collect();
+    let path = Polyline::new(times, points).expect("valid");
+    let tree = PathTree::build(path.clone());
+    assert!(tree.node_count() > 1, "the tree has children");
+    let region = Frustum::aabb([-10.0; 3], [10.0; 3]).expect("finite");
+    assert_eq!(tree.root_box().classify(&region, ALL_PLANES), Some(0));
+    for window in [
+        None,
+        TimeWindow::new(0.0, 0.05).ok(),
+        TimeWindow::new(0.7, 0.71).ok(),
+        TimeWindow::new(1.234_567, 9.0).ok(),
+        TimeWindow::new(2.05, 2.1).ok(),
+        TimeWindow::new(2.5, 3.0).ok(),
+    ] {
+        assert_eq!(
+            tree.first_entry(&region, window),
+            path.first_entry(&region, window),
+            "{window:?}"
+        );
+        assert_eq!(
+            tree.intersects_region_masked(&region, window, 0),
+            path.first_entry(&region, window).is_some(),
+            "{window:?}"
+        );
+    }
+    assert_eq!(tree.first_entry(&region, None), Some(0.1));
+    assert_eq!(
+        tree.first_entry(&region, TimeWindow::new(2.5, 3.0).ok()),
+        None
+    );
+}
