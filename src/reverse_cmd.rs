@@ -19,7 +19,7 @@ use anyhow::{Context, Result, bail};
 use mwb_core::keys::Keys;
 use mwb_proto::v1::{Job, JobKind, JobState, Quality};
 use mwb_reverse::scene::{builtin, world_from_scene};
-use mwb_reverse::settings_toml::{parse_reverse_scene, strip_reverse_table};
+use mwb_reverse::settings_toml::parse_reverse_scene;
 use std::time::{Duration, Instant};
 
 /// Arguments of `mwb reverse`.
@@ -104,13 +104,8 @@ pub fn make_reverse_job(
         parse_reverse_scene(text, file).with_context(|| format!("{file}: not a reverse scene"))?;
     world_from_scene(&template.instantiate(0))
         .with_context(|| format!("{file}: not a reverse scene"))?;
-    // The plain scene parser (make_job's) refuses the `[reverse]` table; the job carries the
-    // whole text, for the nodes.
-    let mut job = client::make_job(file, &strip_reverse_table(text), target, priority, id)?;
-    if let Some(scene) = job.scene.as_mut() {
-        scene.toml = text.to_owned();
-        scene.content_hash = mwb_core::content_hash(text);
-    }
+    // The job carries the whole text, `[reverse]` table included, for the nodes.
+    let mut job = client::make_job(file, text, target, priority, id)?;
     job.kind = JobKind::Reverse as i32;
     job.quality = match quality {
         QualityArg::Draft => Quality::Draft,

@@ -21,11 +21,10 @@
 //! Hints act in the backward run (for a mixed world: the part before the given state), and only
 //! on a body while it touches something (a body in flight has nothing to leave).
 //!
-//! The core scene parser refuses unknown tables, so [`parse_reverse_scene`] blanks the
-//! `[reverse]` and `[[reverse.hint]]` lines (keeping the line count, so the parser's `file:line`
-//! errors stay true) before handing the text to it, and checks that what is left is exactly the
-//! scene without its `reverse` key. Every refusal is a [`SceneError`] naming the file, the line,
-//! the item and the field.
+//! The core scene parser passes over the `reverse` key, so the same text goes to both parsers
+//! and every `file:line` stays true; the table may also be written inline
+//! (`reverse = { mode = "mixed", … }`). Every refusal is a [`SceneError`] naming the file, the
+//! line, the item and the field.
 //!
 //! ```
 //! use mwb_reverse::settings_toml::{RunMode, parse_reverse_scene};
@@ -407,59 +406,6 @@ fn raw_table<'a>(src: Src<'a>, v: &'a Val<'a>) -> Result<RawTable<'a>, SceneErro
     Ok(RawTable { mode, hints })
 }
 
-/// The first key segment of a table header line (`[reverse]`, `[[reverse.hint]]`,
-/// `["reverse" . x]`), or `None` if the line is not a header.
-fn header_key(line: &str) -> Option<String> {
-    let t = line.trim_start();
-    let (inner, rest) = if let Some(r) = t.strip_prefix("[[") {
-        let end = r.find("]]")?;
-        (&r[..end], &r[end + 2..])
-    } else {
-        let r = t.strip_prefix('[')?;
-        let end = r.find(']')?;
-        (&r[..end], &r[end + 1..])
-    };
-    let rest = rest.trim_start();
-    if !(rest.is_empty() || rest.starts_with('#')) {
-        return None; // e.g. `[0, 1, 0],` inside a multi-line array
-    }
-    if inner.contains([',', '[', ']', '=', '{', '}']) {
-        return None;
-    }
-    let first = inner.split('.').next()?.trim();
-    let first = first
-        .strip_prefix('"')
-        .and_then(|f| f.strip_suffix('"'))
-        .or_else(|| first.strip_prefix('\'').and_then(|f| f.strip_suffix('\'')))
-        .unwrap_or(first);
-    (!first.is_empty()).then(|| first.to_owned())
-}
-
-/// `text` with the lines of the `[reverse]` table and its sub-tables blanked (line breaks kept):
-/// what the core scene parser accepts, for tools that need the plain scene. Checked by
-/// [`parse_reverse_scene`] only.
-pub fn strip_reverse_table(text: &str) -> String {
-    let mut out = String::with_capacity(text.len());
-    let mut inside = false;
-    for line in text.split_inclusive('\n') {
-        if let Some(key) = header_key(line) {
-            inside = key == TABLE;
-        }
-        if inside {
-            out.push_str(if line.ends_with("\r\n") {
-                "\r\n"
-            } else if line.ends_with('\n') {
-                "\n"
-            } else {
-                ""
-            });
-        } else {
-            out.push_str(line);
-        }
-    }
-    out
-}
-
 /// Parses a reverse scene: the ordinary scene (`docs/scene-format.md`) plus the optional
 /// `[reverse]` table of the [module docs](self). `file` names the scene in errors.
 pub fn parse_reverse_scene(
@@ -481,27 +427,8 @@ pub fn parse_reverse_scene(
         return Ok((SceneTemplate::parse(text, file)?, ReverseTable::default()));
     };
     let raw = raw_table(src, value)?;
-
-    // The scene without the table, line numbers kept; it must be exactly the scene minus
-    // `reverse` (an inline `reverse = {…}` or dotted `reverse.x = …` key is not blanked).
-    let stripped = strip_reverse_table(text);
-    let same = match (text.parse::<toml::Table>(), stripped.parse::<toml::Table>()) {
-        (Ok(mut whole), Ok(rest)) => {
-            whole.remove(TABLE);
-            whole == rest
-        }
-        _ => false,
-    };
-    if !same {
-        return Err(src.err(
-            Some(value.span()),
-            "[reverse]",
-            None,
-            "write the reverse settings as a `[reverse]` table and `[[reverse.hint]]` tables \
-             (not inline or dotted `reverse` keys)",
-        ));
-    }
-    let template = SceneTemplate::parse(&stripped, file)?;
+    // The core scene parser passes over the `reverse` key.
+    let template = SceneTemplate::parse(text, file)?;
     let table = resolve(&template, raw)?;
     Ok((template, table))
 }
@@ -575,20 +502,6 @@ fn resolve(template: &SceneTemplate, raw: RawTable<'_>) -> Result<ReverseTable, 
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn headers_are_recognised_and_array_rows_are_not() {
-        assert_eq!(header_key("[reverse]").as_deref(), Some("reverse"));
-        assert_eq!(
-            header_key("  [[reverse.hint]]  # a hint").as_deref(),
-            Some("reverse")
-        );
-        assert_eq!(header_key("[\"reverse\".x]").as_deref(), Some("reverse"));
-        assert_eq!(header_key("[[body]]").as_deref(), Some("body"));
-        assert_eq!(header_key("  [0, 0, 1],"), None);
-        assert_eq!(header_key("[[0, 0, 0], [1, 0, 0]]"), None);
-        assert_eq!(header_key("name = \"x\""), None);
-    }
 
     /// The word scene (bodies "M0" … "B15", y up, end_time 3 s) plus `table`: after it, or
     /// before it for a root key (`reverse = …`), which would land in the last body otherwise.
@@ -672,8 +585,19 @@ release_before_end = 1
     }
 
     #[test]
+    fn an_inline_table_reads_as_the_same_table() {
+        let tables = [
+            "[reverse]\nmode = \"mixed\"\nforward_time = 1\n[[reverse.hint]]\nbody = \"M0\"\nmotion = \"stay\"\n",
+            "reverse = { mode = \"mixed\", forward_time = 1, hint = [{ body = \"M0\", motion = \"stay\" }] }",
+        ];
+        let [block, inline] = tables.map(|t| parse(t).unwrap_or_else(|e| panic!("{t}: {e}")));
+        assert_eq!(block, inline);
+        assert_eq!(block.hints.len(), 1);
+    }
+
+    #[test]
     fn scene_errors_keep_their_line_numbers() {
-        // The table is blanked, not cut: an error below it is reported at its true line.
+        // An error below the table is reported at its true line.
         let text = word_with(
             "[reverse]\nmode = \"mixed\"\nforward_time = 1\n\n[[body]]\nname = \"late\"\nshape = \"box\"\nsize = [1, 1, 1]\nmaterial = \"wod\"\n",
         );
@@ -838,12 +762,6 @@ release_before_end = 1
                 "end_time",
             ),
             (
-                "inline table",
-                "reverse = { mode = \"mixed\", forward_time = 1 }".into(),
-                "",
-                "`[reverse]` table",
-            ),
-            (
                 "not a table",
                 "reverse = \"mixed\"".into(),
                 "",
@@ -861,13 +779,5 @@ release_before_end = 1
             assert!(text.starts_with("word.toml:"), "{what}: {text}");
             assert!(e.line.is_some(), "{what}: {text}");
         }
-    }
-
-    #[test]
-    fn blanking_keeps_the_line_count() {
-        let text = "a = 1\n[reverse]\nmode = \"mixed\"\r\n[[reverse.hint]]\nbody = \"x\"\n[settings]\ndt = 0.01";
-        let out = strip_reverse_table(text);
-        assert_eq!(out, "a = 1\n\n\r\n\n\n[settings]\ndt = 0.01");
-        assert_eq!(out.lines().count(), text.lines().count());
     }
 }
