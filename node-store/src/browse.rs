@@ -311,8 +311,8 @@ impl Shard {
         // World order: the worlds' memory is then read front to back, and the paths of one
         // world are adjacent, so a world already touched skips its other objects.
         candidates.sort_unstable();
-        // Each thread keeps the frustum inflated by each path radius it meets (with its
-        // vertices): radii are rounded at ingest, so there are only a few.
+        // Each thread keeps the frustum inflated by each path radius it meets: radii are
+        // rounded at ingest, so there are only a few.
         let exact = |regions: &mut RegionCache<'_>, &(w, o, mask): &(u32, u32, u8)| {
             self.world(w)
                 .and_then(|world| world.objects.get(o as usize))

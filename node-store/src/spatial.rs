@@ -12,8 +12,9 @@
 //! Each entry also keeps a copy of the path's root OBB and radius, and a query runs the root's
 //! plane test on it right there, in the entries' contiguous memory: in a compact scene, where
 //! the boxes of most paths overlap the frustum's, that test still rejects about half the paths
-//! without touching their worlds (measured with `mwb bench query`), and for the rest it hands
-//! over the planes the root box is wholly inside of, so the tree below need not repeat it.
+//! without touching their worlds (counted over `mwb bench query`'s tumble worlds), and for the
+//! rest it hands over the planes the root box is wholly inside of, so the tree below need not
+//! repeat it.
 
 use mwb_core::browse::{ALL_PLANES, Frustum, Obb};
 

@@ -611,8 +611,8 @@ impl Frustum {
 
 /// The regions of one frustum inflated by the radii a query meets ([`Frustum::inflated`]: the
 /// path trees test boxes and clip segments against planes only), computed once per distinct
-/// radius. Stores round path radii
-/// up to a grid, so a query over thousands of paths meets only a handful of radii. Holds at most
+/// radius. Stores round path radii up to a grid, so a query over thousands of paths meets only
+/// a handful of radii. Holds at most
 /// [`RegionCache::CAPACITY`] regions (then recomputes the oldest slot's radius in turn), so any
 /// mix of radii costs bounded memory.
 #[derive(Debug, Clone)]
