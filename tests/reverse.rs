@@ -8,7 +8,7 @@
 
 use mwb::bench::free_port;
 use mwb::bus::{BusArgs, Mode};
-use mwb::check::verify_world;
+use mwb::check::{WorldCheck, verify_world};
 use mwb::client::{self, QualityArg};
 use mwb::reverse_cmd::{load_reverse_scene, make_reverse_job};
 use mwb_codec::{Quality, WorldReader};
@@ -16,7 +16,7 @@ use mwb_core::browse::api::{Reply, Request};
 use mwb_core::browse::{Order, RankKey, WorldMetric};
 use mwb_core::keys::Keys;
 use mwb_core::scene::SceneTemplate;
-use mwb_proto::v1::{JobKind, Message, NodeStats};
+use mwb_proto::v1::{JobKind, Message, NodeStats, World, WorldDone};
 use mwb_query::{QueryConfig, run_query};
 use mwb_reverse::{ReverseConfig, run_reverse};
 use mwb_sampler::{SamplerConfig, run_sampler};
@@ -84,6 +84,25 @@ async fn submit_and_wait(
     )
     .await
     .unwrap_or_else(|e| panic!("{e:#}"))
+}
+
+/// World `index` from the store, checked end to end (CRCs, decoding, frame counts), with its
+/// summary.
+async fn fetch_checked(
+    session: &zenoh::Session,
+    keys: &Keys,
+    index: u32,
+) -> (World, WorldCheck, WorldDone) {
+    let world = within("fetch", T, client::fetch_world(session, keys, index))
+        .await
+        .unwrap_or_else(|e| panic!("{e:#}"))
+        .unwrap_or_else(|| panic!("world {index} not served"));
+    let check = verify_world(&world).unwrap_or_else(|e| panic!("{e:#}"));
+    let done = world
+        .done
+        .clone()
+        .unwrap_or_else(|| panic!("world {index}: no summary"));
+    (world, check, done)
 }
 
 /// A store (router) on `port`: its session and handle.
@@ -178,18 +197,7 @@ async fn a_reverse_job_is_sampled_stored_and_plays_forward_into_the_final_state(
     let (e_max, theta_max) = Quality::Standard.bounds();
     let mut growth: Vec<(u32, f64)> = Vec::new();
     for index in 0..WORLDS {
-        let world = within(
-            "fetch",
-            T,
-            client::fetch_world(&client_session, &keys, index),
-        )
-        .await
-        .unwrap_or_else(|e| panic!("{e:#}"))
-        .unwrap_or_else(|| panic!("world {index} not served"));
-        let check = verify_world(&world).unwrap_or_else(|e| panic!("{e:#}"));
-        let Some(done) = &world.done else {
-            panic!("world {index}: no summary")
-        };
+        let (world, check, done) = fetch_checked(&client_session, &keys, index).await;
         assert_eq!(done.node_id, "rev-a", "a sampler took a reverse world");
         assert!(
             done.provenance.contains("mwb-reverse"),
@@ -345,18 +353,7 @@ async fn a_mixed_job_from_the_scene_table_stores_backward_plus_forward_frames() 
     // 60 backward steps, the given frame, 60 forward steps.
     let (join, frames) = (60usize, 121u32);
     for index in 0..MIXED {
-        let world = within(
-            "fetch",
-            T,
-            client::fetch_world(&client_session, &keys, index),
-        )
-        .await
-        .unwrap_or_else(|e| panic!("{e:#}"))
-        .unwrap_or_else(|| panic!("world {index} not served"));
-        let check = verify_world(&world).unwrap_or_else(|e| panic!("{e:#}"));
-        let Some(done) = &world.done else {
-            panic!("world {index}: no summary")
-        };
+        let (world, check, done) = fetch_checked(&client_session, &keys, index).await;
         assert_eq!(done.node_id, "rev-m");
         assert_eq!(check.frames, frames);
         assert_eq!(done.frame_count, frames);
