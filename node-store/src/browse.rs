@@ -3,12 +3,14 @@
 //! stored and [`ShardRequest`]s from node-query, and sends back the [`ShardReply`].
 
 use crate::index::IndexedWorld;
-use crate::spatial::{Aabb, PathBvh};
+use crate::spatial::{Aabb, Part, PathBvh, region_box};
 use mwb_core::browse::api::{
     ConstraintStatus, Reply, Request, SessionStatus, ShardReply, ShardRequest, WorldSummary,
 };
 use mwb_core::browse::{Constraint, ConstraintSet, RankKey, RegionCache, WorldSet, top_k};
+use std::cell::RefCell;
 use std::collections::HashMap;
+use std::sync::atomic::{AtomicUsize, Ordering};
 
 /// Which worlds a store keeps when several split them (DESIGN.md: world → shard by hash).
 ///
@@ -191,9 +193,7 @@ impl Shard {
             self.bvh.resize_with(world.objects.len(), PathBvh::default);
         }
         for (o, obj) in world.objects.iter().enumerate() {
-            if let Some(b) = Aabb::of_points(obj.tree.path().points(), obj.radius) {
-                self.bvh[o].insert(b, *obj.tree.root_box(), global, obj.radius);
-            }
+            self.bvh[o].insert(global, obj.tree.path(), obj.radius);
         }
         self.all.insert(global);
         self.world_bytes += world_heap_bytes(&world);
@@ -297,59 +297,58 @@ impl Shard {
         }
     }
 
-    /// The worlds satisfying `constraint`. The per-object hierarchies give the paths whose box
-    /// may meet the frustum; only those get the exact OBB-tree test (on `threads` threads when
-    /// there are many). A world none of whose chosen paths is touched satisfies a negative
-    /// constraint and fails a positive one.
+    /// The worlds satisfying `constraint`. The chosen objects' hierarchies are cut into shares
+    /// that `threads` threads take one at a time; each walks its share down to the path pieces
+    /// that may meet the frustum and runs the exact segment test on those, skipping the worlds
+    /// it has already found touched. A world none of whose chosen paths is touched satisfies a
+    /// negative constraint and fails a positive one.
     pub fn evaluate_all(&self, constraint: &Constraint) -> WorldSet {
-        let mut candidates: Vec<(u32, u32, u8)> = Vec::new();
+        let threads = self.threads.max(1);
+        let mut work: Vec<(&PathBvh, Option<Aabb>, Part)> = Vec::new();
+        let mut pieces = 0;
         for &o in &constraint.objects {
-            if let Some(b) = self.bvh.get(o as usize) {
-                b.query(&constraint.frustum, |w, mask| candidates.push((w, o, mask)));
-            }
+            let Some(b) = self.bvh.get(o as usize).filter(|b| !b.is_empty()) else {
+                continue;
+            };
+            pieces += b.len();
+            // The vertex box of the frustum inflated by every radius of this hierarchy.
+            let region = region_box(&constraint.frustum.inflated_bounded(b.max_radius()));
+            work.extend(b.parts(4 * threads).into_iter().map(|p| (b, region, p)));
         }
-        // World order: the worlds' memory is then read front to back, and the paths of one
-        // world are adjacent, so a world already touched skips its other objects.
-        candidates.sort_unstable();
-        // Each thread keeps the frustum inflated by each path radius it meets: radii are
-        // rounded at ingest, so there are only a few.
-        let exact = |regions: &mut RegionCache<'_>, &(w, o, mask): &(u32, u32, u8)| {
-            self.world(w)
-                .and_then(|world| world.objects.get(o as usize))
-                .is_some_and(|obj| {
-                    obj.tree.intersects_region_masked(
-                        regions.region(obj.radius),
-                        constraint.window,
-                        mask,
-                    )
-                })
-        };
-        let run = |part: &[(u32, u32, u8)]| -> Vec<u32> {
+        let next = AtomicUsize::new(0);
+        let run = || -> WorldSet {
+            // The frustum inflated by each path radius met: radii are rounded at ingest, so
+            // there are only a few.
             let mut regions = RegionCache::new(&constraint.frustum);
-            let mut hits: Vec<u32> = Vec::new();
-            for c in part {
-                if hits.last() != Some(&c.0) && exact(&mut regions, c) {
-                    hits.push(c.0);
-                }
+            // Worlds this thread has found touched: their other pieces are passed over.
+            let found = RefCell::new(WorldSet::new());
+            while let Some((bvh, region, part)) = work.get(next.fetch_add(1, Ordering::Relaxed)) {
+                bvh.query(
+                    *part,
+                    &constraint.frustum,
+                    region.as_ref(),
+                    constraint.window,
+                    |w| found.borrow().contains(w),
+                    |p| {
+                        if p.first_entry(regions.region(p.radius()), constraint.window)
+                            .is_some()
+                        {
+                            found.borrow_mut().insert(p.world());
+                        }
+                    },
+                );
             }
-            hits
+            found.into_inner()
         };
-        let threads = self.threads.min(candidates.len() / 512).max(1);
-        let touched: WorldSet = if threads == 1 {
-            run(&candidates).into_iter().collect()
-        } else {
-            let chunk = candidates.len().div_ceil(threads);
-            std::thread::scope(|s| {
-                let handles: Vec<_> = candidates
-                    .chunks(chunk)
-                    .map(|part| s.spawn(move || run(part)))
-                    .collect();
-                handles
-                    .into_iter()
-                    .flat_map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
-                    .collect()
-            })
-        };
+        let threads = threads.min(pieces / 4096).max(1);
+        let touched = std::thread::scope(|s| {
+            let handles: Vec<_> = (1..threads).map(|_| s.spawn(run)).collect();
+            let mut touched = run();
+            for h in handles {
+                touched.or_assign(&h.join().unwrap_or_else(|e| std::panic::resume_unwind(e)));
+            }
+            touched
+        });
         match constraint.polarity {
             mwb_core::browse::Polarity::Positive => touched,
             mwb_core::browse::Polarity::Negative => self.all.and_not(&touched),
@@ -495,7 +494,7 @@ mod tests {
     use mwb_core::browse::api::merge;
     use mwb_core::browse::{
         Aggregate, ConstraintId, Frustum, Metric, ObjectMetrics, Order, PathTree, Polarity,
-        Polyline,
+        Polyline, TimeWindow,
     };
 
     /// A one-object world whose object slides along x at height `y` from t = 0 to 1.
@@ -753,9 +752,10 @@ mod tests {
     }
 
     /// Camera frusta at every bearing, paths of every shape, a spread of radii (as rounded at
-    /// ingest): the hierarchy + OBB trees with separating-axis pruning against the inflated
-    /// region's vertices keep exactly the worlds a segment-by-segment test of the inflated
-    /// planes keeps — no more (pruning is exact where it matters) and no fewer (never miss).
+    /// ingest), a time window in a third of the constraints: the hierarchy of path pieces and
+    /// the per-world OBB trees each keep exactly the worlds a segment-by-segment test of the
+    /// inflated planes keeps — no more (pruning is exact where it matters) and no fewer (never
+    /// miss).
     #[test]
     fn pruned_evaluation_equals_brute_force_for_camera_frusta() {
         use mwb_core::browse::{Camera, Intrinsics, ScreenRect, Viewport};
@@ -842,17 +842,21 @@ mod tests {
                     y1: cy + rh,
                 })
                 .unwrap_or_else(|e| panic!("{e}"));
+            let window = (k % 3 == 0).then(|| {
+                let a = rng.uniform(0.0, 2.0);
+                TimeWindow::new(a, a + rng.uniform(0.0, 0.5)).unwrap_or_else(|e| panic!("{e}"))
+            });
             let c = Constraint {
                 id: ConstraintId(k + 1),
                 polarity: Polarity::Positive,
                 frustum,
                 objects: vec![0],
-                window: None,
+                window,
             };
             let brute: WorldSet = paths
                 .iter()
                 .enumerate()
-                .filter(|(_, (p, r))| p.first_entry(&c.frustum.inflated(*r), None).is_some())
+                .filter(|(_, (p, r))| p.first_entry(&c.frustum.inflated(*r), window).is_some())
                 .map(|(i, _)| i as u32)
                 .collect();
             kept_some += usize::from(!brute.is_empty());

@@ -5,7 +5,8 @@
 //! * [`browse`] — pure: one shard's worlds and per-session constraint bitsets; answers
 //!   node-query's requests.
 //! * [`spatial`] — pure: per object index, a bounding-volume hierarchy over every world's path
-//!   box, so a constraint visits only the paths near it.
+//!   pieces (4 segments each, vertices copied in), so a constraint visits only the parts of
+//!   paths near it.
 //! * [`node`] — the bus node around them.
 
 pub mod assembly;

@@ -1,22 +1,27 @@
-//! A top-level bounding-volume hierarchy over the paths of one object index across all worlds,
-//! so that a new constraint visits only the paths near its frustum instead of every world.
+//! A bounding-volume hierarchy over the path *pieces* of one object index across all worlds, so
+//! that a new constraint visits only the parts of paths near its frustum instead of every world.
 //!
 //! §4.4.2 indexes each path with a shallow OBB tree; testing a constraint still touches every
-//! world's tree. Here the box of every path (its root box, grown by the path's never-miss
-//! radius) goes into an axis-aligned BVH per object index; a query walks it with the frustum's
-//! planes and vertices and returns the worlds whose box may meet the frustum, which then get
-//! the exact per-path test. Worlds that arrive after the last build wait in a pending list
-//! (tested one by one) until it is a quarter of the built part, then the hierarchy is rebuilt:
-//! ingest stays O(1) and queries stay O(paths near the frustum + pending).
+//! world's tree, and in a compact scene (every world throws the same boxes at the same spot)
+//! nearly every path's box meets a frustum drawn through the scene. A frustum is thin, though,
+//! and most of a path is far from it. So each path enters the hierarchy as pieces of
+//! [`PIECE_SEGMENTS`] segments: per piece the box of its vertices grown by the path's
+//! never-miss radius, its world, and a copy of its vertices and times, so that the exact test
+//! ([`segment_entry`], the same function brute force and the OBB trees run) reads nothing but
+//! the entry. A query walks the hierarchy with the frustum's planes — plane masking as in the
+//! trees: a node wholly inside a plane spares everything below it that plane — and the
+//! bounding box of the inflated frustum's vertices, skips pieces whose time range misses the
+//! window, and clips the segments of the pieces that remain.
 //!
-//! Each entry also keeps a copy of the path's root OBB and radius, and a query runs the root's
-//! plane test on it right there, in the entries' contiguous memory: in a compact scene, where
-//! the boxes of most paths overlap the frustum's, that test still rejects about half the paths
-//! without touching their worlds (counted over `mwb bench query`'s tumble worlds), and for the
-//! rest it hands over the planes the root box is wholly inside of, so the tree below need not
-//! repeat it.
+//! The work of one query comes in [`Part`]s (subtrees near the top, runs of the pending list)
+//! that threads take one at a time. Pieces that arrive after the last build wait in a pending
+//! list (tested one by one) until it is a quarter of the built part, then the hierarchy is
+//! rebuilt: ingest stays amortised O(log n) per piece and queries O(pieces near the frustum +
+//! pending). The copy of the vertices costs memory (`mwb bench query` reports it per world)
+//! and buys the speed: without it every surviving piece was a chain of cache misses into its
+//! world (see docs/performance.md).
 
-use mwb_core::browse::{ALL_PLANES, Frustum, Obb};
+use mwb_core::browse::{ALL_PLANES, Frustum, Plane, Polyline, TimeWindow, segment_entry};
 
 type Vec3 = [f64; 3];
 
@@ -68,26 +73,45 @@ impl Aabb {
         0.5 * (self.min[k] + self.max[k])
     }
 
-    /// True only if the box (a path's box grown by its radius `r`) provably holds no point of
-    /// `frustum` inflated by `r`: one plane of `frustum` has the whole box outside (the box is
-    /// grown by `r` along the axes, so this implies the same of the plane moved out by `r`), or
-    /// the box misses `region_box` — the bounding box of the vertices of `frustum` inflated by
-    /// at least every radius in the hierarchy (see [`region_box`]): a separating-axis test on
-    /// the coordinate axes, which are the box's own.
-    pub fn apart(&self, frustum: &Frustum, region_box: Option<&Aabb>) -> bool {
-        let c = [self.centre(0), self.centre(1), self.centre(2)];
-        let e = [
-            0.5 * (self.max[0] - self.min[0]),
-            0.5 * (self.max[1] - self.min[1]),
-            0.5 * (self.max[2] - self.min[2]),
-        ];
-        let by_plane = frustum.planes().iter().any(|p| {
-            let reach: f64 = (0..3).map(|k| p.normal[k].abs() * e[k]).sum();
-            p.distance(c) > reach
-        });
-        by_plane
-            || region_box
-                .is_some_and(|r| (0..3).any(|k| r.min[k] > self.max[k] || r.max[k] < self.min[k]))
+    /// The plane test of Assarsson and Möller on a box grown by a path's radius `r`, against
+    /// the planes of a frustum in `mask` (bit k = plane k). `None`: one plane has the whole box
+    /// outside; since the box holds every path point grown by `r` along each axis, every point
+    /// is then more than `r` outside that plane, i.e. outside the frustum inflated by `r`.
+    /// Otherwise the planes the whole box is inside of (with a margin far above rounding) are
+    /// cleared from the returned mask: every path point is then more than `r` inside them, so
+    /// segments clipped against the inflated frustum need not test them again.
+    pub fn classify(&self, planes: &[Plane; 6], mask: u8) -> Option<u8> {
+        let mut out = mask;
+        for (k, p) in planes.iter().enumerate() {
+            if mask & (1 << k) == 0 {
+                continue;
+            }
+            // Signed distances of the corner nearest to the inside (`near`) and of the one
+            // farthest out (`far`): n·x is smallest at min where n ≥ 0, at max elsewhere.
+            let (mut near, mut far) = (-p.offset, -p.offset);
+            for i in 0..3 {
+                let n = p.normal[i];
+                let (lo, hi) = if n >= 0.0 {
+                    (self.min[i], self.max[i])
+                } else {
+                    (self.max[i], self.min[i])
+                };
+                near += n * lo;
+                far += n * hi;
+            }
+            if near > 0.0 {
+                return None;
+            }
+            if far < -1e-9 * (1.0 + p.offset.abs() + far.abs()) {
+                out &= !(1 << k);
+            }
+        }
+        Some(out)
+    }
+
+    /// Whether the two boxes are disjoint (a separating-axis test on the coordinate axes).
+    fn disjoint(&self, o: &Aabb) -> bool {
+        (0..3).any(|k| o.min[k] > self.max[k] || o.max[k] < self.min[k])
     }
 }
 
@@ -117,52 +141,138 @@ struct Node {
     count: u32,
 }
 
-/// Leaves hold at most this many paths.
-const LEAF: usize = 8;
+/// Leaves hold at most this many pieces.
+const LEAF: usize = 16;
 
-/// One path: its box grown by its radius, its tree's root box and radius, and its world.
+/// Segments per piece: a path enters the hierarchy as runs of this many segments, each with its
+/// own box, so that a query reaches the parts of a path near the frustum rather than whole
+/// paths (in a compact scene nearly every path's box meets a frustum drawn through it, but few
+/// of its pieces do). Measured with `mwb bench query` (see docs/performance.md).
+pub const PIECE_SEGMENTS: usize = 4;
+
+/// One piece of a path: the box of its vertices grown by the path's radius, the radius, its
+/// world, and a copy of its vertices with their times (`[x, y, z, t]`; `count + 1` of them, the
+/// last shared with the next piece), so that the exact test reads nothing but the entry.
 #[derive(Debug, Clone)]
 struct Entry {
     bounds: Aabb,
-    root: Obb,
     /// The never-miss radius as [`Frustum::inflated`] uses it: ≥ 0, NaN taken as +∞.
     radius: f64,
     world: u32,
+    /// Segments in the piece, 1..=[`PIECE_SEGMENTS`].
+    count: u32,
+    verts: [[f64; 4]; PIECE_SEGMENTS + 1],
 }
 
-/// The paths of one object index across worlds.
+impl Entry {
+    fn t0(&self) -> f64 {
+        self.verts[0][3]
+    }
+
+    fn t1(&self) -> f64 {
+        self.verts[self.count as usize][3]
+    }
+}
+
+/// A piece that may meet the frustum, as a query hands it over.
+#[derive(Debug, Clone, Copy)]
+pub struct Piece<'a> {
+    entry: &'a Entry,
+    /// Planes still to clip against (bit k = plane k): the piece's box is wholly inside the
+    /// others, by more than the radius.
+    mask: u8,
+}
+
+impl Piece<'_> {
+    /// The world whose path this is a piece of.
+    pub fn world(&self) -> u32 {
+        self.entry.world
+    }
+
+    /// The path's never-miss radius.
+    pub fn radius(&self) -> f64 {
+        self.entry.radius
+    }
+
+    /// The exact test ([`segment_entry`], as brute force and the OBB trees run it) of the
+    /// piece's segments against `region` — the query's frustum inflated by
+    /// [`radius`](Self::radius) — during `window`: the earliest time inside, if any.
+    pub fn first_entry(&self, region: &Frustum, window: Option<TimeWindow>) -> Option<f64> {
+        let v = &self.entry.verts;
+        (0..self.entry.count as usize).find_map(|i| {
+            let (a, b) = (v[i], v[i + 1]);
+            segment_entry(
+                [a[0], a[1], a[2]],
+                [b[0], b[1], b[2]],
+                a[3],
+                b[3],
+                region,
+                self.mask,
+                window,
+            )
+        })
+    }
+}
+
+/// A share of a query's work: a subtree of the hierarchy, or a run of the pending pieces.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Part {
+    Subtree(u32),
+    Pending { start: u32, end: u32 },
+}
+
+/// The hierarchy over the path pieces of one object index.
 #[derive(Debug, Clone, Default)]
 pub struct PathBvh {
-    /// In leaf order.
+    /// Built part, in hierarchy order.
     entries: Vec<Entry>,
     nodes: Vec<Node>,
+    /// Inserted since the last build.
     pending: Vec<Entry>,
-    /// The largest path radius inserted (never lowered on removal: only ever conservative).
+    /// Largest radius inserted (for the vertex box of the inflated frustum).
     max_radius: f64,
 }
 
 impl PathBvh {
-    /// Adds a world's path: `bounds` is its box grown by the path's never-miss `radius`,
-    /// `root` its tree's root box (goes to the pending list; rebuilt in batches).
-    pub fn insert(&mut self, bounds: Aabb, root: Obb, world: u32, radius: f64) {
+    /// Adds `world`'s path with its never-miss radius (NaN: unknown, taken as +∞, so the path is
+    /// never pruned), cut into pieces of [`PIECE_SEGMENTS`] segments. A one-vertex path is one
+    /// degenerate segment, as [`Polyline::segment_count`] counts it.
+    pub fn insert(&mut self, world: u32, path: &Polyline, radius: f64) {
         let radius = if radius.is_nan() {
             f64::INFINITY
         } else {
             radius.max(0.0)
         };
         self.max_radius = self.max_radius.max(radius);
-        self.pending.push(Entry {
-            bounds,
-            root,
-            radius,
-            world,
-        });
-        if self.pending.len() >= 64 && self.pending.len() * 4 >= self.entries.len() {
+        let (points, times) = (path.points(), path.times());
+        let last = points.len() - 1;
+        let segments = path.segment_count();
+        for first in (0..segments).step_by(PIECE_SEGMENTS) {
+            let count = PIECE_SEGMENTS.min(segments - first);
+            let mut verts = [[0.0; 4]; PIECE_SEGMENTS + 1];
+            for (i, v) in verts.iter_mut().enumerate().take(count + 1) {
+                let j = (first + i).min(last);
+                let p = points[j];
+                *v = [p[0], p[1], p[2], times[j]];
+            }
+            let span = &points[first.min(last)..=(first + count).min(last)];
+            let Some(bounds) = Aabb::of_points(span, radius) else {
+                continue;
+            };
+            self.pending.push(Entry {
+                bounds,
+                radius,
+                world,
+                count: count as u32,
+                verts,
+            });
+        }
+        if self.pending.len() >= 256 && self.pending.len() * 4 >= self.entries.len() {
             self.rebuild();
         }
     }
 
-    /// Removes a world (rebuilds; worlds leave rarely).
+    /// Removes every piece of `world`.
     pub fn remove(&mut self, world: u32) {
         let before = self.entries.len() + self.pending.len();
         self.entries.retain(|e| e.world != world);
@@ -172,6 +282,7 @@ impl PathBvh {
         }
     }
 
+    /// Pieces held.
     pub fn len(&self) -> usize {
         self.entries.len() + self.pending.len()
     }
@@ -183,6 +294,12 @@ impl PathBvh {
     pub fn heap_bytes(&self) -> usize {
         (self.entries.capacity() + self.pending.capacity()) * std::mem::size_of::<Entry>()
             + self.nodes.capacity() * std::mem::size_of::<Node>()
+    }
+
+    /// Largest radius of any piece inserted: a query's `region_box` must bound the frustum
+    /// inflated by at least this.
+    pub fn max_radius(&self) -> f64 {
+        self.max_radius
     }
 
     fn rebuild(&mut self) {
@@ -198,9 +315,15 @@ impl PathBvh {
         });
         let n = self.entries.len();
         self.build(0, 0, n);
+        // Rebuilds are rare (the pending list must reach a quarter of the built part), so the
+        // spare room of the vectors' doubling is given back each time.
+        self.entries.shrink_to_fit();
+        self.nodes.shrink_to_fit();
+        self.pending.shrink_to_fit();
     }
 
-    /// Builds node `at` over `entries[lo..hi]`: median split on the widest axis of the centres.
+    /// Builds node `at` over `entries[lo..hi]`: median split along the longest axis of the
+    /// entries' centres.
     fn build(&mut self, at: usize, lo: usize, hi: usize) {
         let bounds = self.entries[lo + 1..hi]
             .iter()
@@ -244,40 +367,103 @@ impl PathBvh {
         self.build(left + 1, mid, hi);
     }
 
-    /// Calls `visit(world, mask)` for every world whose path may come within its radius of
-    /// `frustum` (all pending ones included): never skips a world whose path the exact test on
-    /// the inflated frustum would accept. `mask` is the root box's plane test against the
-    /// frustum inflated by the path's radius ([`Obb::classify_inflated`] from
-    /// [`ALL_PLANES`]), for [`PathTree::intersects_region_masked`](mwb_core::browse::PathTree::intersects_region_masked).
-    pub fn query(&self, frustum: &Frustum, mut visit: impl FnMut(u32, u8)) {
-        let region = region_box(&frustum.inflated_bounded(self.max_radius));
-        let apart = |b: &Aabb| b.apart(frustum, region.as_ref());
-        let mut leaf = |e: &Entry| {
-            if !apart(&e.bounds)
-                && let Some(mask) = e
-                    .root
-                    .classify_inflated(frustum.planes(), e.radius, ALL_PLANES)
+    /// The whole hierarchy as at least `at_least` shares where it is big enough (subtrees near
+    /// the top, then runs of up to 256 pending pieces), for threads to take one at a time.
+    pub fn parts(&self, at_least: usize) -> Vec<Part> {
+        let mut level: Vec<u32> = if self.nodes.is_empty() {
+            vec![]
+        } else {
+            vec![0]
+        };
+        while level.len() < at_least {
+            let mut next = Vec::with_capacity(2 * level.len());
+            let mut split = false;
+            for &i in &level {
+                let n = &self.nodes[i as usize];
+                if n.count == 0 {
+                    next.extend([n.first, n.first + 1]);
+                    split = true;
+                } else {
+                    next.push(i);
+                }
+            }
+            level = next;
+            if !split {
+                break;
+            }
+        }
+        let mut parts: Vec<Part> = level.into_iter().map(Part::Subtree).collect();
+        let n = self.pending.len() as u32;
+        parts.extend((0..n).step_by(256).map(|start| Part::Pending {
+            start,
+            end: (start + 256).min(n),
+        }));
+        parts
+    }
+
+    /// Calls `visit` with every piece in `part` that may hold a point inside `frustum` inflated
+    /// by its path's radius during `window`, except the pieces of worlds `skip` names (e.g.
+    /// worlds already found, looked up before the piece's box is tested). A piece is passed
+    /// over only when its time range
+    /// misses the window, when one plane has its whole box outside ([`Aabb::classify`], with
+    /// plane masking down the hierarchy: a node inside a plane spares everything below it that
+    /// plane), or when its box misses `region_box` ([`region_box`] of the frustum inflated by
+    /// [`max_radius`](Self::max_radius) or more).
+    pub fn query(
+        &self,
+        part: Part,
+        frustum: &Frustum,
+        region_box: Option<&Aabb>,
+        window: Option<TimeWindow>,
+        skip: impl Fn(u32) -> bool,
+        mut visit: impl FnMut(Piece<'_>),
+    ) {
+        let planes = frustum.planes();
+        let test = |b: &Aabb, mask: u8| {
+            if region_box.is_some_and(|r| b.disjoint(r)) {
+                return None;
+            }
+            b.classify(planes, mask)
+        };
+        let mut leaf = |entry: &Entry, mask: u8| {
+            if window.is_some_and(|w| entry.t1() < w.start() || entry.t0() > w.end())
+                || skip(entry.world)
             {
-                visit(e.world, mask);
+                return;
+            }
+            if let Some(mask) = test(&entry.bounds, mask) {
+                visit(Piece { entry, mask });
             }
         };
-        if !self.nodes.is_empty() {
-            let mut stack = vec![0usize];
-            while let Some(i) = stack.pop() {
-                let node = &self.nodes[i];
-                if apart(&node.bounds) {
-                    continue;
+        match part {
+            Part::Subtree(root) => {
+                if self.nodes.get(root as usize).is_none() {
+                    return;
                 }
-                if node.count > 0 {
-                    let (a, n) = (node.first as usize, node.count as usize);
-                    self.entries[a..a + n].iter().for_each(&mut leaf);
-                } else {
-                    stack.push(node.first as usize + 1);
-                    stack.push(node.first as usize);
+                let mut stack = vec![(root as usize, ALL_PLANES)];
+                while let Some((i, mask)) = stack.pop() {
+                    let node = &self.nodes[i];
+                    let Some(mask) = test(&node.bounds, mask) else {
+                        continue;
+                    };
+                    if node.count > 0 {
+                        let (a, n) = (node.first as usize, node.count as usize);
+                        for e in &self.entries[a..a + n] {
+                            leaf(e, mask);
+                        }
+                    } else {
+                        stack.push((node.first as usize + 1, mask));
+                        stack.push((node.first as usize, mask));
+                    }
+                }
+            }
+            Part::Pending { start, end } => {
+                let end = (end as usize).min(self.pending.len());
+                for e in self.pending.get(start as usize..end).unwrap_or_default() {
+                    leaf(e, ALL_PLANES);
                 }
             }
         }
-        self.pending.iter().for_each(&mut leaf);
     }
 }
 
@@ -285,67 +471,176 @@ impl PathBvh {
 mod tests {
     use super::*;
     use mwb_core::rng::{Stream, WorldRng};
+    use std::collections::BTreeSet;
 
-    /// Every box that truly overlaps the query box is visited, whatever the insertion order and
-    /// the rebuild points; boxes far away are mostly not.
+    /// Random-walk paths of 1 to 40 vertices, radii from 0 to 5 cm (one unknown, NaN).
+    fn paths(rng: &mut WorldRng, n: u32) -> Vec<(Polyline, f64)> {
+        (0..n)
+            .map(|i| {
+                let mut p = [
+                    rng.uniform(-10.0, 10.0),
+                    rng.uniform(0.0, 3.0),
+                    rng.uniform(-10.0, 10.0),
+                ];
+                let (mut times, mut points) = (Vec::new(), Vec::new());
+                let mut t = rng.uniform(0.0, 1.0);
+                for _ in 0..1 + i % 40 {
+                    times.push(t);
+                    points.push(p);
+                    t += rng.uniform(0.01, 0.3);
+                    for v in &mut p {
+                        *v += rng.uniform(-0.4, 0.4);
+                    }
+                }
+                let radius = if i == 77 {
+                    f64::NAN
+                } else {
+                    rng.uniform(0.0, 0.05)
+                };
+                let path = Polyline::new(times, points).unwrap_or_else(|e| panic!("{e}"));
+                (path, radius)
+            })
+            .collect()
+    }
+
+    /// The worlds whose pieces, handed over by the query of `parts`, pass the exact test; and
+    /// every handed-over piece's mask is checked: a cleared plane has each vertex more than
+    /// the radius inside it.
+    fn touched(
+        bvh: &PathBvh,
+        parts: &[Part],
+        frustum: &Frustum,
+        window: Option<TimeWindow>,
+    ) -> BTreeSet<u32> {
+        let region = region_box(&frustum.inflated_bounded(bvh.max_radius()));
+        let mut hits = BTreeSet::new();
+        for &part in parts {
+            bvh.query(
+                part,
+                frustum,
+                region.as_ref(),
+                window,
+                |_| false,
+                |p| {
+                    for (k, plane) in frustum.planes().iter().enumerate() {
+                        if p.mask & (1 << k) == 0 {
+                            for v in &p.entry.verts[..=p.entry.count as usize] {
+                                let d = plane.distance([v[0], v[1], v[2]]);
+                                assert!(d < -p.radius(), "plane {k}: vertex {v:?} at {d}");
+                            }
+                        }
+                    }
+                    let inflated = frustum.inflated(p.radius());
+                    if p.first_entry(&inflated, window).is_some() {
+                        hits.insert(p.world());
+                    }
+                },
+            );
+        }
+        hits
+    }
+
+    /// Pieces, hierarchy pruning (planes with masking, vertex box, time ranges) and the exact
+    /// test on the entries' own copies of the vertices keep exactly the worlds a
+    /// segment-by-segment test of the whole path against the inflated frustum keeps — whatever
+    /// the insertion order, the rebuild points, a removal, and however the work is split.
     #[test]
-    fn query_returns_every_overlapping_box() {
+    fn pieces_keep_exactly_the_worlds_brute_force_keeps() {
         let mut rng = WorldRng::new(3, Stream::Scene);
+        let paths = paths(&mut rng, 3000);
         let mut bvh = PathBvh::default();
-        let mut boxes = Vec::new();
-        for w in 0..3000u32 {
+        // A removal rebuilds; the last paths then wait in the pending list.
+        for (w, (path, radius)) in paths.iter().enumerate() {
+            if w == 2950 {
+                bvh.remove(17);
+            }
+            bvh.insert(w as u32, path, *radius);
+        }
+        let pieces: usize = paths
+            .iter()
+            .enumerate()
+            .filter(|(w, _)| *w != 17)
+            .map(|(_, (p, _))| p.segment_count().div_ceil(PIECE_SEGMENTS))
+            .sum();
+        assert_eq!(bvh.len(), pieces);
+        assert!(
+            !bvh.pending.is_empty() && !bvh.nodes.is_empty(),
+            "both halves are tested"
+        );
+        let splits = [bvh.parts(1), bvh.parts(5), bvh.parts(64)];
+        assert!(splits[2].len() >= 64);
+        let (mut kept, mut windowed) = (0, 0);
+        for q in 0..300 {
             let c = [
-                rng.uniform(-20.0, 20.0),
-                rng.uniform(0.0, 5.0),
-                rng.uniform(-20.0, 20.0),
+                rng.uniform(-10.0, 10.0),
+                rng.uniform(0.0, 3.0),
+                rng.uniform(-10.0, 10.0),
             ];
             let h = [
-                rng.uniform(0.01, 2.0),
+                rng.uniform(0.01, 3.0),
                 rng.uniform(0.01, 1.0),
-                rng.uniform(0.01, 2.0),
+                rng.uniform(0.01, 3.0),
             ];
-            let b = Aabb {
-                min: [c[0] - h[0], c[1] - h[1], c[2] - h[2]],
-                max: [c[0] + h[0], c[1] + h[1], c[2] + h[2]],
-            };
-            boxes.push(b);
-            let corners: Vec<Vec3> = (0..8)
-                .map(|k| {
-                    let pick = |i: usize| if k >> i & 1 == 1 { b.max[i] } else { b.min[i] };
-                    [pick(0), pick(1), pick(2)]
-                })
-                .collect();
-            bvh.insert(b, Obb::fit(&corners), w, 0.0);
-        }
-        bvh.remove(17);
-        assert_eq!(bvh.len(), 2999);
-        for _ in 0..200 {
-            let c = [
-                rng.uniform(-20.0, 20.0),
-                rng.uniform(0.0, 5.0),
-                rng.uniform(-20.0, 20.0),
-            ];
-            let h = rng.uniform(0.1, 4.0);
-            let q = Frustum::aabb(
-                [c[0] - h, c[1] - h, c[2] - h],
-                [c[0] + h, c[1] + h, c[2] + h],
+            let frustum = Frustum::aabb(
+                [c[0] - h[0], c[1] - h[1], c[2] - h[2]],
+                [c[0] + h[0], c[1] + h[1], c[2] + h[2]],
             )
             .unwrap_or_else(|e| panic!("{e}"));
-            let mut seen = std::collections::BTreeSet::new();
-            bvh.query(&q, |w, _| {
-                seen.insert(w);
-            });
-            let mut truth = 0;
-            for (w, b) in boxes.iter().enumerate() {
-                let overlap = (0..3).all(|k| b.min[k] <= c[k] + h && b.max[k] >= c[k] - h);
-                if overlap && w != 17 {
-                    truth += 1;
-                    assert!(seen.contains(&(w as u32)), "box {w} missed");
-                }
+            let window = if q % 3 == 0 {
+                let a = rng.uniform(0.0, 6.0);
+                windowed += 1;
+                Some(
+                    TimeWindow::new(a, a + rng.uniform(0.0, 2.0)).unwrap_or_else(|e| panic!("{e}")),
+                )
+            } else {
+                None
+            };
+            let truth: BTreeSet<u32> = paths
+                .iter()
+                .enumerate()
+                .filter(|(w, (p, r))| {
+                    *w != 17 && p.first_entry(&frustum.inflated(*r), window).is_some()
+                })
+                .map(|(w, _)| w as u32)
+                .collect();
+            kept += usize::from(truth.len() > 1);
+            for parts in &splits {
+                assert_eq!(touched(&bvh, parts, &frustum, window), truth, "query {q}");
             }
-            // Boxes and queries are both axis-aligned here, so the test is exact.
-            assert_eq!(seen.len(), truth);
-            assert!(!seen.contains(&17));
+        }
+        assert!(
+            kept > 100 && windowed > 50,
+            "kept {kept}, windowed {windowed}"
+        );
+    }
+
+    /// Split any way, the parts hand over every piece exactly once (a region holding
+    /// everything prunes nothing).
+    #[test]
+    fn parts_cover_every_piece_once() {
+        let mut rng = WorldRng::new(5, Stream::Scene);
+        let mut bvh = PathBvh::default();
+        for (w, (path, _)) in paths(&mut rng, 700).iter().enumerate() {
+            bvh.insert(w as u32, path, 0.01);
+        }
+        let all = Frustum::aabb([-100.0; 3], [100.0; 3]).unwrap_or_else(|e| panic!("{e}"));
+        let region = region_box(&all.inflated_bounded(bvh.max_radius()));
+        for at_least in [0, 1, 2, 7, 1000] {
+            let mut seen = 0;
+            for part in bvh.parts(at_least) {
+                bvh.query(
+                    part,
+                    &all,
+                    region.as_ref(),
+                    None,
+                    |_| false,
+                    |p| {
+                        assert_eq!(p.mask, 0, "inside every plane");
+                        seen += 1;
+                    },
+                );
+            }
+            assert_eq!(seen, bvh.len(), "split into at least {at_least}");
         }
     }
 }

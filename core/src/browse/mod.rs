@@ -87,7 +87,9 @@ pub use metrics::{
     Aggregate, Metric, ObjectMetrics, Order, RankKey, Ranked, RestThresholds, Track, WorldMetric,
     WorldMetrics, merge_top_k, score, top_k,
 };
-pub use path::{ALL_PLANES, MAX_TREE_DEPTH, MIN_SPLIT_SEGMENTS, Obb, PathTree, Polyline};
+pub use path::{
+    ALL_PLANES, MAX_TREE_DEPTH, MIN_SPLIT_SEGMENTS, Obb, PathTree, Polyline, segment_entry,
+};
 pub use session::ConstraintSet;
 
 use thiserror::Error;

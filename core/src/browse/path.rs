@@ -17,7 +17,7 @@
 //! the bound hold for time windows too.
 
 use super::constraint::TimeWindow;
-use super::frustum::{Frustum, Plane, RegionCache};
+use super::frustum::{Frustum, RegionCache};
 use super::geom::{Vec3, add, dot, lerp, norm, scale, sub, sym_eigenvectors};
 use super::{BrowseError, finite};
 
@@ -259,10 +259,7 @@ impl Polyline {
         (0..self.segment_count()).find_map(|i| self.segment_entry(i, frustum, ALL_PLANES, window))
     }
 
-    /// Exact leaf test: the part of segment `i` inside `window` is clipped against the planes
-    /// of `frustum` in `mask` (bit k = plane k); returns the time it first is inside. Leaving
-    /// out a plane the whole segment is inside of changes nothing: such a plane neither rejects
-    /// nor cuts.
+    /// Exact leaf test of segment `i` ([`segment_entry`]).
     fn segment_entry(
         &self,
         i: usize,
@@ -271,24 +268,42 @@ impl Polyline {
         window: Option<TimeWindow>,
     ) -> Option<f64> {
         let (a, b, ta, tb) = self.segment(i);
-        let (mut s0, mut s1) = (0.0, 1.0);
-        if let Some(w) = window {
-            if tb < w.start() || ta > w.end() {
-                return None;
+        segment_entry(a, b, ta, tb, frustum, mask, window)
+    }
+}
+
+/// The exact leaf test of every path query: the part of the segment from `a` (time `ta`) to `b`
+/// (time `tb`) inside `window` is clipped against the planes of `frustum` in `mask` (bit k =
+/// plane k); returns the time it first is inside. Leaving out a plane the whole segment is
+/// inside of changes nothing: such a plane neither rejects nor cuts. Brute force, the OBB trees
+/// and the store's hierarchy all decide with this one function, so they agree bit for bit.
+#[inline]
+pub fn segment_entry(
+    a: Vec3,
+    b: Vec3,
+    ta: f64,
+    tb: f64,
+    frustum: &Frustum,
+    mask: u8,
+    window: Option<TimeWindow>,
+) -> Option<f64> {
+    let (mut s0, mut s1) = (0.0, 1.0);
+    if let Some(w) = window {
+        if tb < w.start() || ta > w.end() {
+            return None;
+        }
+        let span = tb - ta;
+        if span > 0.0 {
+            if w.start() > ta {
+                s0 = (w.start() - ta) / span;
             }
-            let span = tb - ta;
-            if span > 0.0 {
-                if w.start() > ta {
-                    s0 = (w.start() - ta) / span;
-                }
-                if w.end() < tb {
-                    s1 = (w.end() - ta) / span;
-                }
+            if w.end() < tb {
+                s1 = (w.end() - ta) / span;
             }
         }
-        let (lo, _) = frustum.clip_segment_masked(a, b, s0, s1, mask)?;
-        Some((ta + lo * (tb - ta)).clamp(ta, tb))
     }
+    let (lo, _) = frustum.clip_segment_masked(a, b, s0, s1, mask)?;
+    Some((ta + lo * (tb - ta)).clamp(ta, tb))
 }
 
 /// An oriented bounding box: centre, orthonormal axes and half extents along them.
@@ -390,27 +405,19 @@ impl Obb {
     /// the returned mask, and what the box holds need not be tested against them again (plane
     /// masking, Assarsson and Möller). `None`: some plane has the whole box outside.
     pub fn classify(&self, region: &Frustum, mask: u8) -> Option<u8> {
-        self.classify_inflated(region.planes(), 0.0, mask)
-    }
-
-    /// [`classify`](Self::classify) against `planes` each moved out by `r` — computed exactly
-    /// as [`Frustum::inflated`] moves them (`offset + r`), so the answer is the one the
-    /// inflated region would give. `r` must be a non-negative radius or +∞.
-    pub fn classify_inflated(&self, planes: &[Plane; 6], r: f64, mask: u8) -> Option<u8> {
         let mut out = mask;
-        for (k, p) in planes.iter().enumerate() {
+        for (k, p) in region.planes().iter().enumerate() {
             if mask & (1 << k) == 0 {
                 continue;
             }
             let reach: f64 = (0..3)
                 .map(|i| dot(p.normal, self.axes[i]).abs() * self.half[i])
                 .sum();
-            let offset = p.offset + r;
-            let d = dot(p.normal, self.center) - offset;
+            let d = p.distance(self.center);
             if d > reach {
                 return None;
             }
-            let margin = 1e-9 * (1.0 + offset.abs() + d.abs() + reach);
+            let margin = 1e-9 * (1.0 + p.offset.abs() + d.abs() + reach);
             if d + reach < -margin {
                 out &= !(1 << k);
             }
@@ -548,25 +555,9 @@ impl PathTree {
         self.visit(0, region, ALL_PLANES, window).is_some()
     }
 
-    /// The root's box (the box of the whole path), for indexes above the tree.
+    /// The root's box: the box of the whole path.
     pub fn root_box(&self) -> &Obb {
         &self.nodes[0].obb
-    }
-
-    /// [`intersects_region`](Self::intersects_region) for a caller that has already
-    /// classified [`root_box`](Self::root_box) against `region` with [`Obb::classify`]
-    /// (or [`Obb::classify_inflated`] on the same planes and radius) starting from
-    /// [`ALL_PLANES`], and got `root_mask`: the root's plane test is not repeated.
-    pub fn intersects_region_masked(
-        &self,
-        region: &Frustum,
-        window: Option<TimeWindow>,
-        root_mask: u8,
-    ) -> bool {
-        self.in_window(0, window)
-            && self
-                .descend(0, region, root_mask & ALL_PLANES, window)
-                .is_some()
     }
 
     fn in_window(&self, i: u32, window: Option<TimeWindow>) -> bool {

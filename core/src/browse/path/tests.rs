@@ -540,9 +540,8 @@ proptest! {
     #![proptest_config(ProptestConfig { cases: 300, ..ProptestConfig::default() })]
 
     /// Plane masking is sound: `classify` drops a plane only when every corner of the box is
-    /// strictly inside it, answers `None` only when one plane has every corner outside, and
-    /// `classify_inflated` on the raw planes answers exactly as `classify` on the inflated
-    /// frustum. The masked entry point of the tree then decides exactly as clipping every
+    /// strictly inside it, and answers `None` only when one plane has every corner outside.
+    /// The tree, which masks planes down its nodes, then decides exactly as clipping every
     /// segment against the region does, windows included. Boxes sit around path points or at a
     /// corner of the region, where the planes are closest to straddling.
     #[test]
@@ -562,7 +561,6 @@ proptest! {
             })
             .collect();
         let got = obb.classify(&region, ALL_PLANES);
-        prop_assert_eq!(got, obb.classify_inflated(c.frustum.planes(), r, ALL_PLANES));
         match got {
             None => {
                 let separated = region
@@ -584,11 +582,7 @@ proptest! {
         let tree = PathTree::build(c.low.clone());
         let window = if windowed { c.window } else { None };
         let truth = c.low.first_entry(&region, window);
-        let masked = tree
-            .root_box()
-            .classify(&region, ALL_PLANES)
-            .is_some_and(|mask| tree.intersects_region_masked(&region, window, mask));
-        prop_assert_eq!(masked, truth.is_some());
+        prop_assert_eq!(tree.intersects_region(&region, window), truth.is_some());
         prop_assert_eq!(tree.first_entry(&region, window), truth);
     }
 }
@@ -670,7 +664,7 @@ fn a_box_inside_every_plane_answers_without_clipping() {
             "{window:?}"
         );
         assert_eq!(
-            tree.intersects_region_masked(&region, window, 0),
+            tree.intersects_region(&region, window),
             path.first_entry(&region, window).is_some(),
             "{window:?}"
         );
