@@ -19,7 +19,9 @@
 //!   world after world: the cheapest layout for it, sharing nothing with the index);
 //!   obb_speedup = brute ÷ index, per_world_trees_speedup = brute ÷ per_world_trees (medians).
 //!   All three must agree on every world;
-//! * rank: top 10 by angular travel summed over all objects, over every world.
+//! * rank: top 10 by angular travel summed over all objects, over every world;
+//! * ingest: `Shard::insert` of each world as the shard is filled (no live constraint), mean
+//!   and slowest — the slowest is a rebuild of the hierarchies.
 
 use anyhow::{Result, bail};
 use mwb_core::browse::api::{Reply, Request, ShardReply, ShardRequest};
@@ -62,6 +64,10 @@ pub struct QueryBench {
     /// brute ÷ per-world OBB trees: what the §4.4.2 trees alone give.
     pub per_world_trees_speedup: f64,
     pub rank_p50_ms: f64,
+    /// `Shard::insert` of one indexed world (its pieces into the hierarchies, the occasional
+    /// rebuild, no live constraint): mean over the worlds, and the slowest (a rebuild).
+    pub ingest_mean_us: f64,
+    pub ingest_max_ms: f64,
     pub memory_bytes_per_world: f64,
     /// Polyline vertices per object, mean (the index's size driver).
     pub vertices_per_object: f64,
@@ -329,9 +335,15 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
     }
     // The shard's copy and brute force's are each allocated in one pass, world after world, so
     // neither gets a tidier memory layout than the other.
+    let mut ingest = Vec::with_capacity(synthetic.len());
     for w in &synthetic {
-        shard.insert(w.clone());
+        let copy = w.clone();
+        let t = Instant::now();
+        shard.insert(copy);
+        ingest.push(t.elapsed().as_secs_f64() * 1e3);
     }
+    let ingest_mean_us = ingest.iter().sum::<f64>() * 1e3 / ingest.len().max(1) as f64;
+    let ingest_max_ms = ingest.iter().copied().fold(0.0, f64::max);
     let plain: Vec<PlainWorld> = synthetic
         .iter()
         .map(|w| {
@@ -439,8 +451,36 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
         obb_speedup: brute_p50 / index_p50.max(1e-9),
         per_world_trees_speedup: brute_p50 / per_world_p50.max(1e-9),
         rank_p50_ms: percentile(&mut rank, 0.5),
+        ingest_mean_us,
+        ingest_max_ms,
         memory_bytes_per_world: shard.heap_bytes() as f64 / f64::from(worlds),
         vertices_per_object: vertices as f64 / (f64::from(worlds) * f64::from(objects)),
         path_radius_mm_p50: percentile(&mut radii, 0.5),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A small run end to end: it fails if the index, the per-world trees and brute force keep
+    /// different worlds for any constraint, and reports sane figures.
+    #[test]
+    fn a_small_bench_agrees_with_brute_force() {
+        let b = bench_query(&QueryBenchOptions {
+            worlds: 300,
+            objects: 4,
+            constraints: 12,
+            ..QueryBenchOptions::default()
+        })
+        .unwrap_or_else(|e| panic!("{e:#}"));
+        assert_eq!((b.worlds, b.objects, b.constraints), (300, 4, 12));
+        assert!((0.0..=1.0).contains(&b.kept_fraction_p50), "{b:?}");
+        assert!(b.memory_bytes_per_world > 1000.0, "{b:?}");
+        assert!(
+            b.vertices_per_object >= 2.0 && b.ingest_max_ms >= 0.0,
+            "{b:?}"
+        );
+        assert!(b.obb_speedup > 0.0 && b.obb_speedup.is_finite(), "{b:?}");
+    }
 }
