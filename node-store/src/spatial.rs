@@ -404,11 +404,10 @@ impl PathBvh {
     /// Calls `visit` with every piece in `part` that may hold a point inside `frustum` inflated
     /// by its path's radius during `window`, except the pieces of worlds `skip` names (e.g.
     /// worlds already found, looked up before the piece's box is tested). A piece is passed
-    /// over only when its time range
-    /// misses the window, when one plane has its whole box outside ([`Aabb::classify`], with
-    /// plane masking down the hierarchy: a node inside a plane spares everything below it that
-    /// plane), or when its box misses `region_box` ([`region_box`] of the frustum inflated by
-    /// [`max_radius`](Self::max_radius) or more).
+    /// over only when its time range misses the window, when one plane has its whole box
+    /// outside ([`Aabb::classify`], with plane masking down the hierarchy: a node inside a
+    /// plane spares everything below it that plane), or when its box misses `region_box`
+    /// ([`region_box`] of the frustum inflated by [`max_radius`](Self::max_radius) or more).
     pub fn query(
         &self,
         part: Part,

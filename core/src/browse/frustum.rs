@@ -281,6 +281,10 @@ impl Projection {
     }
 }
 
+/// Every plane of a [`Frustum`] (bit k = plane k), for the plane masks of box tests and
+/// [`Frustum::clip_segment_masked`].
+pub const ALL_PLANES: u8 = 0b11_1111;
+
 /// An oriented plane `normal·x = offset` with a unit normal pointing *out* of the region it
 /// bounds: `distance(x) ≤ 0` is inside.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -523,7 +527,7 @@ impl Frustum {
     /// parameter interval inside the frustum, if any. This is the exact leaf test of the path
     /// index: each plane either keeps the interval, rejects it or cuts it at its crossing.
     pub fn clip_segment(&self, a: Vec3, b: Vec3, s0: f64, s1: f64) -> Option<(f64, f64)> {
-        self.clip_segment_masked(a, b, s0, s1, 0b11_1111)
+        self.clip_segment_masked(a, b, s0, s1, ALL_PLANES)
     }
 
     /// [`clip_segment`](Self::clip_segment) against the planes in `mask` only (bit k = plane

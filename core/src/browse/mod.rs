@@ -79,17 +79,15 @@ mod session;
 pub use bitset::{WorldSet, WorldSetIter};
 pub use constraint::{Constraint, ConstraintId, Polarity, TimeWindow};
 pub use frustum::{
-    Camera, DEFAULT_FAR_M, DEFAULT_NEAR_M, Frustum, Intrinsics, Plane, Projection, RegionCache,
-    ScreenRect, Viewport,
+    ALL_PLANES, Camera, DEFAULT_FAR_M, DEFAULT_NEAR_M, Frustum, Intrinsics, Plane, Projection,
+    RegionCache, ScreenRect, Viewport,
 };
 pub use geom::{Quat, Vec3, quat_angle_between};
 pub use metrics::{
     Aggregate, Metric, ObjectMetrics, Order, RankKey, Ranked, RestThresholds, Track, WorldMetric,
     WorldMetrics, merge_top_k, score, top_k,
 };
-pub use path::{
-    ALL_PLANES, MAX_TREE_DEPTH, MIN_SPLIT_SEGMENTS, Obb, PathTree, Polyline, segment_entry,
-};
+pub use path::{MAX_TREE_DEPTH, MIN_SPLIT_SEGMENTS, Obb, PathTree, Polyline, segment_entry};
 pub use session::ConstraintSet;
 
 use thiserror::Error;

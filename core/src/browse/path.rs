@@ -17,7 +17,7 @@
 //! the bound hold for time windows too.
 
 use super::constraint::TimeWindow;
-use super::frustum::{Frustum, RegionCache};
+use super::frustum::{ALL_PLANES, Frustum, RegionCache};
 use super::geom::{Vec3, add, dot, lerp, norm, scale, sub, sym_eigenvectors};
 use super::{BrowseError, finite};
 
@@ -28,8 +28,6 @@ pub const MAX_TREE_DEPTH: usize = 3;
 /// `mwb bench query` (4 → 16 took the index from 32 to 15 kB per 10-object world at the same
 /// speed). A 3 s tumbling path of ~19 vertices gets a root and two leaves.
 pub const MIN_SPLIT_SEGMENTS: usize = 16;
-/// Every plane of a [`Frustum`] (bit k = plane k).
-pub const ALL_PLANES: u8 = 0b11_1111;
 
 /// A finite start time and a positive, finite frame interval.
 fn check_timing(start: f64, frame_dt: f64) -> Result<(), BrowseError> {
@@ -571,19 +569,8 @@ impl PathTree {
         if !self.in_window(i, window) {
             return None;
         }
-        let mask = self.nodes[i as usize].obb.classify(region, mask)?;
-        self.descend(i, region, mask, window)
-    }
-
-    /// Node `i` after its plane test gave `mask`.
-    fn descend(
-        &self,
-        i: u32,
-        region: &Frustum,
-        mask: u8,
-        window: Option<TimeWindow>,
-    ) -> Option<f64> {
         let node = &self.nodes[i as usize];
+        let mask = node.obb.classify(region, mask)?;
         // Wholly inside every plane (mask 0): the first segment in the window is the answer,
         // and the leaf loop below finds it with no plane to clip against.
         match node.children {
