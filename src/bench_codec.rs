@@ -20,12 +20,12 @@
 use crate::client;
 use anyhow::{Context, Result, bail};
 use mwb_codec::{
-    DEFAULT_LOWRES_HZ, EncodeParams, MotionModel, Quality, Track, WorldReader, encode_world,
-    quantised_frames_baseline, raw_f32_size,
+    DEFAULT_LOWRES_HZ, EncodeParams, MotionModel, Quality, RotationDynamics, Track, WorldReader,
+    encode_world_with_dynamics, quantised_frames_baseline, raw_f32_size,
 };
 use mwb_core::rng::world_seed;
 use mwb_core::scene::SceneTemplate;
-use mwb_sampler::{RunOptions, motion_model, run_world_observed};
+use mwb_sampler::{RunOptions, SimWorld, motion_model, rotation_dynamics, run_world_observed};
 use std::ops::ControlFlow;
 use std::path::Path;
 use std::time::Instant;
@@ -76,6 +76,8 @@ pub struct SceneMotion {
     pub frame_dt: f64,
     pub model: MotionModel,
     pub worlds: Vec<Vec<Vec<Track>>>,
+    /// Per world, the rotation dynamics the sampler gives its encoder (format 4).
+    pub dynamics: Vec<Option<RotationDynamics>>,
 }
 
 impl SceneMotion {
@@ -84,6 +86,7 @@ impl SceneMotion {
         let (file, text) = client::load_scene(scene_arg)?;
         let template = SceneTemplate::parse(&text, &file)?;
         let mut out = Vec::new();
+        let mut dynamics = Vec::new();
         let mut frame_dt = 0.0;
         let mut model = MotionModel::General;
         for i in 0..worlds {
@@ -91,6 +94,8 @@ impl SceneMotion {
             let scene = template.instantiate(seed);
             frame_dt = scene.settings.dt;
             model = motion_model(&scene);
+            let sim = SimWorld::build(&scene).with_context(|| format!("{file}: world {i}"))?;
+            dynamics.push(rotation_dynamics(&scene, &sim));
             let mut segments = Vec::new();
             run_world_observed(
                 &template,
@@ -108,11 +113,77 @@ impl SceneMotion {
             frame_dt,
             model,
             worlds: out,
+            dynamics,
         })
     }
 
-    fn segments(&self) -> impl Iterator<Item = &[Track]> {
-        self.worlds.iter().flatten().map(Vec::as_slice)
+    /// Writes the motion to `<dir>/<scene stem>.tracks` in the layout codec/tests/scenes.rs reads
+    /// (`f64 frame_dt, u8 model, 3 × f64 gravity, u32 worlds`, then per world and segment the
+    /// bodies' frames as 7 × f64, then each world's rotation dynamics; little endian), so the
+    /// codec can be measured on exactly these worlds without the simulator. Returns the file
+    /// written.
+    pub fn write_tracks(&self, dir: &Path) -> Result<std::path::PathBuf> {
+        let stem = Path::new(&self.scene)
+            .file_stem()
+            .and_then(|s| s.to_str())
+            .unwrap_or("scene");
+        let path = dir.join(format!("{stem}.tracks"));
+        let mut out = Vec::new();
+        out.extend_from_slice(&self.frame_dt.to_le_bytes());
+        let (model, g) = match self.model {
+            MotionModel::General => (0u8, [0.0; 3]),
+            MotionModel::FreeFlightGravity { g } => (1u8, g),
+        };
+        out.push(model);
+        for v in g {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        let count = |n: usize| -> Result<[u8; 4]> {
+            Ok(u32::try_from(n)
+                .context("track file: count over u32")?
+                .to_le_bytes())
+        };
+        out.extend_from_slice(&count(self.worlds.len())?);
+        for world in &self.worlds {
+            out.extend_from_slice(&count(world.len())?);
+            for segment in world {
+                out.extend_from_slice(&count(segment.len())?);
+                for track in segment {
+                    out.extend_from_slice(&count(track.len())?);
+                    for (p, q) in track.positions.iter().zip(&track.rotations) {
+                        for v in p.iter().chain(q) {
+                            out.extend_from_slice(&v.to_le_bytes());
+                        }
+                    }
+                }
+            }
+        }
+        // Trailer (format 4's rotation dynamics), per world: u8 present, then u32 substeps,
+        // f64 angular damping, u32 bodies, per body u8 present + 3 × f64 principal moments.
+        for d in &self.dynamics {
+            out.push(u8::from(d.is_some()));
+            let Some(d) = d else { continue };
+            out.extend_from_slice(&d.substeps.to_le_bytes());
+            out.extend_from_slice(&d.angular_damping.to_le_bytes());
+            out.extend_from_slice(&count(d.inertia.len())?);
+            for i in &d.inertia {
+                out.push(u8::from(i.is_some()));
+                for v in i.unwrap_or_default() {
+                    out.extend_from_slice(&v.to_le_bytes());
+                }
+            }
+        }
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        std::fs::write(&path, out).with_context(|| format!("writing {}", path.display()))?;
+        Ok(path)
+    }
+
+    /// Every segment, with its world's rotation dynamics.
+    fn segments(&self) -> impl Iterator<Item = (&[Track], Option<&RotationDynamics>)> {
+        self.worlds
+            .iter()
+            .zip(&self.dynamics)
+            .flat_map(|(segs, d)| segs.iter().map(move |seg| (seg.as_slice(), d.as_ref())))
     }
 
     /// Each world as one track per body over all its frames.
@@ -153,10 +224,13 @@ pub struct Sizes {
 }
 
 /// Encoded and zstd sizes of `streams` (each encoded on its own) at one bound.
-fn sizes<'a>(streams: impl Iterator<Item = &'a [Track]>, p: &EncodeParams) -> Result<Sizes> {
+fn sizes<'a>(
+    streams: impl Iterator<Item = (&'a [Track], Option<&'a RotationDynamics>)>,
+    p: &EncodeParams,
+) -> Result<Sizes> {
     let mut s = Sizes::default();
-    for tracks in streams {
-        let encoded = encode_world(tracks, p)?;
+    for (tracks, dynamics) in streams {
+        let encoded = encode_world_with_dynamics(tracks, p, dynamics)?;
         s.codec += encoded.bytes.len();
         s.zstd += zstd_size(tracks, p)?;
         s.raw += raw_f32_size(tracks);
@@ -179,10 +253,10 @@ pub fn measure(m: &SceneMotion, quality: Quality) -> Result<CodecBench> {
     let (mut max_pos_err, mut max_rot_err, mut lowres_dev) = (0.0f64, 0.0f64, 0.0f64);
     let mut segments = 0;
     let (mut pos_segments, mut rot_segments) = (0u64, 0u64);
-    for tracks in m.segments() {
+    for (tracks, dynamics) in m.segments() {
         segments += 1;
         let t = Instant::now();
-        let encoded = encode_world(tracks, &p)?;
+        let encoded = encode_world_with_dynamics(tracks, &p, dynamics)?;
         encode_s += t.elapsed().as_secs_f64();
         let t = Instant::now();
         let decoded = WorldReader::new(&encoded.bytes)?.decode_all()?;
@@ -220,7 +294,13 @@ pub fn measure(m: &SceneMotion, quality: Quality) -> Result<CodecBench> {
         rot_segments += encoded.stats.rotation_segments;
     }
     let whole = m.whole_worlds();
-    let w = sizes(whole.iter().map(Vec::as_slice), &p)?;
+    let w = sizes(
+        whole
+            .iter()
+            .zip(&m.dynamics)
+            .map(|(w, d)| (w.as_slice(), d.as_ref())),
+        &p,
+    )?;
     let object_seconds = object_frames as f64 * m.frame_dt;
     let ratio = |a: usize, b: usize| a as f64 / b.max(1) as f64;
     Ok(CodecBench {

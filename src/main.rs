@@ -208,6 +208,10 @@ enum BenchCommand {
         /// Also sweep the bounds and write a rate–distortion plot (PNG) here.
         #[arg(long)]
         plot: Option<std::path::PathBuf>,
+        /// Also write each scene's sampled motion to `<dir>/<scene>.tracks`, the input of the
+        /// codec's own scenes test (`MWB_SCENE_TRACKS=<dir>`, codec/tests/scenes.rs).
+        #[arg(long, value_name = "DIR")]
+        tracks_out: Option<std::path::PathBuf>,
         /// (Output is always JSON lines; the flag is accepted for scripts.)
         #[arg(long)]
         json: bool,
@@ -240,7 +244,12 @@ fn main() -> Result<()> {
     rt.block_on(run(cli))
 }
 
-fn bench_codec(scenes: Vec<String>, worlds: u32, plot: Option<&std::path::Path>) -> Result<()> {
+fn bench_codec(
+    scenes: Vec<String>,
+    worlds: u32,
+    plot: Option<&std::path::Path>,
+    tracks_out: Option<&std::path::Path>,
+) -> Result<()> {
     use mwb::bench_codec::{PRESETS, SceneMotion, measure, plot_rate_distortion, rate_distortion};
     let scenes = if scenes.is_empty() {
         mwb_core::scene::builtin::NAMES
@@ -253,6 +262,9 @@ fn bench_codec(scenes: Vec<String>, worlds: u32, plot: Option<&std::path::Path>)
     let mut curves = Vec::new();
     for scene in &scenes {
         let motion = SceneMotion::sample(scene, worlds)?;
+        if let Some(dir) = tracks_out {
+            motion.write_tracks(dir)?;
+        }
         for quality in PRESETS {
             print_json(&measure(&motion, quality)?)?;
         }
@@ -532,8 +544,9 @@ async fn run(cli: Cli) -> Result<()> {
                 scenes,
                 worlds,
                 plot,
+                tracks_out,
                 json: _,
-            } => bench_codec(scenes, worlds, plot.as_deref())?,
+            } => bench_codec(scenes, worlds, plot.as_deref(), tracks_out.as_deref())?,
         },
     }
     Ok(())

@@ -16,7 +16,7 @@ use crate::error::CodecError;
 use crate::format::{Header, INDEX_ENTRY_LEN_V1};
 use crate::params::{MotionModel, Quality};
 use crate::rotation::{self, Quat, Vec3};
-use crate::segment::{PositionCurve, RotationCurve, dequantise3};
+use crate::segment::{FreeDynamics, PositionCurve, RotationCurve, dequantise3};
 
 /// Caps on what one decode call may allocate.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -198,7 +198,7 @@ impl<'a> WorldReader<'a> {
         if frames == 0 {
             return Ok(None);
         }
-        ObjectStreams::open(bytes, frames, &self.header).map(Some)
+        ObjectStreams::open(bytes, frames, &self.header, self.limits.max_object_frames).map(Some)
     }
 
     fn decode_entry(&self, bytes: &'a [u8], frames: u32) -> Result<Track, CodecError> {
@@ -212,7 +212,8 @@ impl<'a> WorldReader<'a> {
         if frames == 0 {
             return Ok(Track::default());
         }
-        let mut streams = ObjectStreams::open(bytes, frames, &self.header)?;
+        let mut streams =
+            ObjectStreams::open(bytes, frames, &self.header, self.limits.max_object_frames)?;
         let mut track = Track {
             positions: Vec::with_capacity(frames as usize),
             rotations: Vec::with_capacity(frames as usize),
@@ -227,6 +228,16 @@ impl<'a> WorldReader<'a> {
         }
         track.rotations.push(streams.start_rotations()?);
         while let Some(seg) = streams.next_rotation()? {
+            if let RotationCurve::Free { w, dynamics } = seg.curve {
+                // Simulated frames follow from one another: one pass, not one per frame. The
+                // same steps as `eval`, so the same bits.
+                let (mut q, mut wb) = (seg.q0, FreeDynamics::body(seg.q0, w));
+                for _ in 1..=seg.len {
+                    dynamics.frame(&mut q, &mut wb);
+                    track.rotations.push(q);
+                }
+                continue;
+            }
             for u in 1..=seg.len {
                 track.rotations.push(seg.curve.eval(seg.q0, f64::from(u)));
             }
@@ -424,24 +435,33 @@ pub(crate) struct RotationSegment {
 
 /// One object's segments, whatever the format version: positions first, then rotations.
 enum ObjectStreams<'a> {
-    V1(v1::ObjectStreams<'a>),
-    V2(v2::ObjectStream<v2::RiceSymbols<'a>>),
+    V1(Box<v1::ObjectStreams<'a>>),
+    V2(Box<v2::ObjectStream<v2::RiceSymbols<'a>>>),
     V3(Box<v2::ObjectStream<v2::RangeSymbols<'a>>>),
 }
 
 impl<'a> ObjectStreams<'a> {
-    fn open(bytes: &'a [u8], frames: u32, header: &Header) -> Result<Self, CodecError> {
+    /// `free_budget`: most free-flight frames the object's decoder may simulate (they cost time,
+    /// not memory: a hostile stream could otherwise claim billions of them).
+    fn open(
+        bytes: &'a [u8],
+        frames: u32,
+        header: &Header,
+        free_budget: u64,
+    ) -> Result<Self, CodecError> {
         Ok(match header.version {
-            1 => Self::V1(v1::ObjectStreams::open(bytes, frames, header)?),
-            2 => Self::V2(v2::ObjectStream::open(
+            1 => Self::V1(Box::new(v1::ObjectStreams::open(bytes, frames, header)?)),
+            2 => Self::V2(Box::new(v2::ObjectStream::open(
                 v2::RiceSymbols::new(bytes),
                 frames,
                 header,
-            )?),
+                free_budget,
+            )?)),
             _ => Self::V3(Box::new(v2::ObjectStream::open(
                 v2::RangeSymbols::new(bytes)?,
                 frames,
                 header,
+                free_budget,
             )?)),
         })
     }
@@ -481,7 +501,8 @@ impl<'a> ObjectStreams<'a> {
 }
 
 /// The decoded first orientation from its quantised rotation vector (shared with the encoder).
-pub(crate) fn start_orientation(q: [i64; 3], rot_step: f64) -> Quat {
-    let r = dequantise3(q, rot_step / crate::params::START_STEP_DIVISOR);
+/// `start_step`: the rotation step over the version's start divisor.
+pub(crate) fn start_orientation(q: [i64; 3], start_step: f64) -> Quat {
+    let r = dequantise3(q, start_step);
     rotation::normalise(rotation::exp(r)).unwrap_or(rotation::IDENTITY)
 }

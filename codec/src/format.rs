@@ -1,5 +1,24 @@
-//! The versioned byte layout of an encoded world. This build writes version 3 and reads 1, 2
-//! and 3.
+//! The versioned byte layout of an encoded world. This build writes version 4 and reads 1, 2,
+//! 3 and 4.
+//!
+//! # Version 4
+//!
+//! Version 3 (below, with the version field 4) plus:
+//!
+//! * **Derived steps** (no stored steps, flag 4 clear): Δ = 1.1·e_max, Δθ = 1.1·θ_max (versions
+//!   2–3: 1.0); start values in steps of Δ/8 and Δθ/8 (versions 1–3: /16).
+//! * **Rotation dynamics** (header flag 16), after the common frame count: varint substeps per
+//!   frame (1–16), then the angular damping `c`: a byte 0 (none), 1 + varint n (c = n/1000) or
+//!   2 + f64. A world written with them has a sixth rotation type, *free flight* (rank 5, after
+//!   Key), coded with the others' type model; without the flag there are five.
+//! * **Free-flight segment**: length (on the rotation length stream, at most 4096 frames), then —
+//!   before the object's first free flight only — its three principal moments as 12-bit integers
+//!   (equiprobable bits; moments relative to the largest, which is 4095), then three
+//!   angular-velocity residuals on their own stream (`S_ROT_FREE`, prior of `S_ROT_W`) against
+//!   the predicted angular velocity, in steps of Δθ·2⁻ᵏ (k = ⌈log₂ L⌉, as a linear segment). The
+//!   decoded curve is `segment::FreeDynamics` simulated from the start orientation: per frame,
+//!   `substeps` times (explicit gyroscopic step keeping |L|, then `q ← normalise((h·ω/2, 1) ⊗ q)`)
+//!   and then ω × 1/(1 + dt·c).
 //!
 //! # Version 3
 //!
@@ -116,12 +135,12 @@
 use crate::arith::ValueModel;
 use crate::bits::{AdaptiveRice, read_varint, write_varint};
 use crate::error::CodecError;
-use crate::params::{MotionModel, POS_STEP_RATIO, Quality, ROT_STEP_RATIO};
+use crate::params::{MotionModel, Quality, step_ratio};
 
 /// First four bytes of every encoded world.
 pub const MAGIC: [u8; 4] = *b"MWBM";
 /// The format version this build writes (and the newest it reads).
-pub const FORMAT_VERSION: u16 = 3;
+pub const FORMAT_VERSION: u16 = 4;
 pub(crate) const HEADER_LEN_V1: usize = 80;
 pub(crate) const INDEX_ENTRY_LEN_V1: usize = 8;
 
@@ -145,19 +164,26 @@ pub(crate) const S_POS_REST_LEN: usize = 10;
 pub(crate) const S_ROT_REST_LEN: usize = 11;
 pub(crate) const STREAMS_V3: usize = 12;
 
-/// Version 3: the number of integer streams (every axis of a triple on its stream, as in
-/// version 2; separate streams per axis measured no better).
-pub(crate) const STREAMS_V3_ALL: usize = STREAMS_V3;
+/// Version 4: the start angular velocities of free-flight rotation segments (their own
+/// statistics: a flight starts after an impact, where the last velocity predicts little).
+pub(crate) const S_ROT_FREE: usize = 12;
+
+/// The number of integer streams of versions 3 and 4 (every axis of a triple on its stream, as
+/// in version 2; separate streams per axis measured no better). Version 3 leaves `S_ROT_FREE`
+/// unused.
+pub(crate) const STREAMS_V3_ALL: usize = STREAMS_V3 + 1;
 
 pub(crate) fn axis_stream(stream: usize, _axis: usize) -> usize {
     stream
 }
 
-/// The version-2 stream that codes what version 3 codes on `stream`.
+/// The version-2 stream that codes what version 3 codes on `stream` (for version 4's free
+/// flights: the stream whose prior they start from).
 pub(crate) fn v2_stream(stream: usize) -> usize {
     match stream {
         S_POS_REST_LEN => S_POS_LEN,
         S_ROT_REST_LEN => S_ROT_LEN,
+        S_ROT_FREE => S_ROT_W,
         s => s,
     }
 }
@@ -190,6 +216,11 @@ const FLAG_PRESET: u8 = 1;
 const FLAG_RATE: u8 = 2;
 const FLAG_STEPS: u8 = 4;
 const FLAG_COMMON_FRAMES: u8 = 8;
+/// Version 4: the world carries rotation dynamics (free-flight rotation segments).
+const FLAG_DYNAMICS: u8 = 16;
+/// Most substeps per frame a version-4 header may hold (each costs decoding time per simulated
+/// frame; rapier's default is 4).
+pub(crate) const MAX_SUBSTEPS: u32 = 16;
 const PRESETS: [Quality; 3] = [Quality::Draft, Quality::Standard, Quality::Final];
 
 /// Gravity vectors a version-2 header names by number (the gravity byte is `0x80 | i`) instead
@@ -219,11 +250,24 @@ pub(crate) struct Header {
     /// Version 2: the Rice parameters of the start positions and start orientations, chosen for
     /// the whole world (three values per object are too few to adapt to).
     pub start_k: [u32; 2],
+    /// Version 4: the simulator's rotation integration, for free-flight rotation segments.
+    pub dynamics: Option<HeaderDynamics>,
 }
 
-/// The steps version 2 derives from the bounds when the header does not store them.
-pub(crate) fn derived_steps(e_max: f64, theta_max: f64) -> (f64, f64) {
-    (POS_STEP_RATIO * e_max, ROT_STEP_RATIO * theta_max)
+/// Version 4: what every free-flight rotation segment of a world shares (the per-object part,
+/// the principal moments, is in the object's payload).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct HeaderDynamics {
+    /// Integration substeps per frame, `1..=MAX_SUBSTEPS`.
+    pub substeps: u32,
+    /// Angular damping coefficient `c` (1/s): angular velocity × `1/(1 + dt·c)` per frame.
+    pub angular_damping: f64,
+}
+
+/// The steps a header derives from the bounds when it does not store them (version 2 on).
+pub(crate) fn derived_steps(version: u16, e_max: f64, theta_max: f64) -> (f64, f64) {
+    let r = step_ratio(version);
+    (r * e_max, r * theta_max)
 }
 
 impl Header {
@@ -240,14 +284,19 @@ impl Header {
         let rate = (1.0 / self.frame_dt).round();
         let rate = (rate >= 1.0 && rate <= f64::from(u32::MAX) && 1.0 / rate == self.frame_dt)
             .then_some(rate as u64);
-        let steps_stored =
-            derived_steps(self.e_max, self.theta_max) != (self.pos_step, self.rot_step);
+        let steps_stored = derived_steps(self.version, self.e_max, self.theta_max)
+            != (self.pos_step, self.rot_step);
         let mut flags = 0;
         flags |= if preset.is_some() { FLAG_PRESET } else { 0 };
         flags |= if rate.is_some() { FLAG_RATE } else { 0 };
         flags |= if steps_stored { FLAG_STEPS } else { 0 };
         flags |= if self.common_frames.is_some() {
             FLAG_COMMON_FRAMES
+        } else {
+            0
+        };
+        flags |= if self.dynamics.is_some() {
+            FLAG_DYNAMICS
         } else {
             0
         };
@@ -285,6 +334,21 @@ impl Header {
         if let Some(f) = self.common_frames {
             write_varint(out, u64::from(f));
         }
+        if let Some(d) = self.dynamics {
+            write_varint(out, u64::from(d.substeps));
+            // 0: no damping; 1: varint n, c = n / 1000 (scene files write decimals); 2: an f64.
+            let c = d.angular_damping;
+            let milli = (c * 1000.0).round();
+            if c == 0.0 {
+                out.push(0);
+            } else if (1.0..1e15).contains(&milli) && milli / 1000.0 == c {
+                out.push(1);
+                write_varint(out, milli as u64);
+            } else {
+                out.push(2);
+                out.extend_from_slice(&c.to_le_bytes());
+            }
+        }
         let len = (out.len() - start) as u16;
         out[start + 6..start + 8].copy_from_slice(&len.to_le_bytes());
     }
@@ -301,7 +365,7 @@ impl Header {
         let header_len = usize::from(u16::from_le_bytes([bytes[6], bytes[7]]));
         let header = match version {
             1 => Self::parse_v1(bytes, header_len)?,
-            2 | 3 => Self::parse_v2(bytes, header_len, version)?,
+            2..=4 => Self::parse_v2(bytes, header_len, version)?,
             _ => {
                 return Err(CodecError::UnsupportedVersion {
                     found: version,
@@ -334,6 +398,7 @@ impl Header {
             rot_step: f(48),
             common_frames: None,
             start_k: [0; 2],
+            dynamics: None,
         })
     }
 
@@ -385,7 +450,7 @@ impl Header {
         let (pos_step, rot_step) = if flags & FLAG_STEPS != 0 {
             (float(&mut at)?, float(&mut at)?)
         } else {
-            derived_steps(e_max, theta_max)
+            derived_steps(version, e_max, theta_max)
         };
         let mut g = [0.0; 3];
         if model_id == 1 {
@@ -430,6 +495,32 @@ impl Header {
         } else {
             None
         };
+        let dynamics = if version >= 4 && flags & FLAG_DYNAMICS != 0 {
+            let substeps = read_varint(h, &mut at)?;
+            if !(1..=u64::from(MAX_SUBSTEPS)).contains(&substeps) {
+                return Err(CodecError::BadHeaderField {
+                    field: "substeps",
+                    value: substeps as f64,
+                });
+            }
+            let angular_damping = match byte(&mut at)? {
+                0 => 0.0,
+                1 => read_varint(h, &mut at)? as f64 / 1000.0,
+                2 => float(&mut at)?,
+                other => {
+                    return Err(CodecError::BadHeaderField {
+                        field: "angular damping kind",
+                        value: f64::from(other),
+                    });
+                }
+            };
+            Some(HeaderDynamics {
+                substeps: substeps as u32,
+                angular_damping,
+            })
+        } else {
+            None
+        };
         Ok(Header {
             version,
             header_len,
@@ -442,6 +533,7 @@ impl Header {
             rot_step,
             common_frames,
             start_k,
+            dynamics,
         })
     }
 
@@ -463,6 +555,15 @@ impl Header {
         for (field, value) in [("g.x", g[0]), ("g.y", g[1]), ("g.z", g[2])] {
             if !value.is_finite() {
                 return Err(CodecError::BadHeaderField { field, value });
+            }
+        }
+        if let Some(d) = self.dynamics {
+            let c = d.angular_damping;
+            if !(c.is_finite() && c >= 0.0 && c * self.frame_dt < 1e12) {
+                return Err(CodecError::BadHeaderField {
+                    field: "angular damping",
+                    value: c,
+                });
             }
         }
         Ok(self)
@@ -508,7 +609,7 @@ mod tests {
         bounds: (f64, f64),
         common: Option<u32>,
     ) -> Header {
-        let (pos_step, rot_step) = derived_steps(bounds.0, bounds.1);
+        let (pos_step, rot_step) = derived_steps(FORMAT_VERSION, bounds.0, bounds.1);
         Header {
             version: FORMAT_VERSION,
             header_len: 0,
@@ -521,7 +622,59 @@ mod tests {
             rot_step,
             common_frames: common,
             start_k: [13, 15],
+            dynamics: None,
         }
+    }
+
+    #[test]
+    fn bad_dynamics_fields_are_errors() {
+        let base = Header {
+            dynamics: Some(HeaderDynamics {
+                substeps: 4,
+                angular_damping: 0.5,
+            }),
+            ..header(
+                MotionModel::General,
+                1.0 / 120.0,
+                Quality::Standard.bounds(),
+                None,
+            )
+        };
+        let mut out = Vec::new();
+        base.write(&mut out);
+        // The dynamics fields are the header's last four bytes: substeps, kind, and 500 (the
+        // damping in thousandths) as a two-byte varint.
+        let n = out.len();
+        assert_eq!(out[n - 4..], [4, 1, 0xf4, 0x03]);
+        for (at, byte, field) in [
+            (n - 4, 0u8, "substeps"),
+            (n - 4, 17, "substeps"),
+            (n - 3, 3, "angular damping kind"),
+        ] {
+            let mut bad = out.clone();
+            bad[at] = byte;
+            match Header::parse(&bad) {
+                Err(CodecError::BadHeaderField { field: f, .. }) => assert_eq!(f, field),
+                other => panic!("{field}: {other:?}"),
+            }
+        }
+        // A negative damping (stored as an f64) is refused too.
+        let mut out = Vec::new();
+        Header {
+            dynamics: Some(HeaderDynamics {
+                substeps: 4,
+                angular_damping: -0.3,
+            }),
+            ..base
+        }
+        .write(&mut out);
+        assert!(matches!(
+            Header::parse(&out),
+            Err(CodecError::BadHeaderField {
+                field: "angular damping",
+                ..
+            })
+        ));
     }
 
     #[test]
@@ -552,6 +705,38 @@ mod tests {
                     ..header(g, 1.0 / 60.0, Quality::Final.bounds(), Some(0))
                 },
                 60,
+            ),
+            // Version 4's dynamics: no damping (2 bytes more), a decimal damping (4), any
+            // other (10).
+            (
+                Header {
+                    dynamics: Some(HeaderDynamics {
+                        substeps: 4,
+                        angular_damping: 0.0,
+                    }),
+                    ..header(g, 1.0 / 120.0, Quality::Standard.bounds(), Some(120))
+                },
+                20,
+            ),
+            (
+                Header {
+                    dynamics: Some(HeaderDynamics {
+                        substeps: 16,
+                        angular_damping: 0.5,
+                    }),
+                    ..header(g, 1.0 / 120.0, Quality::Standard.bounds(), Some(120))
+                },
+                22,
+            ),
+            (
+                Header {
+                    dynamics: Some(HeaderDynamics {
+                        substeps: 1,
+                        angular_damping: 0.1234567,
+                    }),
+                    ..header(g, 1.0 / 120.0, Quality::Standard.bounds(), Some(120))
+                },
+                28,
             ),
         ] {
             let mut out = Vec::new();

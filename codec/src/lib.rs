@@ -5,12 +5,15 @@
 //! a handful of segments: C⁰ piecewise quadratics for the centre of mass (in free flight the
 //! quadratic term is gravity's), linear or quadratic curves in the log map for the orientation,
 //! rest segments where nothing moves, and one-frame steps predicted from the two frames before
-//! where contact makes the motion change every frame. Coefficients are quantised, predicted from
-//! the previous segment and Golomb–Rice coded with parameters that adapt as the stream goes. For
-//! **every object and every frame** the decoded position is within `e_max` of the input
-//! (Euclidean norm, which also bounds each axis) and the decoded orientation within `θ_max`
-//! (angle of the residual rotation); the encoder checks this on the decoded bytes before
-//! returning them. The encoder writes format version 2 and the reader reads versions 1 and 2.
+//! where contact makes the motion change every frame; given the simulator's rotation dynamics
+//! ([`encode_world_with_dynamics`]), also torque-free flights simulated from their start angular
+//! velocity (a wobbling thrown box is one segment, not a quadratic every few frames).
+//! Coefficients are quantised, predicted from the previous segment and range-coded with adaptive
+//! context models (format 3 on; format 2: adaptive Golomb–Rice). For **every object and every
+//! frame** the decoded position is within `e_max` of the input (Euclidean norm, which also bounds
+//! each axis) and the decoded orientation within `θ_max` (angle of the residual rotation); the
+//! encoder checks this on the decoded bytes before returning them. The encoder writes format
+//! version 4 and the reader reads versions 1 to 4 (`format` has the layouts).
 //!
 //! # Writing
 //!
@@ -102,11 +105,13 @@ mod segment;
 
 pub use baseline::{RAW_BYTES_PER_OBJECT_FRAME, quantised_frames_baseline, raw_f32_size};
 pub use decode::{DecodeLimits, WorldReader};
-pub use encode::{EncodeStats, EncodedWorld, SizeBreakdown, Track, encode_world};
+pub use encode::{
+    EncodeStats, EncodedWorld, SizeBreakdown, Track, encode_world, encode_world_with_dynamics,
+};
 pub use error::CodecError;
 pub use format::{FORMAT_VERSION, MAGIC};
 pub use lowres::LowResPath;
 pub use params::{
     DEFAULT_FRAME_DT, DEFAULT_LOWRES_HZ, EncodeParams, FIT_WINDOW, MAX_TRACK_FRAMES, MIN_THETA_MAX,
-    MotionModel, Quality,
+    MotionModel, Quality, RotationDynamics,
 };

@@ -101,6 +101,26 @@ pub(crate) fn exp_approx(r: Vec3) -> Quat {
     [r[0] * k, r[1] * k, r[2] * k, cos]
 }
 
+/// `v` rotated by the unit quaternion `q` (`q ⊗ v ⊗ q⁻¹`), with `+`, `×` only.
+pub(crate) fn rotate(q: Quat, v: Vec3) -> Vec3 {
+    let u = [q[0], q[1], q[2]];
+    let t = scale3(cross3(u, v), 2.0);
+    let c = cross3(u, t);
+    [
+        v[0] + q[3] * t[0] + c[0],
+        v[1] + q[3] * t[1] + c[1],
+        v[2] + q[3] * t[2] + c[2],
+    ]
+}
+
+pub(crate) fn cross3(a: Vec3, b: Vec3) -> Vec3 {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
 /// Unit quaternion → rotation vector with angle in [0, π] (the shorter of `q`, `−q`).
 pub(crate) fn log(q: Quat) -> Vec3 {
     let q = if q[3] < 0.0 {

@@ -9,8 +9,8 @@ use std::time::Instant;
 
 use common::{G, Rng, ballistic};
 use mwb_codec::{
-    EncodeParams, MotionModel, Quality, Track, WorldReader, encode_world,
-    quantised_frames_baseline, raw_f32_size,
+    EncodeParams, MotionModel, Quality, RotationDynamics, Track, WorldReader, encode_world,
+    encode_world_with_dynamics, quantised_frames_baseline, raw_f32_size,
 };
 
 const DT: f64 = 1.0 / 120.0;
@@ -146,13 +146,15 @@ fn tumbling_encode_speed() {
 /// FNV-1a over the encoded bytes of every generator, preset and model: pins the encoder's output
 /// byte for byte, so that a speed-up that changes the output is noticed. A deliberate format or
 /// encoder change updates the constant (format 1's last value: `77a7e276fcef03a7` over 177 286 B;
-/// format 2's: `c72c37d865b5a7dc` over 147 604 B).
+/// format 2's: `c72c37d865b5a7dc` over 147 604 B; format 3's: `cebcd3d2a0616241` over
+/// 136 680 B). Since format 4 it also covers free-flight segments: spinning bodies encoded with
+/// their rotation dynamics (their simulation uses only `+ − × / √`, exact on every platform).
 /// Rotation decisions go through `sin`/`cos`/`atan2`, whose last bit may differ between math
 /// libraries, so the value is asserted where it was taken (x86-64 Linux, glibc) and printed
 /// elsewhere.
 #[test]
 fn output_fingerprint() {
-    const FORMAT_3: (u64, usize) = (0xcebc_d3d2_a061_6241, 136_680);
+    const FORMAT_4: (u64, usize) = (0x3bd6_cfce_18e2_c964, 145_565);
     let mut h: u64 = 0xcbf2_9ce4_8422_2325;
     let mut total = 0usize;
     for quality in [Quality::Draft, Quality::Standard, Quality::Final] {
@@ -172,6 +174,29 @@ fn output_fingerprint() {
             }
         }
     }
+    let mut rng = common::Rng::new(4242);
+    let spinning: Vec<Track> = (0..12)
+        .map(|i| {
+            let inertia = [0.3 + 0.1 * i as f64, 1.0, 0.7];
+            common::torque_free(&mut rng, inertia, 240, DT, &[60 + 7 * i], 15.0, 0.25)
+        })
+        .collect();
+    let dynamics = RotationDynamics {
+        substeps: 4,
+        angular_damping: 0.25,
+        inertia: (0..12)
+            .map(|i| Some([0.3 + 0.1 * i as f64, 1.0, 0.7]))
+            .collect(),
+    };
+    for quality in [Quality::Draft, Quality::Standard, Quality::Final] {
+        let p = EncodeParams::from_quality(quality, DT, MotionModel::FreeFlightGravity { g: G });
+        let w = encode_world_with_dynamics(&spinning, &p, Some(&dynamics)).unwrap();
+        assert!(w.stats.free_rotation_segments > 0);
+        total += w.bytes.len();
+        for b in &w.bytes {
+            h = (h ^ u64::from(*b)).wrapping_mul(0x100_0000_01b3);
+        }
+    }
     println!("output fingerprint {h:016x} over {total} B");
     if cfg!(all(
         target_arch = "x86_64",
@@ -180,7 +205,7 @@ fn output_fingerprint() {
     )) {
         assert_eq!(
             (h, total),
-            FORMAT_3,
+            FORMAT_4,
             "encoder output changed: {h:016x} over {total} B"
         );
     }

@@ -1,5 +1,5 @@
-//! Old recordings stay readable: streams written by the version-1 and version-2 encoders (saved
-//! as fixtures before formats 2 and 3 replaced them) still decode, through every read path, to
+//! Old recordings stay readable: streams written by the version-1, -2 and -3 encoders (saved
+//! as fixtures before formats 2, 3 and 4 replaced them) still decode, through every read path, to
 //! exactly the poses they decoded to when they were written — and so stay within the bounds of
 //! the motion they were made from.
 
@@ -11,7 +11,8 @@ use mwb_codec::{MotionModel, Quality, Track, WorldReader};
 /// `(fixture, preset, model)`: six objects, one per test generator (seeds 31..37), 120 frames at
 /// 120 Hz (tracks `common::generate(object, 31 + object, 120, 1/120)`), encoded with
 /// `EncodeParams::from_quality(preset, 1/120, model)`; the `.poses` files are what the writing
-/// build decoded. Version 1: format-1 code; version 2: the encoder of commit d1ba8c1.
+/// build decoded. Version 1: format-1 code; version 2: the encoder of commit d1ba8c1; version 3:
+/// the encoder of commit 116d0ab.
 const V1: [(&str, Quality, MotionModel); 2] = [
     (
         "v1_gravity_standard",
@@ -28,6 +29,14 @@ const V2: [(&str, Quality, MotionModel); 2] = [
     ),
     ("v2_general_draft", Quality::Draft, MotionModel::General),
 ];
+const V3: [(&str, Quality, MotionModel); 2] = [
+    (
+        "v3_gravity_standard",
+        Quality::Standard,
+        MotionModel::FreeFlightGravity { g: G },
+    ),
+    ("v3_general_draft", Quality::Draft, MotionModel::General),
+];
 
 #[test]
 fn version_1_streams_decode_to_the_same_poses() {
@@ -37,6 +46,11 @@ fn version_1_streams_decode_to_the_same_poses() {
 #[test]
 fn version_2_streams_decode_to_the_same_poses() {
     check(2, &V2);
+}
+
+#[test]
+fn version_3_streams_decode_to_the_same_poses() {
+    check(3, &V3);
 }
 
 fn fixture(name: &str, ext: &str) -> Vec<u8> {

@@ -96,6 +96,18 @@ fn v3_header(model: u8, objects: u32, common_frames: Option<u32>) -> Vec<u8> {
     h
 }
 
+/// A format-4 header with rotation dynamics (flag 16: 4 substeps, angular damping 0.5 as 500
+/// thousandths), so payloads reach the free-flight segment decoder.
+fn v4_dynamics_header(model: u8, objects: u32, common_frames: Option<u32>) -> Vec<u8> {
+    let mut h = v2_header(model, objects, common_frames);
+    h[4..6].copy_from_slice(&4u16.to_le_bytes());
+    h[9] |= 16;
+    h.extend_from_slice(&[4, 1, 0xf4, 0x03]);
+    let len = h.len() as u16;
+    h[6..8].copy_from_slice(&len.to_le_bytes());
+    h
+}
+
 fn valid_world() -> Vec<u8> {
     let dt = 1.0 / 120.0;
     let tracks: Vec<_> = (0..4)
@@ -138,8 +150,8 @@ proptest! {
     }
 
     #[test]
-    fn arbitrary_payload_behind_a_valid_v2_or_v3_header(
-        version in 2u16..4,
+    fn arbitrary_payload_behind_a_valid_v2_to_v4_header(
+        version in 2u16..6,
         objects in 0u32..6,
         frames in proptest::collection::vec(any::<u32>(), 6),
         common in any::<bool>(),
@@ -148,8 +160,13 @@ proptest! {
     ) {
         // A real header and an index whose lengths add up, so the segment decoder is reached.
         let common_frames = common.then_some(frames[0] % 3000);
-        let mut bytes = v2_header(model, objects, common_frames);
-        bytes[4..6].copy_from_slice(&version.to_le_bytes());
+        // 2, 3, 4; 5 stands for 4 with rotation dynamics.
+        let mut bytes = if version == 5 {
+            v4_dynamics_header(model, objects, common_frames)
+        } else {
+            v2_header(model, objects, common_frames)
+        };
+        bytes[4..6].copy_from_slice(&version.min(4).to_le_bytes());
         let per = payload.len() / objects.max(1) as usize;
         for (i, f) in frames.iter().enumerate().take(objects as usize) {
             let len = if i + 1 == objects as usize { payload.len() - per * i } else { per };
@@ -230,9 +247,9 @@ fn hostile_frame_counts_are_refused_before_allocating() {
     }
 }
 
-/// Format 3 is range-coded: a symbol may take a small fraction of a bit, so what ends a hostile
-/// stream is the end of its bytes (the decoder reads a few zeros past it, then fails). Random
-/// and patterned payloads under a header claiming 4 billion frames end, and quickly.
+/// Formats 3 and 4 are range-coded: a symbol may take a small fraction of a bit, so what ends a
+/// hostile stream is the end of its bytes (the decoder reads a few zeros past it, then fails).
+/// Random and patterned payloads under a header claiming 4 billion frames end, and quickly.
 #[test]
 fn hostile_range_coded_payloads_end() {
     let mut seed = 0x5EEDu64;
@@ -248,9 +265,20 @@ fn hostile_range_coded_payloads_end() {
         .collect();
     payloads.extend((0..300).map(|i| (0..(i % 200) + 1).map(|_| next()).collect()));
     let start = std::time::Instant::now();
+    // Format 4's free flights are simulated frame by frame: the reader's frame limit bounds that
+    // work too (here 2¹⁶ frames, so the test stays quick).
+    let limits = mwb_codec::DecodeLimits {
+        max_object_frames: 1 << 16,
+        max_total_frames: 1 << 16,
+    };
     for payload in payloads {
-        for model in [0u8, 1] {
-            let mut bytes = v3_header(model, 1, Some(u32::MAX));
+        for (model, header) in [
+            (0u8, v3_header as fn(u8, u32, Option<u32>) -> Vec<u8>),
+            (1, v3_header),
+            (0, v4_dynamics_header),
+            (1, v4_dynamics_header),
+        ] {
+            let mut bytes = header(model, 1, Some(u32::MAX));
             let mut len = Vec::new();
             let mut v = payload.len() as u64;
             while v >= 0x80 {
@@ -260,7 +288,7 @@ fn hostile_range_coded_payloads_end() {
             len.push(v as u8);
             bytes.extend_from_slice(&len);
             bytes.extend_from_slice(&payload);
-            let r = WorldReader::new(&bytes).unwrap();
+            let r = WorldReader::with_limits(&bytes, limits).unwrap();
             let _ = r.sample_frame(0, u32::MAX - 1);
             let _ = r.sample(0, 1e6);
         }

@@ -11,23 +11,19 @@
 //! f64 frame_dt, u8 model (0 general, 1 free flight), 3 × f64 gravity,
 //! u32 worlds, per world: u32 segments, per segment: u32 bodies, per body: u32 frames,
 //! frames × (3 × f64 position, 4 × f64 quaternion xyzw)     (all little endian)
+//! optional trailer, per world: u8 has dynamics, then u32 substeps, f64 angular damping,
+//! u32 bodies, per body: u8 has inertia, 3 × f64 principal moments
 //! ```
 //!
-//! The files are written by a few lines outside the workspace (the codec must not depend on the
-//! sampler) around the bench's own sampling, per scene and world `i`:
-//!
-//! ```text
-//! let seed = world_seed("bench-codec", &format!("scenes/{name}.toml"), i);
-//! let scene = template.instantiate(seed);       // frame_dt = scene.settings.dt,
-//!                                               // model = motion_model(&scene)
-//! run_world_observed(&template, seed, RunOptions::default(),
-//!                    &mut |_| ControlFlow::Continue(()), &mut |tracks| segments.push(tracks.to_vec()))
-//! ```
+//! `mwb bench codec --tracks-out <dir>` writes the files: the bench's own worlds (seeds
+//! `world_seed("bench-codec", "scenes/<name>.toml", i)`, sampled as a sampler does), with the
+//! rotation dynamics the sampler hands its encoder (`MWB_SCENE_DYNAMICS=off` ignores them).
 
 use std::time::Instant;
 
 use mwb_codec::{
-    EncodeParams, MotionModel, Quality, SizeBreakdown, Track, WorldReader, encode_world,
+    EncodeParams, MotionModel, Quality, RotationDynamics, SizeBreakdown, Track, WorldReader,
+    encode_world_with_dynamics,
 };
 
 struct SceneTracks {
@@ -35,33 +31,33 @@ struct SceneTracks {
     model: MotionModel,
     /// Every ~1 s segment of every world: one track per body.
     segments: Vec<Vec<Track>>,
+    /// The world of each segment.
+    world_of: Vec<usize>,
+    /// Per world, its rotation dynamics (the optional trailer; `MWB_SCENE_DYNAMICS=off` ignores it).
+    dynamics: Vec<Option<RotationDynamics>>,
 }
 
 fn read(bytes: &[u8]) -> Option<SceneTracks> {
-    let mut at = 0usize;
-    let mut take = |n: usize| {
-        let s = bytes.get(at..at + n)?;
-        at += n;
-        Some(s)
-    };
-    let f64_ = |s: &[u8]| f64::from_le_bytes(s.try_into().unwrap_or([0; 8]));
-    let u32_ = |s: &[u8]| u32::from_le_bytes(s.try_into().unwrap_or([0; 4])) as usize;
-    let dt = f64_(take(8)?);
-    let model_id = take(1)?[0];
-    let g = [f64_(take(8)?), f64_(take(8)?), f64_(take(8)?)];
+    let mut r = Cursor { bytes, at: 0 };
+    let dt = r.f64()?;
+    let model_id = r.take(1)?[0];
+    let g = [r.f64()?, r.f64()?, r.f64()?];
     let model = if model_id == 1 {
         MotionModel::FreeFlightGravity { g }
     } else {
         MotionModel::General
     };
     let mut segments = Vec::new();
-    for _ in 0..u32_(take(4)?) {
-        for _ in 0..u32_(take(4)?) {
+    let mut world_of = Vec::new();
+    let worlds = r.u32()?;
+    for w in 0..worlds {
+        for _ in 0..r.u32()? {
+            world_of.push(w);
             let mut seg = Vec::new();
-            for _ in 0..u32_(take(4)?) {
+            for _ in 0..r.u32()? {
                 let mut t = Track::default();
-                for _ in 0..u32_(take(4)?) {
-                    let v: Vec<f64> = (0..7).map(|_| take(8).map(f64_)).collect::<Option<_>>()?;
+                for _ in 0..r.u32()? {
+                    let v: Vec<f64> = (0..7).map(|_| r.f64()).collect::<Option<_>>()?;
                     t.positions.push([v[0], v[1], v[2]]);
                     t.rotations.push([v[3], v[4], v[5], v[6]]);
                 }
@@ -70,11 +66,56 @@ fn read(bytes: &[u8]) -> Option<SceneTracks> {
             segments.push(seg);
         }
     }
+    // The optional trailer: per world, its rotation dynamics.
+    let mut dynamics = vec![None; worlds];
+    if r.at < bytes.len() {
+        for d in &mut dynamics {
+            if r.take(1)?[0] == 0 {
+                continue;
+            }
+            let substeps = r.u32()? as u32;
+            let angular_damping = r.f64()?;
+            let mut inertia = Vec::new();
+            for _ in 0..r.u32()? {
+                let has = r.take(1)?[0] != 0;
+                let i = [r.f64()?, r.f64()?, r.f64()?];
+                inertia.push(has.then_some(i));
+            }
+            *d = Some(RotationDynamics {
+                substeps,
+                angular_damping,
+                inertia,
+            });
+        }
+    }
     Some(SceneTracks {
         dt,
         model,
         segments,
+        world_of,
+        dynamics,
     })
+}
+
+struct Cursor<'a> {
+    bytes: &'a [u8],
+    at: usize,
+}
+
+impl<'a> Cursor<'a> {
+    fn take(&mut self, n: usize) -> Option<&'a [u8]> {
+        let s = self.bytes.get(self.at..self.at + n)?;
+        self.at += n;
+        Some(s)
+    }
+
+    fn f64(&mut self) -> Option<f64> {
+        Some(f64::from_le_bytes(self.take(8)?.try_into().ok()?))
+    }
+
+    fn u32(&mut self) -> Option<usize> {
+        Some(u32::from_le_bytes(self.take(4)?.try_into().ok()?) as usize)
+    }
 }
 
 #[test]
@@ -106,9 +147,13 @@ fn shipped_scene_motion() {
             let (mut pos_segs, mut rot_segs) = (0u64, 0u64);
             let (mut e, mut a) = (0.0f64, 0.0f64);
             let mut parts = SizeBreakdown::default();
-            for seg in &s.segments {
+            let off = std::env::var("MWB_SCENE_DYNAMICS").is_ok_and(|v| v == "off");
+            let mut free = 0u64;
+            for (seg, &world) in s.segments.iter().zip(&s.world_of) {
+                let d = s.dynamics[world].as_ref().filter(|_| !off);
                 let t0 = Instant::now();
-                let w = encode_world(seg, &p).expect("encodes");
+                let w = encode_world_with_dynamics(seg, &p, d).expect("encodes");
+                free += w.stats.free_rotation_segments;
                 secs += t0.elapsed().as_secs_f64();
                 bytes += w.bytes.len();
                 frames += w.stats.object_frames;
@@ -137,12 +182,13 @@ fn shipped_scene_motion() {
             }
             let obj_s = frames as f64 * s.dt;
             println!(
-                "{scene:<9} {quality:<8?} {:>7.1} B/(obj·s)  ×f32 {:>5.1}  segs/s pos {:>5.2} rot {:>5.2}  \
-                 err {:.4} {:.4}  encode {:>4.0} decode {:>3.0} ns/obj-frame",
+                "{scene:<9} {quality:<8?} {:>7.1} B/(obj·s)  ×f32 {:>5.1}  segs/s pos {:>5.2} rot {:>5.2} \
+                 (free {:>4.2})  err {:.4} {:.4}  encode {:>4.0} decode {:>3.0} ns/obj-frame",
                 bytes as f64 / obj_s,
                 frames as f64 * 28.0 / bytes as f64,
                 pos_segs as f64 / obj_s,
                 rot_segs as f64 / obj_s,
+                free as f64 / obj_s,
                 e / p.e_max,
                 a / p.theta_max,
                 secs * 1e9 / frames as f64,

@@ -9,6 +9,6 @@ pub mod world;
 
 pub use node::{SamplerConfig, SamplerHandle, run_sampler, segment_message, world_done};
 pub use world::{
-    PayloadEncoding, RunOptions, Segment, WorldSummary, motion_model, provenance, run_world,
-    run_world_observed,
+    PayloadEncoding, RunOptions, Segment, SimWorld, WorldSummary, motion_model, provenance,
+    rotation_dynamics, run_world, run_world_observed,
 };

@@ -7,7 +7,10 @@
 //! `mwb-codec` world stream (§4.3; one track per body, decodable without its neighbours) and
 //! whose low-resolution path travels beside it.
 
-use mwb_codec::{EncodeParams, LowResPath, MotionModel, Quality, Track, encode_world};
+use mwb_codec::{
+    EncodeParams, LowResPath, MotionModel, Quality, RotationDynamics, Track,
+    encode_world_with_dynamics,
+};
 use mwb_core::frames::Pose as FramePose;
 use mwb_core::perturb::{self, V3};
 use mwb_core::rng::{Stream, WorldRng};
@@ -145,6 +148,64 @@ pub fn motion_model(scene: &Scene) -> MotionModel {
     } else {
         MotionModel::General
     }
+}
+
+/// How the simulator turns the world's bodies in free flight, for the codec's free-flight
+/// rotation segments (format 4): its substeps per frame, the scene's angular damping, and each
+/// body's principal moments where its inertia tensor is diagonal in its body axes with the centre
+/// of mass at its origin (boxes, spheres, capsules, cylinders — every shape built around its
+/// centre). `None` for scenes with joints (their constraint torques break the torque-free model,
+/// which would then only cost encoder time) or with more than 16 solver iterations (the format's
+/// most substeps).
+pub fn rotation_dynamics(scene: &Scene, sim: &SimWorld) -> Option<RotationDynamics> {
+    // More substeps than the codec's model allows: no free-flight segments.
+    let substeps = scene.settings.solver_iterations;
+    if !scene.joints.is_empty() || !(1..=16).contains(&substeps) {
+        return None;
+    }
+    let inertia = sim
+        .bodies
+        .iter()
+        .map(|&h| {
+            let m = &sim.world.bodies.get(h)?.mass_properties().local_mprops;
+            if m.local_com.length() > 1e-6 {
+                return None;
+            }
+            // The tensor in body axes, R·diag(I)·Rᵀ: the principal frame may be any rotation
+            // that permutes the body axes.
+            let f = m.principal_inertia_local_frame;
+            let [x, y, z, w] = [f.x, f.y, f.z, f.w].map(f64::from);
+            let r = [
+                [
+                    1.0 - 2.0 * (y * y + z * z),
+                    2.0 * (x * y - z * w),
+                    2.0 * (x * z + y * w),
+                ],
+                [
+                    2.0 * (x * y + z * w),
+                    1.0 - 2.0 * (x * x + z * z),
+                    2.0 * (y * z - x * w),
+                ],
+                [
+                    2.0 * (x * z - y * w),
+                    2.0 * (y * z + x * w),
+                    1.0 - 2.0 * (x * x + y * y),
+                ],
+            ];
+            let pi = m.principal_inertia();
+            let pi = [pi.x, pi.y, pi.z].map(f64::from);
+            let t = |i: usize, j: usize| (0..3).map(|k| r[i][k] * pi[k] * r[j][k]).sum::<f64>();
+            let diag = [t(0, 0), t(1, 1), t(2, 2)];
+            let max = diag.iter().fold(0.0f64, |a, &b| a.max(b));
+            let off = [t(0, 1), t(0, 2), t(1, 2)];
+            (max > 0.0 && off.iter().all(|v| v.abs() <= 1e-6 * max)).then_some(diag)
+        })
+        .collect();
+    Some(RotationDynamics {
+        substeps,
+        angular_damping: scene.settings.angular_damping,
+        inertia,
+    })
 }
 
 fn v3(a: [f64; 3]) -> Vector {
@@ -422,6 +483,7 @@ pub fn run_world_observed(
         })
         .collect();
     let params = EncodeParams::from_quality(opts.quality, dt, motion_model(&scene));
+    let dynamics = rotation_dynamics(&scene, &sim);
     // The frames of the segment being recorded, one track per body.
     let mut pending: Vec<Track> = (0..n)
         .map(|_| Track {
@@ -450,7 +512,7 @@ pub fn run_world_observed(
         let (payload, lowres) = match opts.encoding {
             // Each segment is its own codec world, so it decodes without its neighbours.
             PayloadEncoding::Spline => {
-                let encoded = encode_world(pending, &params)?;
+                let encoded = encode_world_with_dynamics(pending, &params, dynamics.as_ref())?;
                 (encoded.bytes, encoded.lowres)
             }
             PayloadEncoding::QuantisedFrames => {

@@ -43,7 +43,7 @@ impl<'a> ObjectStreams<'a> {
             MotionModel::General => None,
             MotionModel::FreeFlightGravity { g } => Some(g),
         };
-        let coding = PositionCoding::new(header.pos_step, gravity, header.frame_dt);
+        let coding = PositionCoding::new(header.pos_step, gravity, header.frame_dt, 1);
         let positions = PositionStream::open(r.sub(pos_start, rot_start)?, ks, coding, frames)?;
         let rotations =
             RotationStream::open(r.sub(rot_start, r.end())?, ks, header.rot_step, frames)?;
@@ -178,7 +178,7 @@ impl<'a> RotationStream<'a> {
                     what: "start orientation out of range",
                 })?;
             }
-            start_orientation(q, step)
+            start_orientation(q, step / crate::params::start_step_divisor(1))
         };
         Ok(Self {
             r,
@@ -228,7 +228,7 @@ impl<'a> RotationStream<'a> {
             q0: self.q,
             curve,
         };
-        self.predictor.advance(&curve, len);
+        self.predictor.advance(&curve, len, self.q);
         self.q = curve.eval(self.q, f64::from(len));
         self.covered += len;
         Ok(Some(seg))

@@ -9,16 +9,16 @@ use crate::bits::{AdaptiveRice, BitReader};
 use crate::error::CodecError;
 use crate::format::{
     Header, S_POS_LEN, S_POS_LINEAR, S_POS_QUADRATIC, S_POS_REST_LEN, S_POS_STEP, S_ROT_ACC,
-    S_ROT_LEN, S_ROT_REST_LEN, S_ROT_STEP, S_ROT_W, STREAMS_V2, STREAMS_V3_ALL, adaptive_streams,
-    axis_stream, v2_stream, value_models,
+    S_ROT_FREE, S_ROT_LEN, S_ROT_REST_LEN, S_ROT_STEP, S_ROT_W, STREAMS_V2, STREAMS_V3_ALL,
+    adaptive_streams, axis_stream, v2_stream, value_models,
 };
 use crate::params::MotionModel;
 use crate::rotation::{Quat, Vec3};
 use crate::segment::{
-    PositionCoding, PositionCurve, PositionPredictor, PositionType, QuadraticQ, QuadraticTerm,
-    ROTATION_TYPES, RotationCurve, RotationPredictor, RotationType, bucket, dequantise3,
-    position_step_prediction, position_types, rotation_step_prediction, step_angular_acceleration,
-    step_end, step_linear, unresidual,
+    FreeDynamics, INERTIA_BITS, MAX_FREE_LEN, PositionCoding, PositionCurve, PositionPredictor,
+    PositionType, QuadraticQ, QuadraticTerm, RotationCurve, RotationPredictor, RotationType,
+    bucket, dequantise3, position_step_prediction, position_types, rotation_step_prediction,
+    rotation_types, step_angular_acceleration, step_end, step_linear, unresidual,
 };
 
 /// Where a payload's symbols come from: what differs between versions 2 and 3.
@@ -33,6 +33,8 @@ pub(crate) trait Symbols {
     fn start_value(&mut self, k: u32) -> Result<u64, CodecError>;
     /// A raw `f64`.
     fn float(&mut self) -> Result<f64, CodecError>;
+    /// `n` equiprobable bits (version 4).
+    fn bits(&mut self, n: u32) -> Result<u64, CodecError>;
 }
 
 pub(crate) const FLAG_POS_RAW: usize = 0;
@@ -75,6 +77,10 @@ impl Symbols for RiceSymbols<'_> {
     fn float(&mut self) -> Result<f64, CodecError> {
         read_f64(&mut self.r)
     }
+
+    fn bits(&mut self, n: u32) -> Result<u64, CodecError> {
+        (0..n).try_fold(0u64, |v, _| Ok((v << 1) | u64::from(self.r.read_bit()?)))
+    }
 }
 
 /// Version 3: a range-coded stream with context models.
@@ -116,6 +122,10 @@ impl Symbols for RangeSymbols<'_> {
     fn float(&mut self) -> Result<f64, CodecError> {
         Ok(f64::from_bits(self.d.direct(64)?))
     }
+
+    fn bits(&mut self, n: u32) -> Result<u64, CodecError> {
+        self.d.direct(n)
+    }
 }
 
 /// The decoding state of one version-2 or version-3 object.
@@ -125,6 +135,11 @@ pub(crate) struct ObjectStream<S> {
     rot_step: f64,
     /// Rice parameter of the start orientation (from the header).
     start_k: u32,
+    /// Version 4: the world's rotation dynamics, and the frame time they need.
+    dynamics: Option<crate::format::HeaderDynamics>,
+    frame_dt: f64,
+    /// Free-flight frames this object may still simulate.
+    free_budget: u64,
     /// Frames after the first (segments cover exactly this many).
     steps: u32,
     pub position_start: Vec3,
@@ -145,6 +160,8 @@ struct PositionState {
 
 struct RotationState {
     predictor: RotationPredictor,
+    /// Version 4: the object's free-flight dynamics, once its first free segment has stored them.
+    free: Option<FreeDynamics>,
     at_rest: bool,
     q: Quat,
     before: Option<Quat>,
@@ -200,12 +217,18 @@ fn length(r: &mut impl Symbols, stream: usize, remaining: u32) -> Result<u32, Co
 }
 
 impl<S: Symbols> ObjectStream<S> {
-    pub(crate) fn open(mut r: S, frames: u32, header: &Header) -> Result<Self, CodecError> {
+    /// `free_budget`: most free-flight frames this object's segments may simulate.
+    pub(crate) fn open(
+        mut r: S,
+        frames: u32,
+        header: &Header,
+        free_budget: u64,
+    ) -> Result<Self, CodecError> {
         let gravity = match header.model {
             MotionModel::General => None,
             MotionModel::FreeFlightGravity { g } => Some(g),
         };
-        let coding = PositionCoding::new(header.pos_step, gravity, header.frame_dt);
+        let coding = PositionCoding::new(header.pos_step, gravity, header.frame_dt, header.version);
         let start = if r.flag(FLAG_POS_RAW)? {
             floats(&mut r)?
         } else {
@@ -221,6 +244,9 @@ impl<S: Symbols> ObjectStream<S> {
             coding,
             rot_step: header.rot_step,
             start_k: header.start_k[1],
+            dynamics: header.dynamics,
+            frame_dt: header.frame_dt,
+            free_budget,
             steps,
             position_start: start,
             positions: PositionState {
@@ -318,10 +344,11 @@ impl<S: Symbols> ObjectStream<S> {
             quat(&mut self.r)?
         } else {
             let q = start_values(&mut self.r, self.start_k, "start orientation out of range")?;
-            start_orientation(q, self.rot_step)
+            start_orientation(q, self.rot_step / self.coding.start_divisor)
         };
         let at_rest = self.steps > 0 && self.r.flag(FLAG_ROT_REST)?;
         self.rotations = Some(RotationState {
+            free: None,
             at_rest,
             predictor: RotationPredictor::default(),
             q: start,
@@ -351,9 +378,10 @@ impl<S: Symbols> ObjectStream<S> {
                 curve: RotationCurve::Rest,
             }));
         }
-        let rank = self.r.kind(true, ROTATION_TYPES.len(), rot.prev_type)?;
+        let types = rotation_types(self.dynamics.is_some());
+        let rank = self.r.kind(true, types.len(), rot.prev_type)?;
         rot.prev_type = rank;
-        let (len, curve) = match ROTATION_TYPES[rank] {
+        let (len, curve) = match types[rank] {
             RotationType::Key => (
                 1,
                 RotationCurve::Key {
@@ -375,6 +403,54 @@ impl<S: Symbols> ObjectStream<S> {
                         w: step_end(pred, q, self.rot_step),
                     },
                 )
+            }
+            RotationType::Free => {
+                let len = length(&mut self.r, S_ROT_LEN, remaining)?;
+                if len > MAX_FREE_LEN {
+                    return Err(CodecError::Corrupt {
+                        what: "free-flight segment longer than the format allows",
+                    });
+                }
+                // Each decode simulates a segment's frames about twice (its end, its frames).
+                let cost = 2 * u64::from(len);
+                if cost > self.free_budget {
+                    return Err(CodecError::LimitExceeded {
+                        what: "free-flight frames simulated",
+                        requested: cost,
+                        limit: self.free_budget,
+                    });
+                }
+                self.free_budget -= cost;
+                let dynamics = match (rot.free, self.dynamics) {
+                    (Some(d), _) => d,
+                    (None, Some(h)) => {
+                        let mut code = [0u16; 3];
+                        for c in &mut code {
+                            // `INERTIA_BITS` (12) fit in a u16.
+                            *c = self.r.bits(INERTIA_BITS)? as u16;
+                            if *c == 0 {
+                                return Err(CodecError::Corrupt {
+                                    what: "principal moment of inertia is zero",
+                                });
+                            }
+                        }
+                        let d =
+                            FreeDynamics::new(code, h.substeps, h.angular_damping, self.frame_dt);
+                        rot.free = Some(d);
+                        d
+                    }
+                    // `rotation_types` offers the type only with dynamics.
+                    (None, None) => {
+                        return Err(CodecError::Corrupt {
+                            what: "free-flight segment without dynamics",
+                        });
+                    }
+                };
+                let what = "angular velocity residual out of range";
+                let pred = rot.predictor.predict(self.rot_step, bucket(len));
+                let wq = residuals(&mut self.r, S_ROT_FREE, pred, what)?;
+                let w = dequantise3(wq, step_linear(self.rot_step, bucket(len)));
+                (len, RotationCurve::Free { w, dynamics })
             }
             kind => {
                 let len = length(&mut self.r, S_ROT_LEN, remaining)?;
@@ -402,9 +478,9 @@ impl<S: Symbols> ObjectStream<S> {
             q0: rot.q,
             curve,
         };
-        rot.predictor.advance(&curve, len);
-        rot.before = Some(curve.eval(rot.q, f64::from(len - 1)));
-        rot.q = curve.eval(rot.q, f64::from(len));
+        let (before, end) = rot.predictor.follow(&curve, len, rot.q);
+        rot.before = Some(before);
+        rot.q = end;
         rot.covered += len;
         Ok(Some(seg))
     }
