@@ -113,6 +113,15 @@ impl MotionModel {
     }
 }
 
+/// The error for a bad parameter, naming it.
+fn invalid(name: &'static str, value: f64, expected: &'static str) -> Result<(), CodecError> {
+    Err(CodecError::InvalidParam {
+        name,
+        value,
+        expected,
+    })
+}
+
 /// How the simulator turns bodies in free flight, for the codec's free-flight rotation segments
 /// (format 4; [`crate::encode_world_with_dynamics`]). With it, a thrown body's whole flight is one
 /// segment of three coefficients instead of a quadratic every few frames.
@@ -131,23 +140,16 @@ pub struct RotationDynamics {
 impl RotationDynamics {
     /// Checks every field; the error names the first bad one.
     pub fn validate(&self) -> Result<(), CodecError> {
-        let bad = |name, value, expected| {
-            Err(CodecError::InvalidParam {
-                name,
-                value,
-                expected,
-            })
-        };
         if !(1..=crate::format::MAX_SUBSTEPS).contains(&self.substeps) {
-            return bad("substeps", f64::from(self.substeps), "in 1..=16");
+            return invalid("substeps", f64::from(self.substeps), "in 1..=16");
         }
         if !(self.angular_damping.is_finite() && self.angular_damping >= 0.0) {
-            return bad("angular_damping", self.angular_damping, "finite and ≥ 0");
+            return invalid("angular_damping", self.angular_damping, "finite and ≥ 0");
         }
         for i in self.inertia.iter().flatten() {
             for &v in i {
                 if !(v.is_finite() && v > 0.0) {
-                    return bad("inertia", v, "finite and > 0");
+                    return invalid("inertia", v, "finite and > 0");
                 }
             }
         }
@@ -185,32 +187,25 @@ impl EncodeParams {
 
     /// Checks every field; the error names the first bad one.
     pub fn validate(&self) -> Result<(), CodecError> {
-        let bad = |name, value, expected| {
-            Err(CodecError::InvalidParam {
-                name,
-                value,
-                expected,
-            })
-        };
         if !(self.e_max.is_finite() && self.e_max > 0.0) {
-            return bad("e_max", self.e_max, "finite and > 0");
+            return invalid("e_max", self.e_max, "finite and > 0");
         }
         if !(self.theta_max.is_finite()
             && self.theta_max >= MIN_THETA_MAX
             && self.theta_max < std::f64::consts::PI)
         {
-            return bad("theta_max", self.theta_max, "in [1e-9, π)");
+            return invalid("theta_max", self.theta_max, "in [1e-9, π)");
         }
         if !(self.frame_dt.is_finite() && self.frame_dt > 0.0) {
-            return bad("frame_dt", self.frame_dt, "finite and > 0");
+            return invalid("frame_dt", self.frame_dt, "finite and > 0");
         }
         if !(self.lowres_hz.is_finite() && self.lowres_hz > 0.0) {
-            return bad("lowres_hz", self.lowres_hz, "finite and > 0");
+            return invalid("lowres_hz", self.lowres_hz, "finite and > 0");
         }
         if let MotionModel::FreeFlightGravity { g } = self.model {
             for (name, v) in ["g.x", "g.y", "g.z"].into_iter().zip(g) {
                 if !v.is_finite() {
-                    return bad(name, v, "finite");
+                    return invalid(name, v, "finite");
                 }
             }
         }
