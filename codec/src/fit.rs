@@ -709,9 +709,10 @@ const FREE_FIT_EPS: f64 = 1e-7;
 ///
 /// The start angular velocity is fitted by Gauss–Newton to the first [`FIT_WINDOW`] frames (the
 /// free-flight counterpart of Figure 4.6's least squares; the simulation is non-linear in it),
-/// starting from the first frame's rotation, then quantised like a linear segment's (bucket of
-/// the length, `Δθ·2⁻ᵏ`) and simulated frame by frame until a frame leaves the bound. Every
-/// verdict is on the simulated frames the decoder reproduces bit for bit.
+/// starting from the first frame's rotation, and again over the whole flight if it reaches past
+/// them; each fit is quantised like a linear segment's (bucket of the length, `Δθ·2⁻ᵏ`) and
+/// simulated frame by frame until a frame leaves the bound. Every verdict is on the simulated
+/// frames the decoder reproduces bit for bit.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn fit_free(
     q: &[Quat],
@@ -729,8 +730,8 @@ pub(crate) fn fit_free(
     // The first frame's rotation is the first guess; each window's fit starts from the last.
     let mut w = rotation::log(rotation::mul(q[s + 1], rotation::conj(q0)));
     // In contact the model is off within a few frames: if the guess, run for the shortest flight
-    // worth writing, ends far outside the bound, the fit is not tried (most segment starts of a
-    // body in contact; the fit is ~50 simulations).
+    // worth writing, ends far outside the bound, the fit is not tried (each of its windows costs
+    // five simulations of the window).
     let probe = (MIN_FREE_PROBE as usize).min(max_len);
     let (mut qs, mut ws) = (q0, FreeDynamics::body(q0, w));
     for _ in 0..probe {

@@ -206,10 +206,11 @@ pub(crate) fn rotation_types(dynamics: bool) -> &'static [RotationType] {
 /// the body's principal moments (body axes = principal axes), the whole flight follows from the
 /// angular velocity at its start. The integrator mirrors the simulator's (rapier 0.36): per frame,
 /// `substeps` times an explicit gyroscopic update that keeps |L| and then a linearised quaternion
-/// step `q ← normalise((h·ω/2, 1) ⊗ q)`, then angular damping `ω ← ω·damping`. It uses only `+`,
-/// `−`, `×`, `/` and `√`, which IEEE 754 rounds exactly, so every platform decodes the same bits.
-/// The model only has to be close: the encoder checks every frame against the bound and ends the
-/// segment where it drifts (on tumble, whole ~60-frame throws stay within 1 mrad).
+/// step `q ← normalise((h·ω/2, 1) ⊗ q)` (computed in the body frame, see [`Self::frame`]), then
+/// angular damping `ω ← ω·damping`. It uses only `+`, `−`, `×`, `/` and `√`, which IEEE 754
+/// rounds exactly, so every platform decodes the same bits. The model only has to be close: the
+/// encoder checks every frame against the bound and ends the segment where it drifts (on tumble a
+/// throw takes one to three such segments).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(crate) struct FreeDynamics {
     /// Principal moments of inertia along the body axes, the largest 1 (as decoded).

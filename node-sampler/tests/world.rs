@@ -403,3 +403,37 @@ fn quantised_frames_payload_is_the_same_motion_within_its_quantum() {
     // Cheap, not small: the spline payload is several times smaller.
     assert!(summary.payload_bytes > 2 * spline.0.payload_bytes);
 }
+
+#[test]
+fn rotation_dynamics_are_the_solvers_and_the_bodies_moments() {
+    let mut scene = parse(builtin::TUMBLE).instantiate(3);
+    let sim = mwb_sampler::world::SimWorld::build(&scene).unwrap_or_else(|e| panic!("{e}"));
+    let d = mwb_sampler::world::rotation_dynamics(&scene, &sim).expect("tumble has no joints");
+    assert_eq!(d.substeps, scene.settings.solver_iterations);
+    assert_eq!(d.angular_damping, scene.settings.angular_damping);
+    assert_eq!(d.inertia.len(), scene.bodies.len());
+    for (body, i) in scene.bodies.iter().zip(&d.inertia) {
+        let mwb_core::scene::Shape::Box { half_extents: h } = body.shape else {
+            panic!("tumble throws boxes");
+        };
+        // A box's moments about its axes go as (b² + c², a² + c², a² + b²).
+        let want = [
+            h[1] * h[1] + h[2] * h[2],
+            h[0] * h[0] + h[2] * h[2],
+            h[0] * h[0] + h[1] * h[1],
+        ];
+        let got = i.expect("a box is described");
+        for k in 0..3 {
+            let (r_got, r_want) = (got[k] / got[0], want[k] / want[0]);
+            assert!(
+                (r_got - r_want).abs() < 1e-5 * r_want,
+                "{:?} vs {:?}",
+                got,
+                want
+            );
+        }
+    }
+    // More substeps than the codec's model allows: no dynamics.
+    scene.settings.solver_iterations = 17;
+    assert!(mwb_sampler::world::rotation_dynamics(&scene, &sim).is_none());
+}
