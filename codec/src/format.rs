@@ -16,9 +16,11 @@
 //!   (equiprobable bits; moments relative to the largest, which is 4095), then three
 //!   angular-velocity residuals on their own stream (`S_ROT_FREE`, prior of `S_ROT_W`) against
 //!   the predicted angular velocity, in steps of Δθ·2⁻ᵏ (k = ⌈log₂ L⌉, as a linear segment). The
-//!   decoded curve is `segment::FreeDynamics` simulated from the start orientation: per frame,
-//!   `substeps` times (explicit gyroscopic step keeping |L|, then `q ← normalise((h·ω/2, 1) ⊗ q)`)
-//!   and then ω × 1/(1 + dt·c).
+//!   decoded curve is `segment::FreeDynamics` simulated from the start orientation q₀, in the
+//!   body frame (ω_b = q₀⁻¹ ω q₀ once): per frame, `substeps` times (h = 1/substeps: the explicit
+//!   gyroscopic step L = I ω_b, L' = L − h·(ω_b × L), ω_b = I⁻¹ L'·|L|/|L'|; then
+//!   `q ← normalise(q ⊗ (h·ω_b/2, 1))`), then ω_b × 1/(1 + dt·c). Bit-exact decoding needs these
+//!   operations in this order (`FreeDynamics::frame`).
 //!
 //! # Version 3
 //!
