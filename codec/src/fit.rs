@@ -756,7 +756,8 @@ pub(crate) fn fit_free(
         // A flight longer than the window: fit again over a longer one — at least twice the
         // window, at once the whole flight the positions show (the start velocity that fits the
         // first frames best is not the one that stays within the bound longest).
-        if reached < window || window == max_len {
+        // (A fit that already reaches the end of the flight cannot gain from a longer window.)
+        if reached < window || window == max_len || (flight > 0 && reached >= flight) {
             break;
         }
         window = (2 * window).max(flight).min(max_len);
