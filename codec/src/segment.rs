@@ -170,16 +170,10 @@ pub(crate) enum RotationType {
     Free,
 }
 
-pub(crate) const ROTATION_TYPES: [RotationType; 5] = [
-    RotationType::Linear,
-    RotationType::Quadratic,
-    RotationType::Step,
-    RotationType::Rest,
-    RotationType::Key,
-];
-
-/// The rotation types of a format-4 world with rotation dynamics, in code order.
-pub(crate) const ROTATION_TYPES_FREE: [RotationType; 6] = [
+/// The rotation types in code order. Free flight is last: a world without rotation dynamics codes
+/// the five before it, and (the type code not depending on how many there are) a format-4 world
+/// that uses none is coded as one without.
+const ROTATION_TYPES: [RotationType; 6] = [
     RotationType::Linear,
     RotationType::Quadratic,
     RotationType::Step,
@@ -191,9 +185,9 @@ pub(crate) const ROTATION_TYPES_FREE: [RotationType; 6] = [
 /// The rotation types a world codes: with rotation dynamics (format 4) the free-flight type too.
 pub(crate) fn rotation_types(dynamics: bool) -> &'static [RotationType] {
     if dynamics {
-        &ROTATION_TYPES_FREE
-    } else {
         &ROTATION_TYPES
+    } else {
+        &ROTATION_TYPES[..5]
     }
 }
 
