@@ -16,7 +16,7 @@ use crate::error::CodecError;
 use crate::format::{Header, INDEX_ENTRY_LEN_V1};
 use crate::params::{MotionModel, Quality};
 use crate::rotation::{self, Quat, Vec3};
-use crate::segment::{FreeDynamics, PositionCurve, RotationCurve, dequantise3};
+use crate::segment::{PositionCurve, RotationCurve, dequantise3};
 
 /// Caps on what one decode call may allocate.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -227,15 +227,10 @@ impl<'a> WorldReader<'a> {
             }
         }
         track.rotations.push(streams.start_rotations()?);
-        while let Some(seg) = streams.next_rotation()? {
-            if let RotationCurve::Free { w, dynamics } = seg.curve {
-                // Simulated frames follow from one another: one pass, not one per frame. The
-                // same steps as `eval`, so the same bits.
-                let (mut q, mut wb) = (seg.q0, FreeDynamics::body(seg.q0, w));
-                for _ in 1..=seg.len {
-                    dynamics.frame(&mut q, &mut wb);
-                    track.rotations.push(q);
-                }
+        // A free flight's frames come from the simulation that finds its end (the same steps
+        // as `eval`, so the same bits); other curves are evaluated here.
+        while let Some(seg) = streams.next_rotation(Some(&mut track.rotations))? {
+            if matches!(seg.curve, RotationCurve::Free { .. }) {
                 continue;
             }
             for u in 1..=seg.len {
@@ -327,7 +322,7 @@ impl<'a> WorldReader<'a> {
             }
         }
         let mut rot = streams.start_rotations()?;
-        while let Some(seg) = streams.next_rotation()? {
+        while let Some(seg) = streams.next_rotation(None)? {
             let s = f64::from(seg.start);
             if f <= s + f64::from(seg.len) {
                 rot = seg.curve.eval(seg.q0, f - s);
@@ -491,11 +486,16 @@ impl<'a> ObjectStreams<'a> {
         }
     }
 
-    fn next_rotation(&mut self) -> Result<Option<RotationSegment>, CodecError> {
+    /// The next rotation segment; a free flight's frames are pushed onto `frames`, if given
+    /// (version 1 has none).
+    fn next_rotation(
+        &mut self,
+        frames: Option<&mut Vec<Quat>>,
+    ) -> Result<Option<RotationSegment>, CodecError> {
         match self {
             Self::V1(s) => s.rotations.next_segment(),
-            Self::V2(s) => s.next_rotation(),
-            Self::V3(s) => s.next_rotation(),
+            Self::V2(s) => s.next_rotation(frames),
+            Self::V3(s) => s.next_rotation(frames),
         }
     }
 }

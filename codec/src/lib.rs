@@ -13,7 +13,8 @@
 //! frame** the decoded position is within `e_max` of the input (Euclidean norm, which also bounds
 //! each axis) and the decoded orientation within `θ_max` (angle of the residual rotation); the
 //! encoder checks this on the decoded bytes before returning them. The encoder writes format
-//! version 4 and the reader reads versions 1 to 4 (`format` has the layouts).
+//! version 5 (version 4's payloads; bounds and gravity other than the well-known ones as short
+//! decimals in the header) and the reader reads versions 1 to 5 (`format` has the layouts).
 //!
 //! # Writing
 //!
@@ -103,7 +104,10 @@ mod params;
 mod rotation;
 mod segment;
 
-pub use baseline::{RAW_BYTES_PER_OBJECT_FRAME, quantised_frames_baseline, raw_f32_size};
+pub use baseline::{
+    BaselineRotation, RAW_BYTES_PER_OBJECT_FRAME, quantised_baseline, quantised_frames_baseline,
+    raw_f32_size,
+};
 pub use decode::{DecodeLimits, WorldReader};
 pub use encode::{
     EncodeStats, EncodedWorld, SizeBreakdown, Track, encode_world, encode_world_with_dynamics,

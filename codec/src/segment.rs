@@ -575,13 +575,29 @@ impl RotationPredictor {
     /// orientations of its last two frames (`len − 1` and `len`) — for a free flight from one
     /// simulation instead of three.
     pub(crate) fn follow(&mut self, curve: &RotationCurve, len: u32, q0: Quat) -> (Quat, Quat) {
+        self.follow_into(curve, len, q0, None)
+    }
+
+    /// [`Self::follow`]; a free flight's frames `1..=len` are also pushed onto `frames` (the
+    /// simulation that finds the segment's end computes them anyway: a reader decoding every
+    /// frame then simulates each flight once). Other curves push nothing.
+    pub(crate) fn follow_into(
+        &mut self,
+        curve: &RotationCurve,
+        len: u32,
+        q0: Quat,
+        mut frames: Option<&mut Vec<Quat>>,
+    ) -> (Quat, Quat) {
         if let RotationCurve::Free { w, dynamics } = *curve {
             let (mut q, mut wb) = (q0, FreeDynamics::body(q0, w));
-            for _ in 1..len {
+            let mut before = q0;
+            for _ in 0..len {
+                before = q;
                 dynamics.frame(&mut q, &mut wb);
+                if let Some(out) = frames.as_deref_mut() {
+                    out.push(q);
+                }
             }
-            let before = q;
-            dynamics.frame(&mut q, &mut wb);
             self.w = FreeDynamics::world(q, wb);
             return (before, q);
         }

@@ -1,18 +1,19 @@
-//! Old recordings stay readable: streams written by the version-1, -2 and -3 encoders (saved
-//! as fixtures before formats 2, 3 and 4 replaced them) still decode, through every read path, to
+//! Old recordings stay readable: streams written by the version-1 to -4 encoders (saved as
+//! fixtures before formats 2 to 5 replaced them) still decode, through every read path, to
 //! exactly the poses they decoded to when they were written — and so stay within the bounds of
 //! the motion they were made from.
 
 mod common;
 
-use common::{G, distance, generate, normalise, rotation_angle};
+use common::{G, Rng, distance, generate, normalise, rotation_angle, torque_free};
 use mwb_codec::{MotionModel, Quality, Track, WorldReader};
 
 /// `(fixture, preset, model)`: six objects, one per test generator (seeds 31..37), 120 frames at
 /// 120 Hz (tracks `common::generate(object, 31 + object, 120, 1/120)`), encoded with
 /// `EncodeParams::from_quality(preset, 1/120, model)`; the `.poses` files are what the writing
 /// build decoded. Version 1: format-1 code; version 2: the encoder of commit d1ba8c1; version 3:
-/// the encoder of commit 116d0ab.
+/// the encoder of commit 116d0ab; version 4: the encoder of commit b13b33d (`v4_free_final` with
+/// rotation dynamics, see [`free_input`]).
 const V1: [(&str, Quality, MotionModel); 2] = [
     (
         "v1_gravity_standard",
@@ -38,6 +39,36 @@ const V3: [(&str, Quality, MotionModel); 2] = [
     ("v3_general_draft", Quality::Draft, MotionModel::General),
 ];
 
+const V4: [(&str, Quality, MotionModel); 2] = [
+    (
+        "v4_gravity_standard",
+        Quality::Standard,
+        MotionModel::FreeFlightGravity { g: G },
+    ),
+    (
+        "v4_free_final",
+        Quality::Final,
+        MotionModel::FreeFlightGravity { g: G },
+    ),
+];
+
+/// The motion of `v4_free_final`: objects 0 and 1 torque-free bodies with principal moments
+/// `[0.2, 1.1, 0.9]` (`torque_free(Rng::new(41 + object), [0.2, 1.1, 0.9], 120, 1/120, &[60], 5.0,
+/// 0.5)`), the rest the generators' tracks; encoded with `RotationDynamics { substeps: 4,
+/// angular_damping: 0.5 }` and those moments for objects 0 and 1 (three free-flight segments).
+fn free_input(object: usize) -> Track {
+    if object < 2 {
+        let mut rng = Rng::new(41 + object as u64);
+        torque_free(&mut rng, [0.2, 1.1, 0.9], 120, 1.0 / 120.0, &[60], 5.0, 0.5)
+    } else {
+        generated(object)
+    }
+}
+
+fn generated(object: usize) -> Track {
+    generate(object, 31 + object as u64, 120, 1.0 / 120.0)
+}
+
 #[test]
 fn version_1_streams_decode_to_the_same_poses() {
     check(1, &V1);
@@ -51,6 +82,11 @@ fn version_2_streams_decode_to_the_same_poses() {
 #[test]
 fn version_3_streams_decode_to_the_same_poses() {
     check(3, &V3);
+}
+
+#[test]
+fn version_4_streams_decode_to_the_same_poses() {
+    check(4, &V4);
 }
 
 fn fixture(name: &str, ext: &str) -> Vec<u8> {
@@ -71,7 +107,6 @@ fn poses(bytes: &[u8]) -> Vec<[f64; 7]> {
 /// Every fixture of `fixtures` reads as format `version` and decodes, through every read path,
 /// to the saved poses bit for bit, within the bounds of the motion it was made from.
 fn check(version: u16, fixtures: &[(&str, Quality, MotionModel)]) {
-    let dt = 1.0 / 120.0;
     for &(name, quality, model) in fixtures {
         let bytes = fixture(name, "mwbm");
         let want = poses(&fixture(name, "poses"));
@@ -102,7 +137,11 @@ fn check(version: u16, fixtures: &[(&str, Quality, MotionModel)]) {
                 assert_eq!(q, decoded.rotations[f as usize]);
             }
             // Within the bounds of the motion the fixture was made from.
-            let input: Track = generate(object, 31 + object as u64, 120, dt);
+            let input = if name == "v4_free_final" {
+                free_input(object)
+            } else {
+                generated(object)
+            };
             for f in 0..120 {
                 assert!(distance(decoded.positions[f], input.positions[f]) <= quality.e_max());
                 let a = rotation_angle(decoded.rotations[f], normalise(input.rotations[f]));

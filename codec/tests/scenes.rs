@@ -5,7 +5,8 @@
 //! measurement, ignored by default (without the variable it prints nothing). Run with
 //! `MWB_SCENE_TRACKS=dir cargo test -p mwb-codec --release --test scenes -- --ignored --nocapture`;
 //! `MWB_SCENE_MODEL=general` encodes as if the scenes had damping; `MWB_SCENE_PRESETS=standard`
-//! (a comma-separated list of draft, standard, final) measures only those presets.
+//! (a comma-separated list of draft, standard, final) measures only those presets, and
+//! `MWB_SCENE_BOUNDS=0.005,0.01` measures other bounds (e_max in m, θ_max the same in rad).
 //!
 //! ```text
 //! f64 frame_dt, u8 model (0 general, 1 free flight), 3 × f64 gravity,
@@ -118,6 +119,41 @@ impl<'a> Cursor<'a> {
     }
 }
 
+/// The bounds to measure: the presets (`MWB_SCENE_PRESETS` picks some), or `MWB_SCENE_BOUNDS`, a
+/// comma-separated list of e_max values in metres, each with θ_max the same number in radians (as
+/// the bench's rate–distortion sweep).
+fn settings(dt: f64, model: MotionModel) -> Vec<(String, EncodeParams)> {
+    if let Ok(list) = std::env::var("MWB_SCENE_BOUNDS") {
+        return list
+            .split(',')
+            .map(|e| {
+                let e: f64 = e
+                    .trim()
+                    .parse()
+                    .expect("MWB_SCENE_BOUNDS: numbers in metres");
+                let mut p = EncodeParams::from_quality(Quality::Standard, dt, model);
+                (p.e_max, p.theta_max) = (e, e);
+                (format!("{e}"), p)
+            })
+            .collect();
+    }
+    [Quality::Draft, Quality::Standard, Quality::Final]
+        .into_iter()
+        .filter(|quality| {
+            std::env::var("MWB_SCENE_PRESETS").map_or(true, |list| {
+                list.split(',')
+                    .any(|q| q.eq_ignore_ascii_case(&format!("{quality:?}")))
+            })
+        })
+        .map(|quality| {
+            (
+                format!("{quality:?}"),
+                EncodeParams::from_quality(quality, dt, model),
+            )
+        })
+        .collect()
+}
+
 #[test]
 #[ignore = "measurement: needs recorded tracks in MWB_SCENE_TRACKS; run with --ignored"]
 fn shipped_scene_motion() {
@@ -133,15 +169,7 @@ fn shipped_scene_motion() {
         if std::env::var("MWB_SCENE_MODEL").is_ok_and(|m| m == "general") {
             s.model = MotionModel::General;
         }
-        for quality in [Quality::Draft, Quality::Standard, Quality::Final] {
-            if std::env::var("MWB_SCENE_PRESETS").is_ok_and(|list| {
-                !list
-                    .split(',')
-                    .any(|q| q.eq_ignore_ascii_case(&format!("{quality:?}")))
-            }) {
-                continue;
-            }
-            let p = EncodeParams::from_quality(quality, s.dt, s.model);
+        for (label, p) in settings(s.dt, s.model) {
             let (mut bytes, mut frames, mut secs) = (0usize, 0u64, 0.0f64);
             let mut decode_secs = 0.0f64;
             let (mut pos_segs, mut rot_segs) = (0u64, 0u64);
@@ -182,7 +210,7 @@ fn shipped_scene_motion() {
             }
             let obj_s = frames as f64 * s.dt;
             println!(
-                "{scene:<9} {quality:<8?} {:>7.1} B/(obj·s)  ×f32 {:>5.1}  segs/s pos {:>5.2} rot {:>5.2} \
+                "{scene:<9} {label:<8} {:>7.1} B/(obj·s)  ×f32 {:>5.1}  segs/s pos {:>5.2} rot {:>5.2} \
                  (free {:>4.2})  err {:.4} {:.4}  encode {:>4.0} decode {:>3.0} ns/obj-frame",
                 bytes as f64 / obj_s,
                 frames as f64 * 28.0 / bytes as f64,

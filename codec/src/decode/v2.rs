@@ -359,8 +359,12 @@ impl<S: Symbols> ObjectStream<S> {
         Ok(start)
     }
 
-    /// The next rotation segment, `None` once the track is covered.
-    pub(crate) fn next_rotation(&mut self) -> Result<Option<RotationSegment>, CodecError> {
+    /// The next rotation segment, `None` once the track is covered. A free flight's frames are
+    /// pushed onto `frames`, if given (see [`RotationPredictor::follow_into`]).
+    pub(crate) fn next_rotation(
+        &mut self,
+        frames: Option<&mut Vec<Quat>>,
+    ) -> Result<Option<RotationSegment>, CodecError> {
         self.start_rotations()?;
         let Some(rot) = &mut self.rotations else {
             return Ok(None);
@@ -411,7 +415,8 @@ impl<S: Symbols> ObjectStream<S> {
                         what: "free-flight segment longer than the format allows",
                     });
                 }
-                // Each decode simulates a segment's frames about twice (its end, its frames).
+                // A reader simulates a segment's frames at most about twice (to its end, then
+                // to a sampled frame).
                 let cost = 2 * u64::from(len);
                 if cost > self.free_budget {
                     return Err(CodecError::LimitExceeded {
@@ -478,7 +483,7 @@ impl<S: Symbols> ObjectStream<S> {
             q0: rot.q,
             curve,
         };
-        let (before, end) = rot.predictor.follow(&curve, len, rot.q);
+        let (before, end) = rot.predictor.follow_into(&curve, len, rot.q, frames);
         rot.before = Some(before);
         rot.q = end;
         rot.covered += len;
