@@ -16,7 +16,7 @@ use crate::error::CodecError;
 use crate::format::{Header, INDEX_ENTRY_LEN_V1};
 use crate::params::{MotionModel, Quality};
 use crate::rotation::{self, Quat, Vec3};
-use crate::segment::{PositionCurve, RotationCurve, dequantise3};
+use crate::segment::{Lattice, PositionCurve, RotationCurve};
 
 /// Caps on what one decode call may allocate.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -500,9 +500,9 @@ impl<'a> ObjectStreams<'a> {
     }
 }
 
-/// The decoded first orientation from its quantised rotation vector (shared with the encoder).
-/// `start_step`: the rotation step over the version's start divisor.
-pub(crate) fn start_orientation(q: [i64; 3], start_step: f64) -> Quat {
-    let r = dequantise3(q, start_step);
+/// The decoded first orientation from its quantised rotation vector (lattice coordinates;
+/// shared with the encoder). `start_step`: the rotation step over the version's start divisor.
+pub(crate) fn start_orientation(q: [i64; 3], start_step: f64, lattice: Lattice) -> Quat {
+    let r = lattice.point(q, start_step);
     rotation::normalise(rotation::exp(r)).unwrap_or(rotation::IDENTITY)
 }

@@ -7,13 +7,18 @@
 //! the *quantised* curve. Because the quantisation step depends on the length bucket (see
 //! `segment`), the coefficients are re-quantised and all points re-checked whenever the length
 //! crosses a power of two; that costs O(L) per doubling, so the fitter stays linear.
+//!
+//! Where the lattice point nearest the least-squares coefficients breaks the bound, the next
+//! nearest points (`RESCUE_CANDIDATES`, format 5's BCC lattice) are tried before the segment
+//! ends: the nearest coefficients are not always those that stay within the bound longest, and
+//! a point of a coarser lattice is further from the fit on average. Each try re-checks the
+//! segment's frames, once per break, so the fitter stays linear (with a larger constant).
 
 use crate::params::{FIT_WINDOW, MAX_SEGMENT_LEN};
 use crate::rotation::{self, Quat, Vec3};
 use crate::segment::{
-    FreeDynamics, MAX_FREE_LEN, PositionCoding, PositionCurve, QuadraticQ, QuadraticTerm,
-    RotationCurve, bucket, dequantise3, quantise3, step_angular_acceleration, step_linear,
-    step_quadratic,
+    FreeDynamics, Lattice, MAX_FREE_LEN, PositionCoding, PositionCurve, QuadraticQ, QuadraticTerm,
+    RotationCurve, bucket, step_angular_acceleration, step_linear, step_quadratic,
 };
 
 /// The position models a segment may use (format 2 chooses per segment; §4.3: "model only what
@@ -372,6 +377,41 @@ pub(crate) fn fit_position(
     let mut best: Option<PositionFit> = None;
     let (mut b, mut a) = ([0.0; 3], [0.0; 3]);
     let mut current: Option<(u32, QuadraticQ, PositionCurve)> = None;
+    // Where the nearest lattice point's curve breaks the bound, the nearest points of the other
+    // coset (BCC) may not: the coefficients nearest the least-squares fit are not always those
+    // that stay within the bound longest.
+    let rescue = |len: usize, k: u32, b: Vec3, a: Vec3, tried: QuadraticQ| {
+        let (sb, sa) = (step_linear(coding.step, k), step_quadratic(coding.step, k));
+        let lattice = coding.lattice;
+        let b_alts = lattice.alternatives(tried.bq, b, sb, RESCUE_CANDIDATES);
+        let a_alts = match tried.term {
+            QuadraticTerm::Fitted(aq) => lattice.alternatives(aq, a, sa, RESCUE_CANDIDATES),
+            _ => Vec::new(),
+        };
+        let first = |v: &Vec<[i64; 3]>| v.first().copied();
+        b_alts
+            .iter()
+            .map(|&bq| QuadraticQ { bq, ..tried })
+            .chain(a_alts.iter().map(|&aq| QuadraticQ {
+                term: QuadraticTerm::Fitted(aq),
+                ..tried
+            }))
+            .chain(
+                first(&b_alts)
+                    .zip(first(&a_alts))
+                    .map(|(bq, aq)| QuadraticQ {
+                        bq,
+                        term: QuadraticTerm::Fitted(aq),
+                    }),
+            )
+            .find_map(|coeffs| {
+                let curve = coeffs.curve(coding, k);
+                (1..=len)
+                    .rev()
+                    .all(|u| within(&curve, u))
+                    .then_some((k, coeffs, curve))
+            })
+    };
     for len in 1..=max_len {
         let refit = len < FIT_WINDOW;
         if refit {
@@ -380,36 +420,48 @@ pub(crate) fn fit_position(
         let k = bucket(len as u32);
         let requantise = refit || current.is_none_or(|(ck, _, _)| ck != k);
         if requantise {
-            let Some(bq) = quantise3(b, step_linear(coding.step, k)) else {
+            let Some(bq) = coding.lattice.quantise(b, step_linear(coding.step, k)) else {
                 break;
             };
             let term = match kind {
                 PositionKind::Gravity => QuadraticTerm::Gravity,
                 PositionKind::Linear => QuadraticTerm::Zero,
-                PositionKind::Quadratic => match quantise3(a, step_quadratic(coding.step, k)) {
-                    Some(aq) => QuadraticTerm::Fitted(aq),
-                    None => break,
-                },
+                PositionKind::Quadratic => {
+                    match coding.lattice.quantise(a, step_quadratic(coding.step, k)) {
+                        Some(aq) => QuadraticTerm::Fitted(aq),
+                        None => break,
+                    }
+                }
             };
             let coeffs = QuadraticQ { bq, term };
             // A refit that quantises to the curve already verified on 1..len−1 (the common case
             // once the window has a few points) needs only the new point checked.
             if let Some((_, _, curve)) = current.filter(|&(ck, cq, _)| (ck, cq) == (k, coeffs)) {
                 if !within(&curve, len) {
-                    break;
+                    match rescue(len, k, b, a, coeffs) {
+                        Some(r) => current = Some(r),
+                        None => break,
+                    }
                 }
             } else {
                 let curve = coeffs.curve(coding, k);
                 // The newest point first: where a refitted curve most often fails.
-                if !(1..=len).rev().all(|u| within(&curve, u)) {
-                    break;
+                if (1..=len).rev().all(|u| within(&curve, u)) {
+                    current = Some((k, coeffs, curve));
+                } else {
+                    match rescue(len, k, b, a, coeffs) {
+                        Some(r) => current = Some(r),
+                        None => break,
+                    }
                 }
-                current = Some((k, coeffs, curve));
             }
-        } else if let Some((_, _, curve)) = &current
-            && !within(curve, len)
+        } else if let Some((ck, coeffs, curve)) = current
+            && !within(&curve, len)
         {
-            break;
+            match rescue(len, ck, b, a, coeffs) {
+                Some(r) => current = Some(r),
+                None => break,
+            }
         }
         let (_, coeffs, curve) = current?;
         best = Some(PositionFit {
@@ -420,6 +472,9 @@ pub(crate) fn fit_position(
     }
     best
 }
+
+/// How many lattice points near a fit's nearest one are tried where its curve breaks the bound.
+const RESCUE_CANDIDATES: usize = 4;
 
 /// How many frames from `s` on stay within `e_max` of the start point `c` (a [`PositionCurve::Rest`]
 /// segment of that length meets the bound; 0: not even the next frame).
@@ -606,6 +661,7 @@ pub(crate) fn fit_rotation(
     kind: RotationKind,
     correction: StartCorrection,
     step: f64,
+    lattice: Lattice,
     theta_lim: f64,
     scratch: &mut RotationScratch,
 ) -> Option<RotationFit> {
@@ -645,39 +701,75 @@ pub(crate) fn fit_rotation(
         let requantise = refit || current.is_none_or(|((ck, _, _), _)| ck != k);
         if requantise {
             let sw = step_linear(step, k);
-            let Some(wq) = quantise3(w, sw) else {
+            let Some(wq) = lattice.quantise(w, sw) else {
                 break;
             };
             let aq = match kind {
                 RotationKind::Linear => None,
-                RotationKind::Quadratic => match quantise3(acc, step_angular_acceleration(step, k))
-                {
-                    Some(aq) => Some(aq),
-                    None => break,
-                },
+                RotationKind::Quadratic => {
+                    match lattice.quantise(acc, step_angular_acceleration(step, k)) {
+                        Some(aq) => Some(aq),
+                        None => break,
+                    }
+                }
             };
             let key = (k, wq, aq);
             // An unchanged quantised curve keeps its verdicts (only the new point is checked).
             let curve = match current.filter(|&(ck, _)| ck == key) {
                 Some((_, curve)) => curve,
                 None => {
-                    let w = dequantise3(wq, sw);
+                    let w = lattice.point(wq, sw);
                     match aq {
                         None => RotationCurve::Linear { w },
                         Some(aq) => RotationCurve::Quadratic {
                             w,
-                            a: dequantise3(aq, step_angular_acceleration(step, k)),
+                            a: lattice.point(aq, step_angular_acceleration(step, k)),
                         },
                     }
                 }
             };
             current = Some((key, curve));
         }
-        let Some((key, curve)) = current else {
+        let Some((mut key, mut curve)) = current else {
             break;
         };
         if !scratch.all_within(key, len, |u| within(&curve, u)) {
-            break;
+            // As for positions: the nearest points of the other coset may stay within longer.
+            let (k, wq, aq) = key;
+            let (sw, sa) = (step_linear(step, k), step_angular_acceleration(step, k));
+            let w_alts = lattice.alternatives(wq, w, sw, RESCUE_CANDIDATES);
+            let a_alts = aq.map_or(Vec::new(), |aq| {
+                lattice.alternatives(aq, acc, sa, RESCUE_CANDIDATES)
+            });
+            let rescued = w_alts
+                .iter()
+                .map(|&w| (k, w, aq))
+                .chain(a_alts.iter().map(|&a| (k, wq, Some(a))))
+                .chain(
+                    w_alts
+                        .first()
+                        .zip(a_alts.first())
+                        .map(|(&w, &a)| (k, w, Some(a))),
+                )
+                .find_map(|alt| {
+                    let c = match alt.2 {
+                        None => RotationCurve::Linear {
+                            w: lattice.point(alt.1, sw),
+                        },
+                        Some(aq) => RotationCurve::Quadratic {
+                            w: lattice.point(alt.1, sw),
+                            a: lattice.point(aq, sa),
+                        },
+                    };
+                    scratch
+                        .all_within(alt, len, |u| within(&c, u))
+                        .then_some((alt, c))
+                });
+            match rescued {
+                Some((k2, c2)) => (key, curve) = (k2, c2),
+                None => break,
+            }
+            current = Some((key, curve));
         }
         best = Some(RotationFit {
             len: len as u32,
@@ -720,6 +812,7 @@ pub(crate) fn fit_free(
     q0: Quat,
     dynamics: &FreeDynamics,
     step: f64,
+    lattice: Lattice,
     theta_lim: f64,
     flight: usize,
 ) -> Option<RotationFit> {
@@ -748,7 +841,7 @@ pub(crate) fn fit_free(
     let mut window = FIT_WINDOW.min(max_len);
     loop {
         w = free_least_squares(q, s, q0, dynamics, w, window)?;
-        let fit = extend_free(q, s, q0, dynamics, w, step, theta_lim, max_len);
+        let fit = extend_free(q, s, q0, dynamics, w, step, lattice, theta_lim, max_len);
         let reached = fit.map_or(0, |f| f.len as usize);
         if fit.is_some_and(|f| best.is_none_or(|b| f.len > b.len)) {
             best = fit;
@@ -834,6 +927,7 @@ fn extend_free(
     dynamics: &FreeDynamics,
     w: Vec3,
     step: f64,
+    lattice: Lattice,
     theta_lim: f64,
     max_len: usize,
 ) -> Option<RotationFit> {
@@ -853,9 +947,22 @@ fn extend_free(
     // that one (a coarser step) and followed again; the bucket shrinks every time.
     let mut k = bucket(exact as u32);
     loop {
-        let wq = quantise3(w, step_linear(step, k))?;
-        let wd = dequantise3(wq, step_linear(step, k));
-        let len = reach(wd, max_len.min(1usize << k.min(30)));
+        let sw = step_linear(step, k);
+        let limit = max_len.min(1usize << k.min(30));
+        let wq = lattice.quantise(w, sw)?;
+        let wd = lattice.point(wq, sw);
+        let mut best = (reach(wd, limit), wq, wd);
+        // Points near the nearest may follow the flight longer.
+        if best.0 < limit {
+            for alt in lattice.alternatives(wq, w, sw, RESCUE_CANDIDATES) {
+                let ad = lattice.point(alt, sw);
+                let n = reach(ad, limit);
+                if n > best.0 {
+                    best = (n, alt, ad);
+                }
+            }
+        }
+        let (len, wq, wd) = best;
         if len == 0 {
             return None;
         }
@@ -1111,6 +1218,7 @@ mod tests {
                 kind,
                 StartCorrection::Anchored,
                 1e-3,
+                Lattice::Bcc,
                 1e-3,
                 &mut RotationScratch::default(),
             )
@@ -1134,6 +1242,7 @@ mod tests {
             RotationKind::Linear,
             StartCorrection::Anchored,
             1e-3,
+            Lattice::Bcc,
             1e-3,
             &mut RotationScratch::default(),
         )

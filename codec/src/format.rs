@@ -2,10 +2,22 @@
 //!
 //! # Version 5
 //!
-//! Version 4 (below, with the version field 5) plus **decimal header numbers**: a world segment
-//! restates its header every ~1 s, and a one-body scene at bounds other than a preset paid 16
-//! bytes a second for them (chute at e_max = 2 mm: 37.8 B/(obj·s) of header, against 21.5 at the
-//! 1 mm preset).
+//! Version 4 (below, with the version field 5) with two changes.
+//!
+//! **Lattice vectors.** Every quantised 3-vector — start values, one-frame steps, the linear and
+//! quadratic coefficients of position and rotation segments, free-flight velocities — is a point
+//! of the body-centred cubic lattice instead of the cubic one (`segment::Lattice`): for a step s
+//! the lattice with the same covering radius √3/2·s, spacing a = s·2√3/√5. Its lattice
+//! coordinates K (doubled: the point is K·a/2, the three of one parity c) are written as the
+//! coset bit c (equiprobable), then k = (K − c)/2: start values Rice-coded with the header's
+//! parameter as before, other vectors as residuals against `round(p/a − c/2)` per axis, p the
+//! predicted vector (the previous segment's end velocity, quadratic term, angular velocity or
+//! angular acceleration as a point of space; 0 for steps). Start orientations are quantised at
+//! Δθ/4 (positions still Δ/8).
+//!
+//! **Decimal header numbers**: a world segment restates its header every ~1 s, and a one-body
+//! scene at bounds other than a preset paid 16 bytes a second for them (chute at e_max = 2 mm:
+//! 37.8 B/(obj·s) of header, against 21.5 at the 1 mm preset).
 //!
 //! * **Bounds** (header flag 32, not with flag 1): e_max then θ_max, each a *decimal*: varint m
 //!   (1 ≤ m ≤ 2⁵³), then a byte k (0–22); the value is the f64 division m / 10ᵏ. Both operands

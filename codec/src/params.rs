@@ -28,13 +28,20 @@ pub(crate) fn step_ratio(version: u16) -> f64 {
     if version >= 4 { 1.1 } else { 1.0 }
 }
 
-/// The first position / orientation of an object is quantised this much finer than Δ, so that
-/// the first segment does not start with an error already close to the bound. Versions 1–3: 16;
-/// version 4: 8 (an object restates its start in every ~1 s segment: one bit less per coordinate,
-/// ~1 % smaller on the shipped scenes). Coarser still measured smaller again (divisor 2: −1 %
-/// more) but left too little of the bound for long curves: a 5 s parabola became two segments.
-pub(crate) fn start_step_divisor(version: u16) -> f64 {
-    if version >= 4 { 8.0 } else { 16.0 }
+/// The first position and orientation of an object are quantised this much finer than Δ and Δθ
+/// (`[position, rotation]`), so that the first segment does not start with an error already
+/// close to the bound. Versions 1–3: 16; version 4: 8 (an object restates its start in every
+/// ~1 s segment: one bit less per coordinate, ~1 % smaller on the shipped scenes; divisor 2 then
+/// left too little of the bound for long curves: a 5 s parabola became two segments). Version 5:
+/// 8 for positions (4 splits that parabola again) and 4 for orientations (0.3–1 % smaller on the
+/// shipped scenes; its encoder searches lattice points near each fit where the nearest breaks the
+/// bound, which recovers most of the slack).
+pub(crate) fn start_step_divisors(version: u16) -> [f64; 2] {
+    match version {
+        ..=3 => [16.0, 16.0],
+        4 => [8.0, 8.0],
+        _ => [8.0, 4.0],
+    }
 }
 
 /// Rotation errors involve `sin`/`cos`, whose last bit may differ between math libraries. The

@@ -117,8 +117,11 @@ pub(crate) struct PositionCoding {
     pub step: f64,
     /// `h²g/2` per axis when the model is free flight under gravity.
     pub gravity_term: Option<Vec3>,
-    /// The format version's start-step divisor ([`crate::params::start_step_divisor`]).
+    /// The format version's start-step divisors ([`crate::params::start_step_divisors`]).
     pub start_divisor: f64,
+    pub rot_start_divisor: f64,
+    /// The format version's lattice for steps and coefficients.
+    pub lattice: Lattice,
 }
 
 impl PositionCoding {
@@ -127,7 +130,9 @@ impl PositionCoding {
         Self {
             step,
             gravity_term: gravity.map(|g| [g[0] * h2 * 0.5, g[1] * h2 * 0.5, g[2] * h2 * 0.5]),
-            start_divisor: crate::params::start_step_divisor(version),
+            start_divisor: crate::params::start_step_divisors(version)[0],
+            rot_start_divisor: crate::params::start_step_divisors(version)[1],
+            lattice: Lattice::of(version),
         }
     }
 
@@ -336,10 +341,160 @@ pub(crate) fn position_step_prediction(c: Vec3, before: Option<Vec3>, velocity: 
     }
 }
 
+/// How 3-vectors (steps and curve coefficients) are quantised: the cubic lattice of spacing `s`
+/// (versions 1–4), or (version 5) the body-centred cubic lattice with the same covering radius
+/// √3/2·s — every point of space within that distance of a lattice point, which is what the
+/// error bound needs — and cell volume 1.86× larger: the BCC lattice is the thinnest covering of
+/// 3-space, the cubic one is 1.86× thicker. At the same worst-case error a coefficient costs
+/// log₂ 1.86 ≈ 0.9 bit less.
+///
+/// A BCC point is two interleaved cubic lattices of spacing a = s·2√3/√5: `a·k` and
+/// `a·(k + ½·(1, 1, 1))`. Lattice coordinates are doubled, `K = 2k + c·(1, 1, 1)` (the point
+/// is `K·a/2`, all three of one parity); the stream holds the coset bit c (equiprobable: coded
+/// relative to the coset nearest the prediction, with a context, it measured 0.5 % larger), then
+/// k against the prediction `round(p/a − c/2)`, as three residuals on the vector's stream.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Lattice {
+    Cubic,
+    Bcc,
+}
+
+/// a / s for the BCC lattice: 2√3/√5.
+const BCC_SCALE: f64 = 1.549_193_338_482_966_8;
+
+impl Lattice {
+    pub(crate) fn of(version: u16) -> Self {
+        if version >= 5 {
+            Lattice::Bcc
+        } else {
+            Lattice::Cubic
+        }
+    }
+
+    /// Lattice coordinates of the point nearest `x`, for the lattice with the covering radius of
+    /// the cubic lattice of spacing `step`; `None` if not representable.
+    pub(crate) fn quantise(self, x: Vec3, step: f64) -> Option<[i64; 3]> {
+        match self {
+            Lattice::Cubic => quantise3(x, step),
+            Lattice::Bcc => {
+                let a = step * BCC_SCALE;
+                let k0 = quantise3(x, a)?;
+                let k1 = quantise3(std::array::from_fn(|i| x[i] - 0.5 * a), a)?;
+                let even: [i64; 3] = k0.map(|v| 2 * v);
+                let odd: [i64; 3] = k1.map(|v| 2 * v + 1);
+                let h = 0.5 * a;
+                let d =
+                    |k: [i64; 3]| -> f64 { (0..3).map(|i| (x[i] - k[i] as f64 * h).powi(2)).sum() };
+                Some(if d(odd) < d(even) { odd } else { even })
+            }
+        }
+    }
+
+    /// Up to `n` lattice points near `x` other than `q` (its nearest), nearest first: the
+    /// candidates an encoder may try when the nearest point's curve breaks the bound (the
+    /// coefficients nearest the least-squares fit are not always those that stay within the
+    /// bound longest). BCC: among the 14 neighbours of `q` (8 in the other coset at a·√3/2, 6 in
+    /// its own at a). Empty on the cubic lattice.
+    pub(crate) fn alternatives(self, q: [i64; 3], x: Vec3, step: f64, n: usize) -> Vec<[i64; 3]> {
+        match self {
+            Lattice::Cubic => Vec::new(),
+            Lattice::Bcc => {
+                let h = 0.5 * step * BCC_SCALE;
+                let mut near: Vec<(f64, [i64; 3])> = Vec::with_capacity(14);
+                let mut push = |d: [i64; 3]| {
+                    let k: [i64; 3] = std::array::from_fn(|i| q[i].saturating_add(d[i]));
+                    let e: f64 = (0..3).map(|i| (x[i] - k[i] as f64 * h).powi(2)).sum();
+                    near.push((e, k));
+                };
+                for sx in [-1, 1] {
+                    for sy in [-1, 1] {
+                        for sz in [-1, 1] {
+                            push([sx, sy, sz]);
+                        }
+                    }
+                }
+                for i in 0..3 {
+                    for sgn in [-2, 2] {
+                        let mut d = [0; 3];
+                        d[i] = sgn;
+                        push(d);
+                    }
+                }
+                near.sort_by(|a, b| a.0.total_cmp(&b.0));
+                near.into_iter().take(n).map(|(_, k)| k).collect()
+            }
+        }
+    }
+
+    /// The point with lattice coordinates `q`.
+    pub(crate) fn point(self, q: [i64; 3], step: f64) -> Vec3 {
+        match self {
+            Lattice::Cubic => dequantise3(q, step),
+            Lattice::Bcc => dequantise3(q, step * BCC_SCALE * 0.5),
+        }
+    }
+
+    /// How `q` is written against the prediction `pred` (a point of space): the coset bit (BCC
+    /// only), then the integers and their integer prediction (the stream codes the difference).
+    pub(crate) fn split(self, q: [i64; 3], pred: Vec3, step: f64) -> Coded {
+        match self {
+            Lattice::Cubic => Coded {
+                coset: None,
+                k: q,
+                pred: pred.map(|p| predict(p, step)),
+            },
+            Lattice::Bcc => {
+                let c = q[0].rem_euclid(2);
+                Coded {
+                    coset: Some(c as u64),
+                    k: q.map(|v| (v - c) / 2),
+                    pred: self.prediction(Some(c as u64), pred, step),
+                }
+            }
+        }
+    }
+
+    /// The integer prediction of a vector's integers given its coset bit (BCC) — what the reader
+    /// needs before reading them.
+    pub(crate) fn prediction(self, coset: Option<u64>, pred: Vec3, step: f64) -> [i64; 3] {
+        match (self, coset) {
+            (Lattice::Bcc, Some(c)) => {
+                let a = step * BCC_SCALE;
+                let off = if c == 1 { 0.5 * a } else { 0.0 };
+                pred.map(|p| predict(p - off, a))
+            }
+            _ => pred.map(|p| predict(p, step)),
+        }
+    }
+
+    /// Lattice coordinates from what was read; `None` if they overflow.
+    pub(crate) fn join(self, coset: Option<u64>, k: [i64; 3]) -> Option<[i64; 3]> {
+        match (self, coset) {
+            (Lattice::Bcc, Some(c)) => {
+                let mut out = [0i64; 3];
+                for (o, v) in out.iter_mut().zip(k) {
+                    *o = v.checked_mul(2)?.checked_add(c as i64)?;
+                }
+                Some(out)
+            }
+            _ => Some(k),
+        }
+    }
+}
+
+/// A lattice vector as written: optional coset bit, integers, their prediction.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct Coded {
+    pub coset: Option<u64>,
+    pub k: [i64; 3],
+    pub pred: [i64; 3],
+}
+
 /// What a step decodes to: the prediction plus the quantised residual (a position, or for
-/// rotations the rotation vector of the frame).
-pub(crate) fn step_end(pred: Vec3, q: [i64; 3], step: f64) -> Vec3 {
-    std::array::from_fn(|i| pred[i] + q[i] as f64 * step)
+/// rotations the rotation vector of the frame), lattice point `q`.
+pub(crate) fn step_end(pred: Vec3, q: [i64; 3], step: f64, lattice: Lattice) -> Vec3 {
+    let d = lattice.point(q, step);
+    std::array::from_fn(|i| pred[i] + d[i])
 }
 
 /// Rotation steps: the predicted rotation vector of the next frame, the last frame-to-frame
@@ -407,9 +562,9 @@ pub(crate) struct QuadraticQ {
 
 impl QuadraticQ {
     pub(crate) fn curve(&self, coding: &PositionCoding, k: u32) -> PositionCurve {
-        let b = dequantise3(self.bq, step_linear(coding.step, k));
+        let b = coding.lattice.point(self.bq, step_linear(coding.step, k));
         let a = match self.term {
-            QuadraticTerm::Fitted(aq) => dequantise3(aq, step_quadratic(coding.step, k)),
+            QuadraticTerm::Fitted(aq) => coding.lattice.point(aq, step_quadratic(coding.step, k)),
             QuadraticTerm::Gravity => coding.gravity_term.unwrap_or([0.0; 3]),
             QuadraticTerm::Zero => [0.0; 3],
         };
@@ -439,13 +594,9 @@ impl PositionPredictor {
         self.velocity
     }
 
-    pub(crate) fn predict(&self, coding: &PositionCoding, k: u32) -> ([i64; 3], [i64; 3]) {
-        let sb = step_linear(coding.step, k);
-        let sa = step_quadratic(coding.step, k);
-        (
-            std::array::from_fn(|i| predict(self.velocity[i], sb)),
-            std::array::from_fn(|i| predict(self.quadratic[i], sa)),
-        )
+    /// The predicted quadratic term (the previous segment's).
+    pub(crate) fn quadratic(&self) -> Vec3 {
+        self.quadratic
     }
 
     pub(crate) fn advance(&mut self, start: Vec3, len: u32, curve: &PositionCurve) {
@@ -539,20 +690,14 @@ pub(crate) struct RotationPredictor {
 }
 
 impl RotationPredictor {
-    pub(crate) fn predict(&self, step: f64, k: u32) -> [i64; 3] {
-        let s = step_linear(step, k);
-        std::array::from_fn(|i| predict(self.w[i], s))
-    }
-
     /// The angular velocity (per frame) at the end of the previous segment.
     pub(crate) fn angular_velocity(&self) -> Vec3 {
         self.w
     }
 
     /// Format 2, quadratic segments: the predicted angular acceleration.
-    pub(crate) fn predict_acceleration(&self, step: f64, k: u32) -> [i64; 3] {
-        let s = step_angular_acceleration(step, k);
-        std::array::from_fn(|i| predict(self.a[i], s))
+    pub(crate) fn angular_acceleration(&self) -> Vec3 {
+        self.a
     }
 
     /// `q0`: the segment's start orientation (a free flight's end depends on it).
@@ -675,5 +820,79 @@ mod tests {
             RotationCurve::Key { end: q }.eval(rotation::IDENTITY, 1.0),
             q
         );
+    }
+
+    /// The BCC lattice keeps the cubic lattice's covering radius (what the error bound needs),
+    /// `quantise` finds the nearest point, coordinates of a point share their parity, and what a
+    /// writer splits a reader joins back.
+    #[test]
+    fn the_bcc_lattice_covers_like_the_cubic_one_with_fewer_points() {
+        let lattice = Lattice::Bcc;
+        let step = 0.37;
+        let radius = 3f64.sqrt() / 2.0 * step;
+        let mut seed = 11u64;
+        let mut next = || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            (seed >> 11) as f64 / (1u64 << 53) as f64 * 20.0 - 10.0
+        };
+        let mut worst = 0.0f64;
+        for _ in 0..20_000 {
+            let x = [next(), next(), next()];
+            let q = lattice.quantise(x, step).unwrap();
+            assert!(
+                q.iter().all(|v| v.rem_euclid(2) == q[0].rem_euclid(2)),
+                "{q:?}"
+            );
+            let p = lattice.point(q, step);
+            let d = rotation::norm3(std::array::from_fn(|i| p[i] - x[i]));
+            worst = worst.max(d / radius);
+            // Nearest: no neighbour is closer.
+            for alt in lattice.alternatives(q, x, step, 14) {
+                let a = lattice.point(alt, step);
+                assert!(rotation::norm3(std::array::from_fn(|i| a[i] - x[i])) >= d - 1e-12);
+            }
+            let pred = [next(), next(), next()];
+            let c = lattice.split(q, pred, step);
+            assert_eq!(c.pred, lattice.prediction(c.coset, pred, step));
+            assert_eq!(lattice.join(c.coset, c.k), Some(q));
+        }
+        // The covering radius is reached (deep holes exist) but never exceeded.
+        assert!(worst <= 1.0 + 1e-12 && worst > 0.95, "{worst}");
+        // Cell volume: a³/2 with a = step·2√3/√5, against step³ — 1.86 times larger.
+        let a = step * BCC_SCALE;
+        assert!((a.powi(3) / 2.0 / step.powi(3) - 1.859).abs() < 1e-3);
+        // The cubic lattice is the version-4 quantiser, unchanged.
+        let x = [1.234, -5.678, 0.5];
+        assert_eq!(Lattice::Cubic.quantise(x, step), quantise3(x, step));
+        assert!(
+            Lattice::Cubic
+                .alternatives([3, -15, 1], x, step, 4)
+                .is_empty()
+        );
+    }
+
+    /// The alternatives an encoder tries are lattice points, nearest first, never the nearest
+    /// itself.
+    #[test]
+    fn lattice_alternatives_are_the_next_nearest_points() {
+        let step = 1.0;
+        let x = [0.3, -0.2, 0.45];
+        let q = Lattice::Bcc.quantise(x, step).unwrap();
+        let alts = Lattice::Bcc.alternatives(q, x, step, 4);
+        assert_eq!(alts.len(), 4);
+        let dist = |k: [i64; 3]| {
+            let p = Lattice::Bcc.point(k, step);
+            rotation::norm3(std::array::from_fn(|i| p[i] - x[i]))
+        };
+        for w in alts.windows(2) {
+            assert!(dist(w[0]) <= dist(w[1]));
+        }
+        for a in &alts {
+            assert_ne!(*a, q);
+            assert!(a.iter().all(|v| v.rem_euclid(2) == a[0].rem_euclid(2)));
+            assert!(dist(*a) >= dist(q));
+        }
     }
 }

@@ -13,8 +13,8 @@ use crate::format::{
 use crate::params::MotionModel;
 use crate::rotation::{Quat, Vec3};
 use crate::segment::{
-    PositionCoding, PositionCurve, PositionPredictor, QuadraticQ, QuadraticTerm, RotationCurve,
-    RotationPredictor, bucket, dequantise3, step_linear, unresidual,
+    Lattice, PositionCoding, PositionCurve, PositionPredictor, QuadraticQ, QuadraticTerm,
+    RotationCurve, RotationPredictor, bucket, dequantise3, step_linear, step_quadratic, unresidual,
 };
 
 /// The two independent bit streams of one version-1 object.
@@ -118,7 +118,17 @@ impl<'a> PositionStream<'a> {
             }
             let k = bucket(len as u32);
             let gravity = self.coding.gravity_term.is_some() && self.r.read_bit()?;
-            let (pb, pa) = self.predictor.predict(&self.coding, k);
+            let cubic = Lattice::Cubic;
+            let pb = cubic.prediction(
+                None,
+                self.predictor.velocity(),
+                step_linear(self.coding.step, k),
+            );
+            let pa = cubic.prediction(
+                None,
+                self.predictor.quadratic(),
+                step_quadratic(self.coding.step, k),
+            );
             let bq = self.read_residuals(S_POS_LINEAR, pb)?;
             let term = if gravity {
                 QuadraticTerm::Gravity
@@ -178,7 +188,11 @@ impl<'a> RotationStream<'a> {
                     what: "start orientation out of range",
                 })?;
             }
-            start_orientation(q, step / crate::params::start_step_divisor(1))
+            start_orientation(
+                q,
+                step / crate::params::start_step_divisors(1)[1],
+                Lattice::Cubic,
+            )
         };
         Ok(Self {
             r,
@@ -208,7 +222,11 @@ impl<'a> RotationStream<'a> {
                 });
             }
             let k = bucket(len as u32);
-            let pred = self.predictor.predict(self.step, k);
+            let pred = Lattice::Cubic.prediction(
+                None,
+                self.predictor.angular_velocity(),
+                step_linear(self.step, k),
+            );
             let mut wq = [0i64; 3];
             for (v, p) in wq.iter_mut().zip(pred) {
                 *v = unresidual(self.r.read_rice(self.ks[S_ROT_W])?, p).ok_or(

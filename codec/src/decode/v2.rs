@@ -15,10 +15,10 @@ use crate::format::{
 use crate::params::MotionModel;
 use crate::rotation::{Quat, Vec3};
 use crate::segment::{
-    FreeDynamics, INERTIA_BITS, MAX_FREE_LEN, PositionCoding, PositionCurve, PositionPredictor,
-    PositionType, QuadraticQ, QuadraticTerm, RotationCurve, RotationPredictor, RotationType,
-    bucket, dequantise3, position_step_prediction, position_types, rotation_step_prediction,
-    rotation_types, step_angular_acceleration, step_end, step_linear, unresidual,
+    FreeDynamics, INERTIA_BITS, Lattice, MAX_FREE_LEN, PositionCoding, PositionCurve,
+    PositionPredictor, PositionType, QuadraticQ, QuadraticTerm, RotationCurve, RotationPredictor,
+    RotationType, bucket, position_step_prediction, position_types, rotation_step_prediction,
+    rotation_types, step_angular_acceleration, step_end, step_linear, step_quadratic, unresidual,
 };
 
 /// Where a payload's symbols come from: what differs between versions 2 and 3.
@@ -33,7 +33,7 @@ pub(crate) trait Symbols {
     fn start_value(&mut self, k: u32) -> Result<u64, CodecError>;
     /// A raw `f64`.
     fn float(&mut self) -> Result<f64, CodecError>;
-    /// `n` equiprobable bits (version 4).
+    /// `n` equiprobable bits (version 4; version 5 also the coset bits of lattice vectors).
     fn bits(&mut self, n: u32) -> Result<u64, CodecError>;
 }
 
@@ -184,13 +184,41 @@ fn residuals(
     Ok(q)
 }
 
-/// Three zig-zagged start values, Rice-coded with the header's parameter `k`.
-fn start_values(r: &mut impl Symbols, k: u32, what: &'static str) -> Result<[i64; 3], CodecError> {
+/// A lattice vector of `stream` (version 5: its coset bit first, see [`Lattice`]) against the
+/// prediction `pred`, a point of space, for the lattice of `step`; returns lattice coordinates.
+fn lattice_vector(
+    r: &mut impl Symbols,
+    lattice: Lattice,
+    stream: usize,
+    pred: Vec3,
+    step: f64,
+    what: &'static str,
+) -> Result<[i64; 3], CodecError> {
+    let coset = match lattice {
+        Lattice::Bcc => Some(r.bits(1)?),
+        Lattice::Cubic => None,
+    };
+    let k = residuals(r, stream, lattice.prediction(coset, pred, step), what)?;
+    lattice.join(coset, k).ok_or(CodecError::Corrupt { what })
+}
+
+/// A start vector's lattice coordinates: (version 5) its coset bit, then three zig-zagged start
+/// values, Rice-coded with the header's parameter `k`.
+fn start_values(
+    r: &mut impl Symbols,
+    lattice: Lattice,
+    k: u32,
+    what: &'static str,
+) -> Result<[i64; 3], CodecError> {
+    let coset = match lattice {
+        Lattice::Bcc => Some(r.bits(1)?),
+        Lattice::Cubic => None,
+    };
     let mut q = [0i64; 3];
     for v in &mut q {
         *v = unresidual(r.start_value(k)?, 0).ok_or(CodecError::Corrupt { what })?;
     }
-    Ok(q)
+    lattice.join(coset, q).ok_or(CodecError::Corrupt { what })
 }
 
 /// Three raw f64s.
@@ -232,8 +260,9 @@ impl<S: Symbols> ObjectStream<S> {
         let start = if r.flag(FLAG_POS_RAW)? {
             floats(&mut r)?
         } else {
-            let q = start_values(&mut r, header.start_k[0], "start position out of range")?;
-            dequantise3(q, coding.start_step())
+            let what = "start position out of range";
+            let q = start_values(&mut r, coding.lattice, header.start_k[0], what)?;
+            coding.lattice.point(q, coding.start_step())
         };
         let start = finite_position(start)?;
         let steps = frames - 1;
@@ -297,8 +326,9 @@ impl<S: Symbols> ObjectStream<S> {
             PositionType::Step => {
                 let pred = position_step_prediction(p.c, p.before, p.predictor.velocity());
                 let what = "position step out of range";
-                let q = residuals(&mut self.r, S_POS_STEP, [0; 3], what)?;
-                let end = step_end(pred, q, self.coding.step);
+                let (lattice, step) = (self.coding.lattice, self.coding.step);
+                let q = lattice_vector(&mut self.r, lattice, S_POS_STEP, [0.0; 3], step, what)?;
+                let end = step_end(pred, q, step, lattice);
                 (
                     1,
                     PositionCurve::Key {
@@ -309,13 +339,28 @@ impl<S: Symbols> ObjectStream<S> {
             kind => {
                 let len = length(&mut self.r, S_POS_LEN, remaining)?;
                 let k = bucket(len);
-                let (pb, pa) = p.predictor.predict(&self.coding, k);
+                let lattice = self.coding.lattice;
+                let (sb, sa) = (
+                    step_linear(self.coding.step, k),
+                    step_quadratic(self.coding.step, k),
+                );
                 let what = "position coefficient out of range";
-                let bq = residuals(&mut self.r, S_POS_LINEAR, pb, what)?;
+                let pb = p.predictor.velocity();
+                let bq = lattice_vector(&mut self.r, lattice, S_POS_LINEAR, pb, sb, what)?;
                 let term = match kind {
                     PositionType::Gravity => QuadraticTerm::Gravity,
                     PositionType::Linear => QuadraticTerm::Zero,
-                    _ => QuadraticTerm::Fitted(residuals(&mut self.r, S_POS_QUADRATIC, pa, what)?),
+                    _ => {
+                        let pa = p.predictor.quadratic();
+                        QuadraticTerm::Fitted(lattice_vector(
+                            &mut self.r,
+                            lattice,
+                            S_POS_QUADRATIC,
+                            pa,
+                            sa,
+                            what,
+                        )?)
+                    }
                 };
                 (len, QuadraticQ { bq, term }.curve(&self.coding, k))
             }
@@ -343,8 +388,9 @@ impl<S: Symbols> ObjectStream<S> {
         let start = if self.r.flag(FLAG_ROT_RAW)? {
             quat(&mut self.r)?
         } else {
-            let q = start_values(&mut self.r, self.start_k, "start orientation out of range")?;
-            start_orientation(q, self.rot_step / self.coding.start_divisor)
+            let (lattice, what) = (self.coding.lattice, "start orientation out of range");
+            let q = start_values(&mut self.r, lattice, self.start_k, what)?;
+            start_orientation(q, self.rot_step / self.coding.rot_start_divisor, lattice)
         };
         let at_rest = self.steps > 0 && self.r.flag(FLAG_ROT_REST)?;
         self.rotations = Some(RotationState {
@@ -400,11 +446,12 @@ impl<S: Symbols> ObjectStream<S> {
                 let pred =
                     rotation_step_prediction(rot.q, rot.before, rot.predictor.angular_velocity());
                 let what = "rotation step out of range";
-                let q = residuals(&mut self.r, S_ROT_STEP, [0; 3], what)?;
+                let (lattice, step) = (self.coding.lattice, self.rot_step);
+                let q = lattice_vector(&mut self.r, lattice, S_ROT_STEP, [0.0; 3], step, what)?;
                 (
                     1,
                     RotationCurve::Linear {
-                        w: step_end(pred, q, self.rot_step),
+                        w: step_end(pred, q, step, lattice),
                     },
                 )
             }
@@ -452,24 +499,27 @@ impl<S: Symbols> ObjectStream<S> {
                     }
                 };
                 let what = "angular velocity residual out of range";
-                let pred = rot.predictor.predict(self.rot_step, bucket(len));
-                let wq = residuals(&mut self.r, S_ROT_FREE, pred, what)?;
-                let w = dequantise3(wq, step_linear(self.rot_step, bucket(len)));
+                let (lattice, sw) = (self.coding.lattice, step_linear(self.rot_step, bucket(len)));
+                let pred = rot.predictor.angular_velocity();
+                let wq = lattice_vector(&mut self.r, lattice, S_ROT_FREE, pred, sw, what)?;
+                let w = lattice.point(wq, sw);
                 (len, RotationCurve::Free { w, dynamics })
             }
             kind => {
                 let len = length(&mut self.r, S_ROT_LEN, remaining)?;
                 let k = bucket(len);
                 let what = "angular velocity residual out of range";
-                let pred = rot.predictor.predict(self.rot_step, k);
-                let wq = residuals(&mut self.r, S_ROT_W, pred, what)?;
-                let w = dequantise3(wq, step_linear(self.rot_step, k));
+                let (lattice, sw) = (self.coding.lattice, step_linear(self.rot_step, k));
+                let pred = rot.predictor.angular_velocity();
+                let wq = lattice_vector(&mut self.r, lattice, S_ROT_W, pred, sw, what)?;
+                let w = lattice.point(wq, sw);
                 let curve = if kind == RotationType::Quadratic {
-                    let pred = rot.predictor.predict_acceleration(self.rot_step, k);
-                    let aq = residuals(&mut self.r, S_ROT_ACC, pred, what)?;
+                    let sa = step_angular_acceleration(self.rot_step, k);
+                    let pred = rot.predictor.angular_acceleration();
+                    let aq = lattice_vector(&mut self.r, lattice, S_ROT_ACC, pred, sa, what)?;
                     RotationCurve::Quadratic {
                         w,
-                        a: dequantise3(aq, step_angular_acceleration(self.rot_step, k)),
+                        a: lattice.point(aq, sa),
                     }
                 } else {
                     RotationCurve::Linear { w }
