@@ -386,9 +386,9 @@ pub(crate) fn fit_position(
         let b_alts = lattice.alternatives(tried.bq, b, sb, RESCUE_CANDIDATES);
         let a_alts = match tried.term {
             QuadraticTerm::Fitted(aq) => lattice.alternatives(aq, a, sa, RESCUE_CANDIDATES),
-            _ => Vec::new(),
+            _ => lattice.alternatives(tried.bq, b, sb, 0),
         };
-        let first = |v: &Vec<[i64; 3]>| v.first().copied();
+        let (b_alts, a_alts) = (b_alts.as_slice(), a_alts.as_slice());
         b_alts
             .iter()
             .map(|&bq| QuadraticQ { bq, ..tried })
@@ -397,9 +397,10 @@ pub(crate) fn fit_position(
                 ..tried
             }))
             .chain(
-                first(&b_alts)
-                    .zip(first(&a_alts))
-                    .map(|(bq, aq)| QuadraticQ {
+                b_alts
+                    .first()
+                    .zip(a_alts.first())
+                    .map(|(&bq, &aq)| QuadraticQ {
                         bq,
                         term: QuadraticTerm::Fitted(aq),
                     }),
@@ -738,9 +739,11 @@ pub(crate) fn fit_rotation(
             let (k, wq, aq) = key;
             let (sw, sa) = (step_linear(step, k), step_angular_acceleration(step, k));
             let w_alts = lattice.alternatives(wq, w, sw, RESCUE_CANDIDATES);
-            let a_alts = aq.map_or(Vec::new(), |aq| {
-                lattice.alternatives(aq, acc, sa, RESCUE_CANDIDATES)
-            });
+            let a_alts = match aq {
+                Some(aq) => lattice.alternatives(aq, acc, sa, RESCUE_CANDIDATES),
+                None => lattice.alternatives(wq, w, sw, 0),
+            };
+            let (w_alts, a_alts) = (w_alts.as_slice(), a_alts.as_slice());
             let rescued = w_alts
                 .iter()
                 .map(|&w| (k, w, aq))
@@ -954,7 +957,10 @@ fn extend_free(
         let mut best = (reach(wd, limit), wq, wd);
         // Points near the nearest may follow the flight longer.
         if best.0 < limit {
-            for alt in lattice.alternatives(wq, w, sw, RESCUE_CANDIDATES) {
+            for &alt in lattice
+                .alternatives(wq, w, sw, RESCUE_CANDIDATES)
+                .as_slice()
+            {
                 let ad = lattice.point(alt, sw);
                 let n = reach(ad, limit);
                 if n > best.0 {

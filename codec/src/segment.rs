@@ -65,7 +65,11 @@ fn round_small(x: f64) -> i64 {
 
 /// `round(x / step)` if it is representable, else `None`.
 pub(crate) fn quantise(x: f64, step: f64) -> Option<i64> {
-    let q = x / step;
+    round_checked(x / step)
+}
+
+/// `round(q)` if it is representable, else `None`.
+fn round_checked(q: f64) -> Option<i64> {
     if q.abs() < QLIM {
         return Some(round_small(q));
     }
@@ -377,15 +381,19 @@ impl Lattice {
         match self {
             Lattice::Cubic => quantise3(x, step),
             Lattice::Bcc => {
-                let a = step * BCC_SCALE;
-                let k0 = quantise3(x, a)?;
-                let k1 = quantise3(std::array::from_fn(|i| x[i] - 0.5 * a), a)?;
-                let even: [i64; 3] = k0.map(|v| 2 * v);
-                let odd: [i64; 3] = k1.map(|v| 2 * v + 1);
-                let h = 0.5 * a;
-                let d =
-                    |k: [i64; 3]| -> f64 { (0..3).map(|i| (x[i] - k[i] as f64 * h).powi(2)).sum() };
-                Some(if d(odd) < d(even) { odd } else { even })
+                // In units of a: the nearest point of each coset, then the nearer of the two.
+                let inv = 1.0 / (step * BCC_SCALE);
+                let u: Vec3 = x.map(|v| v * inv);
+                let (mut even, mut odd) = ([0i64; 3], [0i64; 3]);
+                let (mut d_even, mut d_odd) = (0.0, 0.0);
+                for i in 0..3 {
+                    let e = round_checked(u[i])?;
+                    let o = round_checked(u[i] - 0.5)?;
+                    d_even += (u[i] - e as f64) * (u[i] - e as f64);
+                    d_odd += (u[i] - 0.5 - o as f64) * (u[i] - 0.5 - o as f64);
+                    (even[i], odd[i]) = (2 * e, 2 * o + 1);
+                }
+                Some(if d_odd < d_even { odd } else { even })
             }
         }
     }
@@ -394,36 +402,51 @@ impl Lattice {
     /// candidates an encoder may try when the nearest point's curve breaks the bound (the
     /// coefficients nearest the least-squares fit are not always those that stay within the
     /// bound longest). BCC: among the 14 neighbours of `q` (8 in the other coset at a·√3/2, 6 in
-    /// its own at a). Empty on the cubic lattice.
-    pub(crate) fn alternatives(self, q: [i64; 3], x: Vec3, step: f64, n: usize) -> Vec<[i64; 3]> {
-        match self {
-            Lattice::Cubic => Vec::new(),
-            Lattice::Bcc => {
-                let h = 0.5 * step * BCC_SCALE;
-                let mut near: Vec<(f64, [i64; 3])> = Vec::with_capacity(14);
-                let mut push = |d: [i64; 3]| {
-                    let k: [i64; 3] = std::array::from_fn(|i| q[i].saturating_add(d[i]));
-                    let e: f64 = (0..3).map(|i| (x[i] - k[i] as f64 * h).powi(2)).sum();
-                    near.push((e, k));
-                };
-                for sx in [-1, 1] {
-                    for sy in [-1, 1] {
-                        for sz in [-1, 1] {
-                            push([sx, sy, sz]);
-                        }
-                    }
-                }
-                for i in 0..3 {
-                    for sgn in [-2, 2] {
-                        let mut d = [0; 3];
-                        d[i] = sgn;
-                        push(d);
-                    }
-                }
-                near.sort_by(|a, b| a.0.total_cmp(&b.0));
-                near.into_iter().take(n).map(|(_, k)| k).collect()
-            }
+    /// its own at a), from the 10 that can be among the 4 nearest (for n ≤ 4 these are the n
+    /// nearest of all 14). Empty on the cubic lattice.
+    pub(crate) fn alternatives(self, q: [i64; 3], x: Vec3, step: f64, n: usize) -> Near {
+        let mut out = Near {
+            points: [[0; 3]; 10],
+            len: 0,
+        };
+        if self == Lattice::Cubic {
+            return out;
         }
+        // In half-spacing units x is q + u; a neighbour q + d is at |u − d|², which ranks as
+        // |d|² − 2 u·d. The best diagonal neighbour is d = sign(u) and each flipped component adds
+        // 4|uᵢ|; the best axial ones go along u's components. The diagonal with all three flipped
+        // is beaten by seven others and the axial ones against u by their opposites, so these
+        // ten contain the four nearest of all fourteen.
+        let h = 0.5 * step * BCC_SCALE;
+        let u: Vec3 = std::array::from_fn(|i| x[i] / h - q[i] as f64);
+        let sgn: [i64; 3] = u.map(|v| if v < 0.0 { -1 } else { 1 });
+        let abs = u.map(f64::abs);
+        let base = 3.0 - 2.0 * (abs[0] + abs[1] + abs[2]);
+        let mut near = [(0.0f64, [0i64; 3]); 10];
+        near[0] = (base, sgn);
+        for i in 0..3 {
+            let mut flip = sgn;
+            flip[i] = -flip[i];
+            near[1 + i] = (base + 4.0 * abs[i], flip);
+            let mut keep = sgn.map(|v| -v);
+            keep[i] = sgn[i];
+            near[4 + i] = (base + 4.0 * (abs[0] + abs[1] + abs[2] - abs[i]), keep);
+            let mut axial = [0; 3];
+            axial[i] = 2 * sgn[i];
+            near[7 + i] = (4.0 - 4.0 * abs[i], axial);
+        }
+        // The n nearest, by selection (n is small).
+        let n = n.min(near.len());
+        for i in 0..n {
+            let m = (i..near.len())
+                .min_by(|&a, &b| near[a].0.total_cmp(&near[b].0))
+                .unwrap_or(i);
+            near.swap(i, m);
+            let d = near[i].1;
+            out.points[i] = std::array::from_fn(|j| q[j].saturating_add(d[j]));
+        }
+        out.len = n;
+        out
     }
 
     /// The point with lattice coordinates `q`.
@@ -479,6 +502,19 @@ impl Lattice {
             }
             _ => Some(k),
         }
+    }
+}
+
+/// Lattice points near a point, nearest first ([`Lattice::alternatives`]; no allocation).
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Near {
+    points: [[i64; 3]; 10],
+    len: usize,
+}
+
+impl Near {
+    pub(crate) fn as_slice(&self) -> &[[i64; 3]] {
+        &self.points[..self.len]
     }
 }
 
@@ -848,10 +884,20 @@ mod tests {
             let p = lattice.point(q, step);
             let d = rotation::norm3(std::array::from_fn(|i| p[i] - x[i]));
             worst = worst.max(d / radius);
-            // Nearest: no neighbour is closer.
-            for alt in lattice.alternatives(q, x, step, 14) {
-                let a = lattice.point(alt, step);
-                assert!(rotation::norm3(std::array::from_fn(|i| a[i] - x[i])) >= d - 1e-12);
+            // Nearest: no neighbour is closer; the alternatives are the nearest of the 14.
+            let mut all: Vec<f64> = neighbours(q)
+                .map(|k| {
+                    let a = lattice.point(k, step);
+                    rotation::norm3(std::array::from_fn(|i| a[i] - x[i]))
+                })
+                .collect();
+            all.sort_by(f64::total_cmp);
+            assert!(all[0] >= d - 1e-12);
+            let alts = lattice.alternatives(q, x, step, 4);
+            for (&k, want) in alts.as_slice().iter().zip(&all) {
+                let a = lattice.point(k, step);
+                let got = rotation::norm3(std::array::from_fn(|i| a[i] - x[i]));
+                assert!((got - want).abs() < 1e-9, "{got} {want}");
             }
             let pred = [next(), next(), next()];
             let c = lattice.split(q, pred, step);
@@ -869,8 +915,21 @@ mod tests {
         assert!(
             Lattice::Cubic
                 .alternatives([3, -15, 1], x, step, 4)
+                .as_slice()
                 .is_empty()
         );
+    }
+
+    /// The 14 neighbours of a BCC point: 8 diagonal (other coset), 6 axial (same coset).
+    fn neighbours(q: [i64; 3]) -> impl Iterator<Item = [i64; 3]> {
+        (0..8)
+            .map(|m| [m & 1, (m >> 1) & 1, (m >> 2) & 1].map(|b| 2 * b - 1))
+            .chain((0..6).map(|m| {
+                let mut d = [0; 3];
+                d[m / 2] = if m % 2 == 0 { -2 } else { 2 };
+                d
+            }))
+            .map(move |d| std::array::from_fn(|i| q[i] + d[i]))
     }
 
     /// The alternatives an encoder tries are lattice points, nearest first, never the nearest
@@ -880,7 +939,8 @@ mod tests {
         let step = 1.0;
         let x = [0.3, -0.2, 0.45];
         let q = Lattice::Bcc.quantise(x, step).unwrap();
-        let alts = Lattice::Bcc.alternatives(q, x, step, 4);
+        let near = Lattice::Bcc.alternatives(q, x, step, 4);
+        let alts = near.as_slice();
         assert_eq!(alts.len(), 4);
         let dist = |k: [i64; 3]| {
             let p = Lattice::Bcc.point(k, step);
@@ -889,7 +949,7 @@ mod tests {
         for w in alts.windows(2) {
             assert!(dist(w[0]) <= dist(w[1]));
         }
-        for a in &alts {
+        for a in alts {
             assert_ne!(*a, q);
             assert!(a.iter().all(|v| v.rem_euclid(2) == a[0].rem_euclid(2)));
             assert!(dist(*a) >= dist(q));
