@@ -195,7 +195,7 @@ pub fn encode_world_with_dynamics(
         let values: Vec<u64> = starts
             .iter()
             .filter_map(|st| if which == 0 { st.position } else { st.rotation })
-            .flat_map(|q| coding.lattice.split(q, [0.0; 3], 1.0).k)
+            .flat_map(|q| coding.lattice.coset_and_integers(q).1)
             .map(zigzag)
             .collect();
         best_rice2_k(&values, MAX_START_K)
@@ -466,12 +466,12 @@ impl ObjectWriter {
         let mut cost = self.flag(flag, quantised.is_none());
         match quantised {
             Some(q) => {
-                let c = lattice.split(q, [0.0; 3], 1.0);
-                if let Some(coset) = c.coset {
+                let (coset, k) = lattice.coset_and_integers(q);
+                if let Some(coset) = coset {
                     self.e.direct(coset, 1);
                     cost += COST_SCALE;
                 }
-                for v in c.k {
+                for v in k {
                     let k = self.start_k[which];
                     encode_rice2_direct(&mut self.e, zigzag(v), k);
                     cost += rice2_len(zigzag(v), k) * COST_SCALE;
@@ -601,7 +601,7 @@ impl ObjectWriter {
 /// Standard; 8 and 10 no better, worse at Final).
 const MIN_QUADRATIC_LEN: u32 = 7;
 
-/// An object's first position and orientation, quantised finely (`start_step_divisor`) if that
+/// An object's first position and orientation, quantised finely (`start_step_divisors`) if that
 /// meets the bounds, else `None` (stored raw).
 struct Start {
     position: Option<[i64; 3]>,

@@ -17,8 +17,8 @@
 use crate::params::{FIT_WINDOW, MAX_SEGMENT_LEN};
 use crate::rotation::{self, Quat, Vec3};
 use crate::segment::{
-    FreeDynamics, Lattice, MAX_FREE_LEN, PositionCoding, PositionCurve, QuadraticQ, QuadraticTerm,
-    RotationCurve, bucket, step_angular_acceleration, step_linear, step_quadratic,
+    FreeDynamics, Lattice, MAX_FREE_LEN, Near, PositionCoding, PositionCurve, QuadraticQ,
+    QuadraticTerm, RotationCurve, bucket, step_angular_acceleration, step_linear, step_quadratic,
 };
 
 /// The position models a segment may use (format 2 chooses per segment; §4.3: "model only what
@@ -377,16 +377,17 @@ pub(crate) fn fit_position(
     let mut best: Option<PositionFit> = None;
     let (mut b, mut a) = ([0.0; 3], [0.0; 3]);
     let mut current: Option<(u32, QuadraticQ, PositionCurve)> = None;
-    // Where the nearest lattice point's curve breaks the bound, the nearest points of the other
-    // coset (BCC) may not: the coefficients nearest the least-squares fit are not always those
-    // that stay within the bound longest.
+    // Where the current coefficients' curve breaks the bound, lattice points next to them may
+    // not: the coefficients nearest the least-squares fit are not always those that stay within
+    // the bound longest. Any lattice point is a valid choice: every candidate's curve is checked
+    // on all its frames.
     let rescue = |len: usize, k: u32, b: Vec3, a: Vec3, tried: QuadraticQ| {
         let (sb, sa) = (step_linear(coding.step, k), step_quadratic(coding.step, k));
         let lattice = coding.lattice;
         let b_alts = lattice.alternatives(tried.bq, b, sb, RESCUE_CANDIDATES);
         let a_alts = match tried.term {
             QuadraticTerm::Fitted(aq) => lattice.alternatives(aq, a, sa, RESCUE_CANDIDATES),
-            _ => lattice.alternatives(tried.bq, b, sb, 0),
+            _ => Near::EMPTY,
         };
         let (b_alts, a_alts) = (b_alts.as_slice(), a_alts.as_slice());
         b_alts
@@ -735,13 +736,13 @@ pub(crate) fn fit_rotation(
             break;
         };
         if !scratch.all_within(key, len, |u| within(&curve, u)) {
-            // As for positions: the nearest points of the other coset may stay within longer.
+            // As for positions: lattice points next to the current ones may stay within longer.
             let (k, wq, aq) = key;
             let (sw, sa) = (step_linear(step, k), step_angular_acceleration(step, k));
             let w_alts = lattice.alternatives(wq, w, sw, RESCUE_CANDIDATES);
             let a_alts = match aq {
                 Some(aq) => lattice.alternatives(aq, acc, sa, RESCUE_CANDIDATES),
-                None => lattice.alternatives(wq, w, sw, 0),
+                None => Near::EMPTY,
             };
             let (w_alts, a_alts) = (w_alts.as_slice(), a_alts.as_slice());
             let rescued = w_alts

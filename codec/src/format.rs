@@ -808,6 +808,18 @@ mod tests {
         ));
     }
 
+    /// `out`, written from `h`, parses back to `h` (with its length).
+    fn reads_back(h: &Header, out: &[u8]) {
+        let back = Header::parse(out).unwrap();
+        assert_eq!(
+            back,
+            Header {
+                header_len: out.len(),
+                ..*h
+            }
+        );
+    }
+
     #[test]
     fn decimals_are_exact_or_not_used() {
         for (x, want) in [
@@ -872,14 +884,7 @@ mod tests {
         // start parameters 2, object count 2, frame count 1.
         assert_eq!(out.len(), 27);
         assert_eq!(out[9] & FLAG_DECIMAL_BOUNDS, FLAG_DECIMAL_BOUNDS);
-        let back = Header::parse(&out).unwrap();
-        assert_eq!(
-            back,
-            Header {
-                header_len: out.len(),
-                ..h
-            }
-        );
+        reads_back(&h, &out);
         // Not decimals: the f64s, as in version 4 (16 + 24 bytes more).
         let third = 1.0 / 3.0;
         let mut f = Vec::new();
@@ -977,14 +982,7 @@ mod tests {
             let mut out = Vec::new();
             h.write(&mut out);
             assert!(out.len() <= max_len, "{} bytes", out.len());
-            let back = Header::parse(&out).unwrap();
-            assert_eq!(
-                back,
-                Header {
-                    header_len: out.len(),
-                    ..h
-                }
-            );
+            reads_back(&h, &out);
             // Any truncation is an error, never a panic.
             for n in 0..out.len() {
                 assert!(Header::parse(&out[..n]).is_err());

@@ -405,10 +405,7 @@ impl Lattice {
     /// its own at a), from the 10 that can be among the 4 nearest (for n ≤ 4 these are the n
     /// nearest of all 14). Empty on the cubic lattice.
     pub(crate) fn alternatives(self, q: [i64; 3], x: Vec3, step: f64, n: usize) -> Near {
-        let mut out = Near {
-            points: [[0; 3]; 10],
-            len: 0,
-        };
+        let mut out = Near::EMPTY;
         if self == Lattice::Cubic {
             return out;
         }
@@ -457,23 +454,25 @@ impl Lattice {
         }
     }
 
+    /// `q` as written: its coset bit (BCC only) and the integers `k` (`K = 2k + c`).
+    pub(crate) fn coset_and_integers(self, q: [i64; 3]) -> (Option<u64>, [i64; 3]) {
+        match self {
+            Lattice::Cubic => (None, q),
+            Lattice::Bcc => {
+                let c = q[0].rem_euclid(2);
+                (Some(c as u64), q.map(|v| (v - c) / 2))
+            }
+        }
+    }
+
     /// How `q` is written against the prediction `pred` (a point of space): the coset bit (BCC
     /// only), then the integers and their integer prediction (the stream codes the difference).
     pub(crate) fn split(self, q: [i64; 3], pred: Vec3, step: f64) -> Coded {
-        match self {
-            Lattice::Cubic => Coded {
-                coset: None,
-                k: q,
-                pred: pred.map(|p| predict(p, step)),
-            },
-            Lattice::Bcc => {
-                let c = q[0].rem_euclid(2);
-                Coded {
-                    coset: Some(c as u64),
-                    k: q.map(|v| (v - c) / 2),
-                    pred: self.prediction(Some(c as u64), pred, step),
-                }
-            }
+        let (coset, k) = self.coset_and_integers(q);
+        Coded {
+            coset,
+            k,
+            pred: self.prediction(coset, pred, step),
         }
     }
 
@@ -513,6 +512,11 @@ pub(crate) struct Near {
 }
 
 impl Near {
+    pub(crate) const EMPTY: Near = Near {
+        points: [[0; 3]; 10],
+        len: 0,
+    };
+
     pub(crate) fn as_slice(&self) -> &[[i64; 3]] {
         &self.points[..self.len]
     }

@@ -184,6 +184,14 @@ fn residuals(
     Ok(q)
 }
 
+/// A BCC lattice vector's coset bit (equiprobable); the cubic lattice has none.
+fn coset_bit(r: &mut impl Symbols, lattice: Lattice) -> Result<Option<u64>, CodecError> {
+    Ok(match lattice {
+        Lattice::Bcc => Some(r.bits(1)?),
+        Lattice::Cubic => None,
+    })
+}
+
 /// A lattice vector of `stream` (version 5: its coset bit first, see [`Lattice`]) against the
 /// prediction `pred`, a point of space, for the lattice of `step`; returns lattice coordinates.
 fn lattice_vector(
@@ -194,10 +202,7 @@ fn lattice_vector(
     step: f64,
     what: &'static str,
 ) -> Result<[i64; 3], CodecError> {
-    let coset = match lattice {
-        Lattice::Bcc => Some(r.bits(1)?),
-        Lattice::Cubic => None,
-    };
+    let coset = coset_bit(r, lattice)?;
     let k = residuals(r, stream, lattice.prediction(coset, pred, step), what)?;
     lattice.join(coset, k).ok_or(CodecError::Corrupt { what })
 }
@@ -210,10 +215,7 @@ fn start_values(
     k: u32,
     what: &'static str,
 ) -> Result<[i64; 3], CodecError> {
-    let coset = match lattice {
-        Lattice::Bcc => Some(r.bits(1)?),
-        Lattice::Cubic => None,
-    };
+    let coset = coset_bit(r, lattice)?;
     let mut q = [0i64; 3];
     for v in &mut q {
         *v = unresidual(r.start_value(k)?, 0).ok_or(CodecError::Corrupt { what })?;
