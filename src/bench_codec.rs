@@ -12,7 +12,7 @@
 //!   deltas as varints, channel-planar) — what a user would pick instead, one compressed blob per
 //!   segment, like ours. This is the issue's `ratio_vs_zstd`.
 //! * zstd over rotation vectors: the same with the orientation as a continuous rotation vector
-//!   (3 numbers, [`BaselineRotation::RotationVector`]): 15–20 % smaller than the quaternion
+//!   (3 numbers, [`BaselineRotation::RotationVector`]): 13–17 % smaller than the quaternion
 //!   baseline on the shipped scenes, the strongest quantise-and-compress baseline we know of,
 //!   reported beside it (`ratio_vs_zstd_rotvec`) so that no ratio rests on a weak reference.
 //!
