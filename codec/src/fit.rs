@@ -606,8 +606,15 @@ impl RotationScratch {
         }
     }
 
+    /// Records that frames `1..=len` of curve `key` are within the bound.
+    fn record_good(&mut self, key: CurveKey, len: usize) {
+        let v = self.verdicts(key);
+        v.good = v.good.max(len);
+    }
+
     fn verdicts(&mut self, key: CurveKey) -> &mut Verdicts {
-        let i = match self.verdicts.iter().position(|v| v.key == key) {
+        // Newest first: the curve asked about is most often the one just added.
+        let i = match self.verdicts.iter().rposition(|v| v.key == key) {
             Some(i) => i,
             None => {
                 self.verdicts.push(Verdicts {
@@ -765,9 +772,13 @@ pub(crate) fn fit_rotation(
                             a: lattice.point(aq, sa),
                         },
                     };
-                    scratch
-                        .all_within(alt, len, |u| within(&c, u))
-                        .then_some((alt, c))
+                    // Checked directly (most candidates fail on the newest frame, and caching
+                    // each would lengthen the verdict list every lookup scans); a winner's
+                    // verdict is recorded.
+                    (1..=len).rev().all(|u| within(&c, u)).then(|| {
+                        scratch.record_good(alt, len);
+                        (alt, c)
+                    })
                 });
             match rescued {
                 Some((k2, c2)) => (key, curve) = (k2, c2),

@@ -387,10 +387,14 @@ impl Lattice {
                 let (mut even, mut odd) = ([0i64; 3], [0i64; 3]);
                 let (mut d_even, mut d_odd) = (0.0, 0.0);
                 for i in 0..3 {
+                    // The nearest odd point is o + ½ with o = e or e − 1, whichever side of e
+                    // u lies on.
                     let e = round_checked(u[i])?;
-                    let o = round_checked(u[i] - 0.5)?;
-                    d_even += (u[i] - e as f64) * (u[i] - e as f64);
-                    d_odd += (u[i] - 0.5 - o as f64) * (u[i] - 0.5 - o as f64);
+                    let de = u[i] - e as f64;
+                    let o = if de >= 0.0 { e } else { e - 1 };
+                    let d_o = u[i] - 0.5 - o as f64;
+                    d_even += de * de;
+                    d_odd += d_o * d_o;
                     (even[i], odd[i]) = (2 * e, 2 * o + 1);
                 }
                 Some(if d_odd < d_even { odd } else { even })
@@ -414,8 +418,8 @@ impl Lattice {
         // 4|uᵢ|; the best axial ones go along u's components. The diagonal with all three flipped
         // is beaten by seven others and the axial ones against u by their opposites, so these
         // ten contain the four nearest of all fourteen.
-        let h = 0.5 * step * BCC_SCALE;
-        let u: Vec3 = std::array::from_fn(|i| x[i] / h - q[i] as f64);
+        let inv_h = 2.0 / (step * BCC_SCALE);
+        let u: Vec3 = std::array::from_fn(|i| x[i] * inv_h - q[i] as f64);
         let sgn: [i64; 3] = u.map(|v| if v < 0.0 { -1 } else { 1 });
         let abs = u.map(f64::abs);
         let base = 3.0 - 2.0 * (abs[0] + abs[1] + abs[2]);
