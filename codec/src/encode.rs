@@ -27,7 +27,7 @@ use crate::params::{
 };
 use crate::rotation::{self, Quat, Vec3};
 use crate::segment::{
-    FreeDynamics, INERTIA_BITS, Lattice, PositionCoding, PositionCurve, PositionPredictor,
+    Coded, FreeDynamics, INERTIA_BITS, Lattice, PositionCoding, PositionCurve, PositionPredictor,
     PositionType, QuadraticTerm, RotationCurve, RotationPredictor, RotationType, bucket,
     position_step_prediction, position_types, quantise_inertia, residual, rotation_step_prediction,
     rotation_types, step_angular_acceleration, step_end, step_linear, step_quadratic,
@@ -527,17 +527,9 @@ impl ObjectWriter {
             .sum()
     }
 
-    /// A lattice vector against the prediction `pred`, a point of space (on the BCC lattice its
-    /// coset bit first, see [`Lattice`]); returns its cost.
-    fn vector(
-        &mut self,
-        stream: usize,
-        lattice: Lattice,
-        q: [i64; 3],
-        pred: Vec3,
-        step: f64,
-    ) -> u64 {
-        let c = lattice.split(q, pred, step);
+    /// A lattice vector as [`Lattice::split`] writes it against its prediction (on the BCC
+    /// lattice its coset bit first); returns its cost.
+    fn vector(&mut self, stream: usize, c: Coded) -> u64 {
         let mut cost = 0;
         if let Some(coset) = c.coset {
             self.e.direct(coset, 1);
@@ -547,15 +539,7 @@ impl ObjectWriter {
     }
 
     /// Cost of [`Self::vector`] now.
-    fn vector_cost(
-        &self,
-        stream: usize,
-        lattice: Lattice,
-        q: [i64; 3],
-        pred: Vec3,
-        step: f64,
-    ) -> u64 {
-        let c = lattice.split(q, pred, step);
+    fn vector_cost(&self, stream: usize, c: Coded) -> u64 {
         COST_SCALE * u64::from(c.coset.is_some()) + self.residuals_cost(stream, c.k, c.pred)
     }
 
@@ -780,22 +764,21 @@ fn encode_positions(
             head + match ch {
                 PositionChoice::Rest(_) => 0,
                 PositionChoice::Step(q, _) => {
-                    out.vector_cost(S_POS_STEP, lattice, *q, [0.0; 3], coding.step)
+                    out.vector_cost(S_POS_STEP, lattice.split(*q, [0.0; 3], coding.step))
                 }
                 PositionChoice::Fit(_, f) => {
                     let k = bucket(len);
                     let (sb, sa) = (step_linear(coding.step, k), step_quadratic(coding.step, k));
-                    out.vector_cost(S_POS_LINEAR, lattice, f.coeffs.bq, predictor.velocity(), sb)
-                        + match f.coeffs.term {
-                            QuadraticTerm::Fitted(aq) => out.vector_cost(
-                                S_POS_QUADRATIC,
-                                lattice,
-                                aq,
-                                predictor.quadratic(),
-                                sa,
-                            ),
-                            _ => 0,
-                        }
+                    out.vector_cost(
+                        S_POS_LINEAR,
+                        lattice.split(f.coeffs.bq, predictor.velocity(), sb),
+                    ) + match f.coeffs.term {
+                        QuadraticTerm::Fitted(aq) => out.vector_cost(
+                            S_POS_QUADRATIC,
+                            lattice.split(aq, predictor.quadratic(), sa),
+                        ),
+                        _ => 0,
+                    }
                 }
             }
         };
@@ -817,7 +800,7 @@ fn encode_positions(
                 out.breakdown.position_segments += head;
                 match ch {
                     PositionChoice::Step(q, end) => {
-                        let b = out.vector(S_POS_STEP, lattice, q, [0.0; 3], coding.step);
+                        let b = out.vector(S_POS_STEP, lattice.split(q, [0.0; 3], coding.step));
                         out.breakdown.position_coefficients += b;
                         (1, PositionCurve::Key { end })
                     }
@@ -827,10 +810,10 @@ fn encode_positions(
                         let (sb, sa) =
                             (step_linear(coding.step, k), step_quadratic(coding.step, k));
                         let pb = predictor.velocity();
-                        let mut bits = out.vector(S_POS_LINEAR, lattice, f.coeffs.bq, pb, sb);
+                        let mut bits = out.vector(S_POS_LINEAR, lattice.split(f.coeffs.bq, pb, sb));
                         if let QuadraticTerm::Fitted(aq) = f.coeffs.term {
                             let pa = predictor.quadratic();
-                            bits += out.vector(S_POS_QUADRATIC, lattice, aq, pa, sa);
+                            bits += out.vector(S_POS_QUADRATIC, lattice.split(aq, pa, sa));
                         }
                         out.breakdown.position_coefficients += bits;
                         (len, f.curve)
@@ -1009,22 +992,22 @@ fn encode_rotations(
             head + match ch {
                 RotationChoice::Rest(_) => 0,
                 RotationChoice::Step(v, _) => {
-                    out.vector_cost(S_ROT_STEP, lattice, *v, [0.0; 3], rot_step)
+                    out.vector_cost(S_ROT_STEP, lattice.split(*v, [0.0; 3], rot_step))
                 }
                 RotationChoice::Fit(_, f) => {
                     let k = bucket(len);
                     let w = predictor.angular_velocity();
-                    out.vector_cost(S_ROT_W, lattice, f.wq, w, step_linear(rot_step, k))
+                    out.vector_cost(S_ROT_W, lattice.split(f.wq, w, step_linear(rot_step, k)))
                         + f.aq.map_or(0, |aq| {
                             let a = predictor.angular_acceleration();
                             let sa = step_angular_acceleration(rot_step, k);
-                            out.vector_cost(S_ROT_ACC, lattice, aq, a, sa)
+                            out.vector_cost(S_ROT_ACC, lattice.split(aq, a, sa))
                         })
                 }
                 RotationChoice::Free(f) => {
                     let sw = step_linear(rot_step, bucket(len));
                     let w = predictor.angular_velocity();
-                    inertia_cost + out.vector_cost(S_ROT_FREE, lattice, f.wq, w, sw)
+                    inertia_cost + out.vector_cost(S_ROT_FREE, lattice.split(f.wq, w, sw))
                 }
             }
         };
@@ -1046,7 +1029,7 @@ fn encode_rotations(
                 out.breakdown.rotation_segments += head;
                 match ch {
                     RotationChoice::Step(v, w) => {
-                        let b = out.vector(S_ROT_STEP, lattice, v, [0.0; 3], rot_step);
+                        let b = out.vector(S_ROT_STEP, lattice.split(v, [0.0; 3], rot_step));
                         out.breakdown.rotation_coefficients += b;
                         (1, RotationCurve::Linear { w })
                     }
@@ -1054,11 +1037,11 @@ fn encode_rotations(
                     RotationChoice::Fit(_, f) => {
                         let k = bucket(len);
                         let (w, sw) = (predictor.angular_velocity(), step_linear(rot_step, k));
-                        let mut bits = out.vector(S_ROT_W, lattice, f.wq, w, sw);
+                        let mut bits = out.vector(S_ROT_W, lattice.split(f.wq, w, sw));
                         if let Some(aq) = f.aq {
                             let a = predictor.angular_acceleration();
                             let sa = step_angular_acceleration(rot_step, k);
-                            bits += out.vector(S_ROT_ACC, lattice, aq, a, sa);
+                            bits += out.vector(S_ROT_ACC, lattice.split(aq, a, sa));
                         }
                         out.breakdown.rotation_coefficients += bits;
                         (len, f.curve)
@@ -1073,7 +1056,7 @@ fn encode_rotations(
                         }
                         let sw = step_linear(rot_step, bucket(len));
                         let w = predictor.angular_velocity();
-                        bits += out.vector(S_ROT_FREE, lattice, f.wq, w, sw);
+                        bits += out.vector(S_ROT_FREE, lattice.split(f.wq, w, sw));
                         out.breakdown.rotation_coefficients += bits;
                         (len, f.curve)
                     }
@@ -1154,10 +1137,7 @@ mod tests {
             let step = step_linear(1.1 * t, bucket(len.max(1) as u32));
             out.vector(
                 S_ROT_FREE,
-                Lattice::of(FORMAT_VERSION),
-                [10, -4, 6],
-                [0.0; 3],
-                step,
+                Lattice::of(FORMAT_VERSION).split([10, -4, 6], [0.0; 3], step),
             );
         }
         let payload = out.finish(&mut SizeBreakdown::default());
