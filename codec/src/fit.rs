@@ -17,8 +17,8 @@
 use crate::params::{FIT_WINDOW, MAX_SEGMENT_LEN};
 use crate::rotation::{self, Quat, Vec3};
 use crate::segment::{
-    FreeDynamics, Lattice, MAX_FREE_LEN, Near, PositionCoding, PositionCurve, QuadraticQ,
-    QuadraticTerm, RotationCurve, bucket, step_angular_acceleration, step_linear, step_quadratic,
+    FreeDynamics, Lattice, MAX_FREE_LEN, PositionCoding, PositionCurve, QuadraticQ, QuadraticTerm,
+    RotationCurve, bucket, step_angular_acceleration, step_linear, step_quadratic,
 };
 
 /// The position models a segment may use (format 2 chooses per segment; §4.3: "model only what
@@ -383,36 +383,21 @@ pub(crate) fn fit_position(
     // on all its frames.
     let rescue = |len: usize, k: u32, b: Vec3, a: Vec3, tried: QuadraticQ| {
         let (sb, sa) = (step_linear(coding.step, k), step_quadratic(coding.step, k));
-        let lattice = coding.lattice;
-        let b_alts = lattice.alternatives(tried.bq, b, sb, RESCUE_CANDIDATES);
-        let a_alts = match tried.term {
-            QuadraticTerm::Fitted(aq) => lattice.alternatives(aq, a, sa, RESCUE_CANDIDATES),
-            _ => Near::EMPTY,
+        let second = match tried.term {
+            QuadraticTerm::Fitted(aq) => Some((aq, a, sa)),
+            _ => None,
         };
-        let (b_alts, a_alts) = (b_alts.as_slice(), a_alts.as_slice());
-        b_alts
-            .iter()
-            .map(|&bq| QuadraticQ { bq, ..tried })
-            .chain(a_alts.iter().map(|&aq| QuadraticQ {
-                term: QuadraticTerm::Fitted(aq),
-                ..tried
-            }))
-            .chain(
-                b_alts
-                    .first()
-                    .zip(a_alts.first())
-                    .map(|(&bq, &aq)| QuadraticQ {
-                        bq,
-                        term: QuadraticTerm::Fitted(aq),
-                    }),
-            )
-            .find_map(|coeffs| {
-                let curve = coeffs.curve(coding, k);
-                (1..=len)
-                    .rev()
-                    .all(|u| within(&curve, u))
-                    .then_some((k, coeffs, curve))
-            })
+        rescue(coding.lattice, (tried.bq, b, sb), second, |bq, aq| {
+            let coeffs = QuadraticQ {
+                bq,
+                term: aq.map_or(tried.term, QuadraticTerm::Fitted),
+            };
+            let curve = coeffs.curve(coding, k);
+            (1..=len)
+                .rev()
+                .all(|u| within(&curve, u))
+                .then_some((k, coeffs, curve))
+        })
     };
     for len in 1..=max_len {
         let refit = len < FIT_WINDOW;
@@ -478,6 +463,38 @@ pub(crate) fn fit_position(
 /// How many lattice points near a fit's nearest one are tried where its curve breaks the bound.
 const RESCUE_CANDIDATES: usize = 4;
 
+/// The lattice search of a fit whose nearest coefficients break the bound: `attempt(first,
+/// second)` is asked, in this order, about the [`RESCUE_CANDIDATES`] points nearest the first
+/// coefficient's unquantised value `(nearest point, value, step)` with the second kept, the
+/// second's with the first kept, and both first alternatives together; the first answer is
+/// returned. The second's alternatives are ranked only if the first's all fail.
+fn rescue<T>(
+    lattice: Lattice,
+    first: ([i64; 3], Vec3, f64),
+    second: Option<([i64; 3], Vec3, f64)>,
+    mut attempt: impl FnMut([i64; 3], Option<[i64; 3]>) -> Option<T>,
+) -> Option<T> {
+    let first_alts = lattice.alternatives(first.0, first.1, first.2, RESCUE_CANDIDATES);
+    let kept = second.map(|(q, _, _)| q);
+    if let Some(t) = first_alts.as_slice().iter().find_map(|&q| attempt(q, kept)) {
+        return Some(t);
+    }
+    let (q, x, step) = second?;
+    let second_alts = lattice.alternatives(q, x, step, RESCUE_CANDIDATES);
+    if let Some(t) = second_alts
+        .as_slice()
+        .iter()
+        .find_map(|&a| attempt(first.0, Some(a)))
+    {
+        return Some(t);
+    }
+    let (&f, &a) = first_alts
+        .as_slice()
+        .first()
+        .zip(second_alts.as_slice().first())?;
+    attempt(f, Some(a))
+}
+
 /// How many frames from `s` on stay within `e_max` of the start point `c` (a [`PositionCurve::Rest`]
 /// segment of that length meets the bound; 0: not even the next frame).
 pub(crate) fn rest_length(x: &[Vec3], s: usize, c: Vec3, e_max: f64) -> usize {
@@ -499,8 +516,11 @@ pub(crate) fn rest_length(x: &[Vec3], s: usize, c: Vec3, e_max: f64) -> usize {
 /// Why the verdicts agree: both computations start from the same unit quaternions (components
 /// ≤ 1); the fast test's `exp` ([`rotation::exp_approx`], polynomial `sin`/`cos`) is within
 /// 10⁻¹⁵ of the full one's. Each Hamilton product adds at most ≈5 ulp(1) per component
-/// (Cauchy–Schwarz bounds the sum of the four products' magnitudes by 1), normalising ≈2 ulp,
-/// so the two residuals differ by at most δa ≈ 3·10⁻¹⁴ per component, of `|d_xyz|` by less than 10⁻¹³ = [`ANGLE_TEST_ABS`].
+/// (Cauchy–Schwarz bounds the sum of the four products' magnitudes by 1), normalising ≈2 ulp.
+/// The fast test multiplies in the other order, `exp(r) ⊗ (q₀ ⊗ q⁻¹)` (the bracket is shared by
+/// every curve a segment's fits try; the product is associative in real arithmetic), so each
+/// residual is within 10⁻¹⁵ + 12 ulp ≈ 4·10⁻¹⁵ of the exact one and the two differ by at most
+/// δa ≈ 10⁻¹⁴ per component, of `|d_xyz|` by less than 10⁻¹³ = [`ANGLE_TEST_ABS`].
 /// Near the boundary `|d_w| ≥ cos(1) > 0.54` (θ_lim ≤ 2), so a relative band
 /// `b = 10⁻⁹ + 16·δa/T` on the squared ratio is more than twice what rounding can move it, and
 /// the angle gap it leaves (≥ 0.2·b relative) dwarfs the ulp errors of `tan` and `atan2`.
@@ -528,19 +548,50 @@ impl AngleTest {
         Self { theta_lim, ratio2 }
     }
 
+    /// `angle_between(a, q) ≤ θ_lim` for an orientation `a` already computed (a simulated
+    /// free-flight frame), exactly as [`rotation::angle_between`] decides: the residual is the
+    /// same product, so only `atan2` is saved where the ratio is clear of the band.
+    pub(crate) fn within_rotation(&self, a: Quat, q: Quat) -> bool {
+        if let Some((inside, outside)) = self.ratio2 {
+            let d = rotation::mul(a, rotation::conj(q));
+            let s2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+            let c2 = d[3] * d[3];
+            if s2 < inside * c2 {
+                return true;
+            }
+            if s2 > outside * c2 {
+                return false;
+            }
+        }
+        rotation::angle_between(a, q) <= self.theta_lim
+    }
+
     /// `angle_between(curve.eval(q0, u), q) ≤ θ_lim`, exactly as the full computation decides.
     pub(crate) fn within(&self, curve: &RotationCurve, q0: Quat, u: f64, q: Quat) -> bool {
+        let relative = rotation::mul(q0, rotation::conj(q));
+        self.within_relative(curve, q0, u, q, relative)
+    }
+
+    /// [`AngleTest::within`] given `relative = q₀ ⊗ q⁻¹` (as computed by
+    /// [`RotationScratch::extend_relative`]).
+    fn within_relative(
+        &self,
+        curve: &RotationCurve,
+        q0: Quat,
+        u: f64,
+        q: Quat,
+        relative: Quat,
+    ) -> bool {
         if let Some((inside, outside)) = self.ratio2
             && u != 0.0
         {
-            let rotated = match curve {
-                RotationCurve::Rest => Some(q0),
+            let d = match curve {
+                RotationCurve::Rest => Some(relative),
                 _ => curve
                     .log_at(u)
-                    .map(|r| rotation::mul(rotation::exp_approx(r), q0)),
+                    .map(|r| rotation::mul(rotation::exp_approx(r), relative)),
             };
-            if let Some(rotated) = rotated {
-                let d = rotation::mul(rotated, rotation::conj(q));
+            if let Some(d) = d {
                 let s2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
                 let c2 = d[3] * d[3];
                 if s2 < inside * c2 {
@@ -570,8 +621,14 @@ pub(crate) struct RotationScratch {
     /// `log(q₀ ⊗ q_s⁻¹)`.
     offset: Option<Vec3>,
     /// Verdicts per quantised curve.
-    verdicts: Vec<Verdicts>,
+    verdicts: VerdictList,
+    /// `q₀ ⊗ q_{s+u}⁻¹` for u = 1, 2, … (index u − 1): the fast bound test's right factor.
+    relative: Vec<Quat>,
 }
+
+/// What is known of each quantised curve a segment's fits have tried.
+#[derive(Debug, Default)]
+struct VerdictList(Vec<Verdicts>);
 
 /// A quantised rotation curve: bucket, angular velocity, angular acceleration.
 type CurveKey = (u32, [i64; 3], Option<[i64; 3]>);
@@ -592,6 +649,17 @@ impl RotationScratch {
             self.logs.iter_mut().for_each(Vec::clear);
             self.offset = None;
             self.verdicts.clear();
+            self.relative.clear();
+        }
+    }
+
+    /// Makes `relative` available for frames `1..=n` (after [`RotationScratch::reset`] with the
+    /// same `s` and `q0`).
+    fn extend_relative(&mut self, q: &[Quat], s: usize, q0: Quat, n: usize) {
+        while self.relative.len() < n {
+            let u = self.relative.len() + 1;
+            self.relative
+                .push(rotation::mul(q0, rotation::conj(q[s + u])));
         }
     }
 
@@ -605,6 +673,12 @@ impl RotationScratch {
             logs.push(rotation::unwrap_near(r, last));
         }
     }
+}
+
+impl VerdictList {
+    fn clear(&mut self) {
+        self.0.clear();
+    }
 
     /// Records that frames `1..=len` of curve `key` are within the bound.
     fn record_good(&mut self, key: CurveKey, len: usize) {
@@ -614,18 +688,19 @@ impl RotationScratch {
 
     fn verdicts(&mut self, key: CurveKey) -> &mut Verdicts {
         // Newest first: the curve asked about is most often the one just added.
-        let i = match self.verdicts.iter().rposition(|v| v.key == key) {
+        let list = &mut self.0;
+        let i = match list.iter().rposition(|v| v.key == key) {
             Some(i) => i,
             None => {
-                self.verdicts.push(Verdicts {
+                list.push(Verdicts {
                     key,
                     good: 0,
                     bad: usize::MAX,
                 });
-                self.verdicts.len() - 1
+                list.len() - 1
             }
         };
-        &mut self.verdicts[i]
+        &mut list[i]
     }
 
     /// Are frames `1..=len` all within the bound for curve `key`? `within(u)` decides one
@@ -677,7 +752,6 @@ pub(crate) fn fit_rotation(
     scratch.reset(s, q0);
     let max_len = (q.len() - 1 - s).min(MAX_SEGMENT_LEN);
     let test = AngleTest::new(theta_lim);
-    let within = |curve: &RotationCurve, u: usize| test.within(curve, q0, u as f64, q[s + u]);
     let (which, reference, correction_rate) = match correction {
         StartCorrection::Anchored => (0, q0, [0.0; 3]),
         StartCorrection::Horizon(h) => {
@@ -742,44 +816,39 @@ pub(crate) fn fit_rotation(
         let Some((mut key, mut curve)) = current else {
             break;
         };
-        if !scratch.all_within(key, len, |u| within(&curve, u)) {
+        scratch.extend_relative(q, s, q0, len);
+        let relative = &scratch.relative;
+        let within = |curve: &RotationCurve, u: usize| {
+            test.within_relative(curve, q0, u as f64, q[s + u], relative[u - 1])
+        };
+        let verdicts = &mut scratch.verdicts;
+        if !verdicts.all_within(key, len, |u| within(&curve, u)) {
             // As for positions: lattice points next to the current ones may stay within longer.
             let (k, wq, aq) = key;
             let (sw, sa) = (step_linear(step, k), step_angular_acceleration(step, k));
-            let w_alts = lattice.alternatives(wq, w, sw, RESCUE_CANDIDATES);
-            let a_alts = match aq {
-                Some(aq) => lattice.alternatives(aq, acc, sa, RESCUE_CANDIDATES),
-                None => Near::EMPTY,
-            };
-            let (w_alts, a_alts) = (w_alts.as_slice(), a_alts.as_slice());
-            let rescued = w_alts
-                .iter()
-                .map(|&w| (k, w, aq))
-                .chain(a_alts.iter().map(|&a| (k, wq, Some(a))))
-                .chain(
-                    w_alts
-                        .first()
-                        .zip(a_alts.first())
-                        .map(|(&w, &a)| (k, w, Some(a))),
-                )
-                .find_map(|alt| {
-                    let c = match alt.2 {
-                        None => RotationCurve::Linear {
-                            w: lattice.point(alt.1, sw),
-                        },
+            let rescued = rescue(
+                lattice,
+                (wq, w, sw),
+                aq.map(|aq| (aq, acc, sa)),
+                |wq, aq| {
+                    let w = lattice.point(wq, sw);
+                    let c = match aq {
+                        None => RotationCurve::Linear { w },
                         Some(aq) => RotationCurve::Quadratic {
-                            w: lattice.point(alt.1, sw),
+                            w,
                             a: lattice.point(aq, sa),
                         },
                     };
-                    // Checked directly (most candidates fail on the newest frame, and caching
-                    // each would lengthen the verdict list every lookup scans); a winner's
-                    // verdict is recorded.
+                    let alt = (k, wq, aq);
+                    // Checked directly (most candidates fail on the newest frame, and caching each
+                    // would lengthen the verdict list every lookup scans); a winner's verdict is
+                    // recorded.
                     (1..=len).rev().all(|u| within(&c, u)).then(|| {
-                        scratch.record_good(alt, len);
+                        verdicts.record_good(alt, len);
                         (alt, c)
                     })
-                });
+                },
+            );
             match rescued {
                 Some((k2, c2)) => (key, curve) = (k2, c2),
                 None => break,
@@ -947,12 +1016,13 @@ fn extend_free(
     max_len: usize,
 ) -> Option<RotationFit> {
     // How many frames from `q0` at velocity `w` stay within the bound (up to `limit`).
+    let test = AngleTest::new(theta_lim);
     let reach = |w: Vec3, limit: usize| {
         let (mut qs, mut ws) = (q0, FreeDynamics::body(q0, w));
         (1..=limit)
             .take_while(|&u| {
                 dynamics.frame(&mut qs, &mut ws);
-                rotation::angle_between(qs, q[s + u]) <= theta_lim
+                test.within_rotation(qs, q[s + u])
             })
             .count()
     };
@@ -1190,6 +1260,7 @@ mod tests {
                 let data = rotation::normalise(rotation::mul(rotation::conj(d), at)).unwrap();
                 let exact = rotation::angle_between(at, data) <= theta_lim;
                 assert_eq!(test.within(&curve, q0, u, data), exact, "θ {theta_lim}");
+                assert_eq!(test.within_rotation(at, data), exact, "θ {theta_lim}");
             }
         }
     }

@@ -305,6 +305,19 @@ impl FreeDynamics {
     /// keep |L| (as rapier does).
     fn gyroscopic(&self, wb: Vec3, h: f64) -> Vec3 {
         let (i, inv) = (self.inertia, self.inv_inertia);
+        // A body with equal moments (a sphere's are stored as three 1s) has L = ω exactly, so
+        // ω × L is exactly zero (each component is a product minus the same product), L is kept
+        // and the rescale is x/x = 1: the computation below returns `wb` bit for bit, in every
+        // branch. Skipping it halves the cost of a ball's flight, to encode and to decode.
+        if i == [1.0; 3] && inv == [1.0; 3] {
+            return wb;
+        }
+        self.gyroscopic_general(wb, h)
+    }
+
+    /// [`FreeDynamics::gyroscopic`] without the shortcut for equal moments.
+    fn gyroscopic_general(&self, wb: Vec3, h: f64) -> Vec3 {
+        let (i, inv) = (self.inertia, self.inv_inertia);
         let l = [i[0] * wb[0], i[1] * wb[1], i[2] * wb[2]];
         let g = rotation::cross3(wb, l);
         let lt = [l[0] - g[0] * h, l[1] - g[1] * h, l[2] - g[2] * h];
@@ -423,27 +436,36 @@ impl Lattice {
         let sgn: [i64; 3] = u.map(|v| if v < 0.0 { -1 } else { 1 });
         let abs = u.map(f64::abs);
         let base = 3.0 - 2.0 * (abs[0] + abs[1] + abs[2]);
-        let mut near = [(0.0f64, [0i64; 3]); 10];
-        near[0] = (base, sgn);
+        // Ranks and offsets of the ten, and their order (sorting the small indices, not the
+        // offsets, is what makes this cheap).
+        let mut rank = [0.0f64; 10];
+        let mut offset = [[0i64; 3]; 10];
+        (rank[0], offset[0]) = (base, sgn);
         for i in 0..3 {
             let mut flip = sgn;
             flip[i] = -flip[i];
-            near[1 + i] = (base + 4.0 * abs[i], flip);
+            (rank[1 + i], offset[1 + i]) = (base + 4.0 * abs[i], flip);
             let mut keep = sgn.map(|v| -v);
             keep[i] = sgn[i];
-            near[4 + i] = (base + 4.0 * (abs[0] + abs[1] + abs[2] - abs[i]), keep);
+            (rank[4 + i], offset[4 + i]) = (base + 4.0 * (abs[0] + abs[1] + abs[2] - abs[i]), keep);
             let mut axial = [0; 3];
             axial[i] = 2 * sgn[i];
-            near[7 + i] = (4.0 - 4.0 * abs[i], axial);
+            (rank[7 + i], offset[7 + i]) = (4.0 - 4.0 * abs[i], axial);
         }
-        // The n nearest, by selection (n is small).
-        let n = n.min(near.len());
+        let mut order: [u8; 10] = std::array::from_fn(|i| i as u8);
+        // The n nearest, by selection (n is small; the first of equal ranks; all are finite,
+        // since `x` quantised, and none is −0).
+        let n = n.min(rank.len());
         for i in 0..n {
-            let m = (i..near.len())
-                .min_by(|&a, &b| near[a].0.total_cmp(&near[b].0))
-                .unwrap_or(i);
-            near.swap(i, m);
-            let d = near[i].1;
+            let mut m = i;
+            for j in i + 1..rank.len() {
+                if rank[j] < rank[m] {
+                    m = j;
+                }
+            }
+            rank.swap(i, m);
+            order.swap(i, m);
+            let d = offset[usize::from(order[i])];
             out.points[i] = std::array::from_fn(|j| q[j].saturating_add(d[j]));
         }
         out.len = n;
@@ -801,6 +823,45 @@ impl RotationPredictor {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn equal_moments_skip_a_gyroscopic_step_that_changes_nothing() {
+        let sphere = FreeDynamics::new([4095; 3], 4, 0.5, 1.0 / 120.0);
+        assert_eq!(sphere.inertia, [1.0; 3]);
+        let mut seed = 7u64;
+        let mut rnd = || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+        };
+        let mut cases: Vec<Vec3> = (0..20_000)
+            .map(|i| {
+                let scale = [1e-12, 1e-3, 1.0, 40.0, 1e150][i % 5];
+                [rnd() * scale, rnd() * scale, rnd() * scale]
+            })
+            .collect();
+        cases.extend([
+            [0.0; 3],
+            [-0.0, 0.0, -0.0],
+            [f64::NAN, 1.0, 0.0],
+            [f64::INFINITY, 0.0, 0.0],
+            [1e300, -1e300, 1e300],
+            [f64::MIN_POSITIVE, 0.0, 0.0],
+        ]);
+        for wb in cases {
+            for h in [1.0, 0.25, 1.0 / 16.0] {
+                let general = sphere.gyroscopic_general(wb, h);
+                let skipped = sphere.gyroscopic(wb, h);
+                // Bit for bit (NaN included).
+                assert_eq!(
+                    skipped.map(f64::to_bits),
+                    general.map(f64::to_bits),
+                    "{wb:?}"
+                );
+            }
+        }
+    }
 
     #[test]
     fn buckets_cover_the_length() {

@@ -177,6 +177,8 @@ fn shipped_scene_motion() {
             let mut parts = SizeBreakdown::default();
             let off = std::env::var("MWB_SCENE_DYNAMICS").is_ok_and(|v| v == "off");
             let mut free = 0u64;
+            // FNV-1a over every stream: "same bytes" checks of exact encoder changes.
+            let mut digest = 0xcbf2_9ce4_8422_2325u64;
             for (seg, &world) in s.segments.iter().zip(&s.world_of) {
                 let d = s.dynamics[world].as_ref().filter(|_| !off);
                 let t0 = Instant::now();
@@ -184,6 +186,9 @@ fn shipped_scene_motion() {
                 free += w.stats.free_rotation_segments;
                 secs += t0.elapsed().as_secs_f64();
                 bytes += w.bytes.len();
+                for &b in &w.bytes {
+                    digest = (digest ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3);
+                }
                 frames += w.stats.object_frames;
                 pos_segs += w.stats.position_segments;
                 rot_segs += w.stats.rotation_segments;
@@ -226,7 +231,7 @@ fn shipped_scene_motion() {
             println!(
                 "    B/(obj·s): header+index {:.1}, starts {:.1}, pos types+lengths {:.1}, \
                  pos coefficients {:.1}, rot types+lengths {:.1}, rot coefficients {:.1}, \
-                 keys {:.1}, padding {:.1}",
+                 keys {:.1}, padding {:.1}; digest {digest:016x}",
                 per(parts.header_and_index),
                 per(parts.starts),
                 per(parts.position_segments),
