@@ -552,18 +552,23 @@ impl AngleTest {
     /// free-flight frame), exactly as [`rotation::angle_between`] decides: the residual is the
     /// same product, so only `atan2` is saved where the ratio is clear of the band.
     pub(crate) fn within_rotation(&self, a: Quat, q: Quat) -> bool {
-        if let Some((inside, outside)) = self.ratio2 {
-            let d = rotation::mul(a, rotation::conj(q));
-            let s2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
-            let c2 = d[3] * d[3];
-            if s2 < inside * c2 {
-                return true;
-            }
-            if s2 > outside * c2 {
-                return false;
-            }
+        self.ratio_verdict(rotation::mul(a, rotation::conj(q)))
+            .unwrap_or_else(|| rotation::angle_between(a, q) <= self.theta_lim)
+    }
+
+    /// The fast test's verdict on a residual `d` (any scale), or `None` inside the band or when
+    /// the fast test is off.
+    fn ratio_verdict(&self, d: Quat) -> Option<bool> {
+        let (inside, outside) = self.ratio2?;
+        let s2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+        let c2 = d[3] * d[3];
+        if s2 < inside * c2 {
+            Some(true)
+        } else if s2 > outside * c2 {
+            Some(false)
+        } else {
+            None
         }
-        rotation::angle_between(a, q) <= self.theta_lim
     }
 
     /// `angle_between(curve.eval(q0, u), q) ≤ θ_lim`, exactly as the full computation decides.
@@ -582,24 +587,15 @@ impl AngleTest {
         q: Quat,
         relative: Quat,
     ) -> bool {
-        if let Some((inside, outside)) = self.ratio2
-            && u != 0.0
-        {
+        if self.ratio2.is_some() && u != 0.0 {
             let d = match curve {
                 RotationCurve::Rest => Some(relative),
                 _ => curve
                     .log_at(u)
                     .map(|r| rotation::mul(rotation::exp_approx(r), relative)),
             };
-            if let Some(d) = d {
-                let s2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
-                let c2 = d[3] * d[3];
-                if s2 < inside * c2 {
-                    return true;
-                }
-                if s2 > outside * c2 {
-                    return false;
-                }
+            if let Some(verdict) = d.and_then(|d| self.ratio_verdict(d)) {
+                return verdict;
             }
         }
         rotation::angle_between(curve.eval(q0, u), q) <= self.theta_lim

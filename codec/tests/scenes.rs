@@ -9,6 +9,8 @@
 //! `MWB_SCENE_BOUNDS=0.005,0.01` measures other bounds (e_max in m, θ_max the same in rad).
 //! Each breakdown line ends with an FNV-1a digest of every stream written: an encoder change
 //! meant to keep the bytes (a speed-up) is checked by comparing the digests before and after.
+//! `MWB_SCENE_STREAMS_OUT=dir` also writes the streams that contain free flights, one file each
+//! (`<scene>_<preset>_<segment>.mwbm`): seeds for the fuzz target's corpus.
 //!
 //! ```text
 //! f64 frame_dt, u8 model (0 general, 1 free flight), 3 × f64 gravity,
@@ -181,11 +183,21 @@ fn shipped_scene_motion() {
             let mut free = 0u64;
             // FNV-1a over every stream: "same bytes" checks of exact encoder changes.
             let mut digest = 0xcbf2_9ce4_8422_2325u64;
-            for (seg, &world) in s.segments.iter().zip(&s.world_of) {
+            for (n, (seg, &world)) in s.segments.iter().zip(&s.world_of).enumerate() {
                 let d = s.dynamics[world].as_ref().filter(|_| !off);
                 let t0 = Instant::now();
                 let w = encode_world_with_dynamics(seg, &p, d).expect("encodes");
                 free += w.stats.free_rotation_segments;
+                if let Ok(out) = std::env::var("MWB_SCENE_STREAMS_OUT")
+                    && w.stats.free_rotation_segments > 0
+                {
+                    let label: String = label
+                        .chars()
+                        .map(|c| if c.is_ascii_alphanumeric() { c } else { '_' })
+                        .collect();
+                    std::fs::write(format!("{out}/{scene}_{label}_{n}.mwbm"), &w.bytes)
+                        .expect("writes the stream");
+                }
                 secs += t0.elapsed().as_secs_f64();
                 bytes += w.bytes.len();
                 for &b in &w.bytes {
