@@ -1,5 +1,5 @@
-//! Old recordings stay readable: streams written by the version-1 to -4 encoders (saved as
-//! fixtures before formats 2 to 5 replaced them) still decode, through every read path, to
+//! Old recordings stay readable: streams written by the version-1 to -5 encoders (saved as
+//! fixtures before formats 2 to 6 replaced them) still decode, through every read path, to
 //! exactly the poses they decoded to when they were written — and so stay within the bounds of
 //! the motion they were made from.
 
@@ -8,51 +8,29 @@ mod common;
 use common::{G, Rng, distance, generate, normalise, rotation_angle, torque_free};
 use mwb_codec::{MotionModel, Quality, Track, WorldReader};
 
-/// `(fixture, preset, model)`: six objects, one per test generator (seeds 31..37), 120 frames at
-/// 120 Hz (tracks `common::generate(object, 31 + object, 120, 1/120)`), encoded with
-/// `EncodeParams::from_quality(preset, 1/120, model)`; the `.poses` files are what the writing
-/// build decoded. Version 1: format-1 code; version 2: the encoder of commit d1ba8c1; version 3:
-/// the encoder of commit 116d0ab; version 4: the encoder of commit b13b33d (`v4_free_final` with
-/// rotation dynamics, see [`free_input`]).
-const V1: [(&str, Quality, MotionModel); 2] = [
-    (
-        "v1_gravity_standard",
-        Quality::Standard,
-        MotionModel::FreeFlightGravity { g: G },
-    ),
-    ("v1_general_draft", Quality::Draft, MotionModel::General),
-];
-const V2: [(&str, Quality, MotionModel); 2] = [
-    (
-        "v2_gravity_standard",
-        Quality::Standard,
-        MotionModel::FreeFlightGravity { g: G },
-    ),
-    ("v2_general_draft", Quality::Draft, MotionModel::General),
-];
-const V3: [(&str, Quality, MotionModel); 2] = [
-    (
-        "v3_gravity_standard",
-        Quality::Standard,
-        MotionModel::FreeFlightGravity { g: G },
-    ),
-    ("v3_general_draft", Quality::Draft, MotionModel::General),
+/// `(format version, fixture, preset, model)`: six objects, one per test generator (seeds
+/// 31..37), 120 frames at 120 Hz (tracks `common::generate(object, 31 + object, 120, 1/120)`),
+/// encoded with `EncodeParams::from_quality(preset, 1/120, model)`; the `.poses` files are what
+/// the writing build decoded. Version 1: format-1 code; version 2: the encoder of commit
+/// d1ba8c1; version 3: the encoder of commit 116d0ab; version 4: the encoder of commit b13b33d;
+/// version 5: the encoder of commit 1700221 (the `*_free_final` ones with rotation dynamics, see
+/// [`free_input`]).
+const FIXTURES: [(u16, &str, Quality, MotionModel); 10] = [
+    (1, "v1_gravity_standard", Quality::Standard, GRAVITY),
+    (1, "v1_general_draft", Quality::Draft, MotionModel::General),
+    (2, "v2_gravity_standard", Quality::Standard, GRAVITY),
+    (2, "v2_general_draft", Quality::Draft, MotionModel::General),
+    (3, "v3_gravity_standard", Quality::Standard, GRAVITY),
+    (3, "v3_general_draft", Quality::Draft, MotionModel::General),
+    (4, "v4_gravity_standard", Quality::Standard, GRAVITY),
+    (4, "v4_free_final", Quality::Final, GRAVITY),
+    (5, "v5_gravity_standard", Quality::Standard, GRAVITY),
+    (5, "v5_free_final", Quality::Final, GRAVITY),
 ];
 
-const V4: [(&str, Quality, MotionModel); 2] = [
-    (
-        "v4_gravity_standard",
-        Quality::Standard,
-        MotionModel::FreeFlightGravity { g: G },
-    ),
-    (
-        "v4_free_final",
-        Quality::Final,
-        MotionModel::FreeFlightGravity { g: G },
-    ),
-];
+const GRAVITY: MotionModel = MotionModel::FreeFlightGravity { g: G };
 
-/// The motion of `v4_free_final`: objects 0 and 1 torque-free bodies with principal moments
+/// The motion of the `*_free_final` fixtures: objects 0 and 1 torque-free bodies with principal moments
 /// `[0.2, 1.1, 0.9]` (`torque_free(Rng::new(41 + object), [0.2, 1.1, 0.9], 120, 1/120, &[60], 5.0,
 /// 0.5)`), the rest the generators' tracks; encoded with `RotationDynamics { substeps: 4,
 /// angular_damping: 0.5 }` and those moments for objects 0 and 1 (three free-flight segments).
@@ -71,22 +49,27 @@ fn generated(object: usize) -> Track {
 
 #[test]
 fn version_1_streams_decode_to_the_same_poses() {
-    check(1, &V1);
+    check(1);
 }
 
 #[test]
 fn version_2_streams_decode_to_the_same_poses() {
-    check(2, &V2);
+    check(2);
 }
 
 #[test]
 fn version_3_streams_decode_to_the_same_poses() {
-    check(3, &V3);
+    check(3);
 }
 
 #[test]
 fn version_4_streams_decode_to_the_same_poses() {
-    check(4, &V4);
+    check(4);
+}
+
+#[test]
+fn version_5_streams_decode_to_the_same_poses() {
+    check(5);
 }
 
 fn fixture(name: &str, ext: &str) -> Vec<u8> {
@@ -104,10 +87,12 @@ fn poses(bytes: &[u8]) -> Vec<[f64; 7]> {
         .collect()
 }
 
-/// Every fixture of `fixtures` reads as format `version` and decodes, through every read path,
+/// Every fixture of format `version` reads as that format and decodes, through every read path,
 /// to the saved poses bit for bit, within the bounds of the motion it was made from.
-fn check(version: u16, fixtures: &[(&str, Quality, MotionModel)]) {
-    for &(name, quality, model) in fixtures {
+fn check(version: u16) {
+    let fixtures: Vec<_> = FIXTURES.iter().filter(|f| f.0 == version).collect();
+    assert!(!fixtures.is_empty(), "no fixtures of version {version}");
+    for &&(_, name, quality, model) in &fixtures {
         let bytes = fixture(name, "mwbm");
         let want = poses(&fixture(name, "poses"));
         let reader = WorldReader::new(&bytes).unwrap();
@@ -137,7 +122,7 @@ fn check(version: u16, fixtures: &[(&str, Quality, MotionModel)]) {
                 assert_eq!(q, decoded.rotations[f as usize]);
             }
             // Within the bounds of the motion the fixture was made from.
-            let input = if name == "v4_free_final" {
+            let input = if name.ends_with("_free_final") {
                 free_input(object)
             } else {
                 generated(object)
