@@ -38,8 +38,11 @@ pub enum CodecError {
     /// The encoded world does not fit the 32-bit offset index.
     #[error("encoded world payload is {bytes} bytes, the format allows at most {max}")]
     TooLarge { bytes: usize, max: usize },
-    /// The input does not start with the format's magic bytes.
-    #[error("bad magic: expected {expected:?}, found {found:?}")]
+    /// The input starts neither with a version-6-or-later version byte (below 0x40) nor with the
+    /// magic bytes of versions 1 to 5.
+    #[error(
+        "not an encoded world: expected a version byte or the magic {expected:?}, found {found:?}"
+    )]
     BadMagic { expected: [u8; 4], found: Vec<u8> },
     /// A recording from a newer (or unknown) format version.
     #[error("unsupported format version {found} (this build reads versions 1..={supported})")]

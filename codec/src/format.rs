@@ -1,4 +1,28 @@
-//! The versioned byte layout of an encoded world. This build writes version 5 and reads 1 to 5.
+//! The versioned byte layout of an encoded world. This build writes version 6 and reads 1 to 6.
+//!
+//! # Version 6
+//!
+//! Version 5 (below) with a compact header: the 4-byte magic, the 2-byte version, the 2-byte
+//! header length and the model byte become one version byte and a flag, 8 bytes less on every
+//! stream. A world segment restates its header every ~1 s; for a one-body object group that was
+//! 8 B/(obj·s) of ~96.
+//!
+//! ```text
+//! offset  size  field
+//!      0     1  format version (6); versions 1–5 start with the magic b"MWBM" (0x4D), so a
+//!               first byte below 0x40 is a version-6-or-later header and anything else with
+//!               the wrong magic is not a world
+//!      1     1  flags: version 5's, plus 64 = the motion model is FreeFlightGravity
+//!      2        version 5's header fields from the bounds on (preset byte or bounds, frame rate,
+//!               steps, gravity, start Rice parameters, object count, common frame count,
+//!               dynamics); the header ends with its last field (no length: a reader of a later
+//!               version's header refuses it by its version byte)
+//!               the object index and payloads as in version 5
+//! ```
+//!
+//! The magic's job — telling a world from other bytes — is the bus envelope's: a
+//! `MotionSegment` names its encoding and carries a CRC32 of the payload (DESIGN.md), and a
+//! recording keeps the envelope.
 //!
 //! # Version 5
 //!
@@ -166,10 +190,15 @@ use crate::bits::{AdaptiveRice, read_varint, write_varint};
 use crate::error::CodecError;
 use crate::params::{MotionModel, Quality, step_ratio};
 
-/// First four bytes of every encoded world.
+/// First four bytes of an encoded world of versions 1 to 5 (from version 6 a world starts with
+/// its version byte; see "Version 6" above).
 pub const MAGIC: [u8; 4] = *b"MWBM";
 /// The format version this build writes (and the newest it reads).
-pub const FORMAT_VERSION: u16 = 5;
+pub const FORMAT_VERSION: u16 = 6;
+/// The first version with the compact header (no magic, no header length).
+pub(crate) const COMPACT_HEADER_VERSION: u16 = 6;
+/// A first byte below this is a compact header's version; every older world starts with `M`.
+const COMPACT_VERSION_LIMIT: u8 = 0x40;
 pub(crate) const HEADER_LEN_V1: usize = 80;
 pub(crate) const INDEX_ENTRY_LEN_V1: usize = 8;
 
@@ -249,6 +278,8 @@ const FLAG_COMMON_FRAMES: u8 = 8;
 const FLAG_DYNAMICS: u8 = 16;
 /// Version 5: the bounds are decimals (see the module doc).
 const FLAG_DECIMAL_BOUNDS: u8 = 32;
+/// Version 6: the motion model is FreeFlightGravity (the model byte of versions 2–5).
+const FLAG_GRAVITY_MODEL: u8 = 64;
 /// Most substeps per frame a version-4 header may hold (each costs decoding time per simulated
 /// frame; rapier's default is 4).
 pub(crate) const MAX_SUBSTEPS: u32 = 16;
@@ -352,13 +383,9 @@ pub(crate) fn derived_steps(version: u16, e_max: f64, theta_max: f64) -> (f64, f
 }
 
 impl Header {
-    /// Writes a version-2 header.
+    /// Writes a header of the current version (the compact layout of version 6).
     pub(crate) fn write(&self, out: &mut Vec<u8>) {
-        let start = out.len();
-        out.extend_from_slice(&MAGIC);
-        out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
-        out.extend_from_slice(&[0, 0]); // header length, patched below
-        out.push(self.model.wire_id());
+        out.push(FORMAT_VERSION as u8);
         let preset = PRESETS
             .iter()
             .position(|q| q.bounds() == (self.e_max, self.theta_max));
@@ -391,6 +418,11 @@ impl Header {
         };
         flags |= if self.dynamics.is_some() {
             FLAG_DYNAMICS
+        } else {
+            0
+        };
+        flags |= if self.model.wire_id() == 1 {
+            FLAG_GRAVITY_MODEL
         } else {
             0
         };
@@ -464,11 +496,21 @@ impl Header {
                 out.extend_from_slice(&c.to_le_bytes());
             }
         }
-        let len = (out.len() - start) as u16;
-        out[start + 6..start + 8].copy_from_slice(&len.to_le_bytes());
     }
 
     pub(crate) fn parse(bytes: &[u8]) -> Result<Self, CodecError> {
+        need(bytes, 1)?;
+        let first = bytes[0];
+        if first != MAGIC[0] && first < COMPACT_VERSION_LIMIT {
+            let version = u16::from(first);
+            if !(COMPACT_HEADER_VERSION..=FORMAT_VERSION).contains(&version) {
+                return Err(CodecError::UnsupportedVersion {
+                    found: version,
+                    supported: FORMAT_VERSION,
+                });
+            }
+            return Self::parse_v2(bytes, None, version)?.validate();
+        }
         need(bytes, 8)?;
         if bytes[..4] != MAGIC {
             return Err(CodecError::BadMagic {
@@ -480,7 +522,7 @@ impl Header {
         let header_len = usize::from(u16::from_le_bytes([bytes[6], bytes[7]]));
         let header = match version {
             1 => Self::parse_v1(bytes, header_len)?,
-            2..=5 => Self::parse_v2(bytes, header_len, version)?,
+            2..=5 => Self::parse_v2(bytes, Some(header_len), version)?,
             _ => {
                 return Err(CodecError::UnsupportedVersion {
                     found: version,
@@ -517,11 +559,18 @@ impl Header {
         })
     }
 
-    fn parse_v2(bytes: &[u8], header_len: usize, version: u16) -> Result<Self, CodecError> {
-        need(bytes, header_len)?;
+    /// The fields of versions 2 to 5 (after magic, version and header length H; `header_len`
+    /// is H) or of version 6 (after the version byte; `header_len` is `None`: the header ends
+    /// where its fields do).
+    fn parse_v2(bytes: &[u8], header_len: Option<usize>, version: u16) -> Result<Self, CodecError> {
         // Every field is read from the header's own bytes: a field running past H is corrupt.
-        let h = &bytes[..header_len];
-        let mut at = 8;
+        let (h, mut at) = match header_len {
+            Some(n) => {
+                need(bytes, n)?;
+                (&bytes[..n], 8)
+            }
+            None => (bytes, 1),
+        };
         let byte = |at: &mut usize| -> Result<u8, CodecError> {
             let b = *h.get(*at).ok_or(CodecError::Truncated {
                 at_bit: *at as u64 * 8,
@@ -536,8 +585,13 @@ impl Header {
             *at += 8;
             Ok(v)
         };
-        let model_id = byte(&mut at)?;
-        let flags = byte(&mut at)?;
+        let (model_id, flags) = match header_len {
+            Some(_) => (byte(&mut at)?, byte(&mut at)?),
+            None => {
+                let flags = byte(&mut at)?;
+                (u8::from(flags & FLAG_GRAVITY_MODEL != 0), flags)
+            }
+        };
         let (e_max, theta_max) = if flags & FLAG_PRESET != 0 {
             let i = byte(&mut at)?;
             PRESETS
@@ -654,7 +708,7 @@ impl Header {
         };
         Ok(Header {
             version,
-            header_len,
+            header_len: header_len.unwrap_or(at),
             model: model(model_id, g)?,
             object_count,
             frame_dt,
@@ -880,10 +934,11 @@ mod tests {
         let h = header(g, 1.0 / 120.0, (0.002, 0.003), Some(120));
         let mut out = Vec::new();
         h.write(&mut out);
-        // magic 4, version 2, length 2, model 1, flags 1, bounds 2 × 2, rate 1, gravity 1 + 3 × 2,
-        // start parameters 2, object count 2, frame count 1.
-        assert_eq!(out.len(), 27);
-        assert_eq!(out[9] & FLAG_DECIMAL_BOUNDS, FLAG_DECIMAL_BOUNDS);
+        // Version 1, flags 1, bounds 2 × 2, rate 1, gravity 1 + 3 × 2, start parameters 2, object
+        // count 2, frame count 1 (versions 2–5: 8 bytes more, magic, a two-byte version, the
+        // header length and the model).
+        assert_eq!(out.len(), 19);
+        assert_eq!(out[1] & FLAG_DECIMAL_BOUNDS, FLAG_DECIMAL_BOUNDS);
         reads_back(&h, &out);
         // Not decimals: the f64s, as in version 4 (16 + 24 bytes more).
         let third = 1.0 / 3.0;
@@ -895,10 +950,10 @@ mod tests {
             ..header(g, 1.0 / 120.0, (third * 1e-2, 0.003), Some(120))
         }
         .write(&mut f);
-        assert_eq!(f[9] & FLAG_DECIMAL_BOUNDS, 0);
-        assert_eq!(f.len(), 10 + 16 + 1 + 1 + 8 + 2 + 2 + 1);
+        assert_eq!(f[1] & FLAG_DECIMAL_BOUNDS, 0);
+        assert_eq!(f.len(), 2 + 16 + 1 + 1 + 8 + 2 + 2 + 1);
         // Offsets of the bounds' exponents and of the first gravity exponent.
-        for (at, byte, field) in [(11, 23u8, "e_max"), (17, 99, "gravity")] {
+        for (at, byte, field) in [(3, 23u8, "e_max"), (9, 99, "gravity")] {
             let mut bad = out.clone();
             bad[at] = byte;
             match Header::parse(&bad) {
@@ -907,7 +962,7 @@ mod tests {
             }
         }
         let mut zero = out.clone();
-        zero[12] = 0; // θ_max's mantissa
+        zero[4] = 0; // θ_max's mantissa
         assert!(matches!(
             Header::parse(&zero),
             Err(CodecError::BadHeaderField {
@@ -918,14 +973,14 @@ mod tests {
     }
 
     #[test]
-    fn v2_headers_roundtrip_and_are_small_for_presets() {
+    fn headers_roundtrip_and_are_small_for_presets() {
         let g = MotionModel::FreeFlightGravity {
             g: [0.0, -9.81, 0.0],
         };
         for (h, max_len) in [
             (
                 header(g, 1.0 / 120.0, Quality::Standard.bounds(), Some(120)),
-                18,
+                10,
             ),
             (
                 header(
@@ -936,15 +991,15 @@ mod tests {
                     Quality::Draft.bounds(),
                     Some(7),
                 ),
-                34,
+                26,
             ),
-            (header(MotionModel::General, 0.013, (2e-3, 7e-4), None), 40),
+            (header(MotionModel::General, 0.013, (2e-3, 7e-4), None), 32),
             (
                 Header {
                     pos_step: 0.5e-3,
                     ..header(g, 1.0 / 60.0, Quality::Final.bounds(), Some(0))
                 },
-                60,
+                52,
             ),
             // Version 4's dynamics: no damping (2 bytes more), a decimal damping (4), any
             // other (10).
@@ -956,7 +1011,7 @@ mod tests {
                     }),
                     ..header(g, 1.0 / 120.0, Quality::Standard.bounds(), Some(120))
                 },
-                20,
+                12,
             ),
             (
                 Header {
@@ -966,7 +1021,7 @@ mod tests {
                     }),
                     ..header(g, 1.0 / 120.0, Quality::Standard.bounds(), Some(120))
                 },
-                22,
+                14,
             ),
             (
                 Header {
@@ -976,7 +1031,7 @@ mod tests {
                     }),
                     ..header(g, 1.0 / 120.0, Quality::Standard.bounds(), Some(120))
                 },
-                28,
+                20,
             ),
         ] {
             let mut out = Vec::new();

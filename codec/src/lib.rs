@@ -13,10 +13,10 @@
 //! frame** the decoded position is within `e_max` of the input (Euclidean norm, which also bounds
 //! each axis) and the decoded orientation within `θ_max` (angle of the residual rotation); the
 //! encoder checks this on the decoded bytes before returning them. The encoder writes format
-//! version 5 (every quantised 3-vector a point of the body-centred cubic lattice, which covers
+//! version 6 (every quantised 3-vector a point of the body-centred cubic lattice, which covers
 //! space as the cubic one does with 1.86× fewer points; bounds and gravity other than the
-//! well-known ones as short decimals in the header) and the reader reads versions 1 to 5
-//! (`format` has the layouts).
+//! well-known ones as short decimals in the header; a header without magic or length, 8 bytes
+//! shorter than version 5's) and the reader reads versions 1 to 6 (`format` has the layouts).
 //!
 //! # Writing
 //!

@@ -303,18 +303,32 @@ fn unknown_versions_and_magic_are_named() {
         WorldReader::new(&bytes).unwrap().version(),
         mwb_codec::FORMAT_VERSION
     );
-    bytes[4] = 9;
-    assert!(matches!(
-        WorldReader::new(&bytes),
-        Err(mwb_codec::CodecError::UnsupportedVersion {
-            found: 9,
-            supported: mwb_codec::FORMAT_VERSION,
-        })
-    ));
+    // Version 6 on: the version is the first byte.
+    assert_eq!(u16::from(bytes[0]), mwb_codec::FORMAT_VERSION);
+    for version in [9u8, 5, 0] {
+        bytes[0] = version;
+        assert!(matches!(
+            WorldReader::new(&bytes),
+            Err(mwb_codec::CodecError::UnsupportedVersion {
+                found,
+                supported: mwb_codec::FORMAT_VERSION,
+            }) if found == u16::from(version)
+        ));
+    }
     bytes[0] = b'X';
     assert!(matches!(
         WorldReader::new(&bytes),
         Err(mwb_codec::CodecError::BadMagic { .. })
+    ));
+    // Versions 1 to 5 start with the magic, then the version.
+    let mut old = v2_header(0, 0, None);
+    old[4] = 9;
+    assert!(matches!(
+        WorldReader::new(&old),
+        Err(mwb_codec::CodecError::UnsupportedVersion {
+            found: 9,
+            supported: mwb_codec::FORMAT_VERSION,
+        })
     ));
 }
 
