@@ -604,8 +604,8 @@ impl AngleTest {
 
 /// What the candidate rotation fits of one segment (same start frame, same decoded start
 /// orientation) share, so that each is computed once: the unwrapped logarithms of the data
-/// against each reference, the start offset, and the verdicts of the bound test per quantised
-/// curve. Every cached value is the value the uncached computation would produce, so fits and
+/// against each reference, the start offset, the bound test's `q₀ ⊗ q⁻¹` per frame, and the
+/// verdicts of the bound test per quantised curve. Every cached value is the value the uncached computation would produce, so fits and
 /// bytes are unchanged.
 #[derive(Debug, Default)]
 pub(crate) struct RotationScratch {

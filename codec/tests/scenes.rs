@@ -188,6 +188,7 @@ fn shipped_scene_motion() {
                 let t0 = Instant::now();
                 let w = encode_world_with_dynamics(seg, &p, d).expect("encodes");
                 free += w.stats.free_rotation_segments;
+                secs += t0.elapsed().as_secs_f64();
                 if let Ok(out) = std::env::var("MWB_SCENE_STREAMS_OUT")
                     && w.stats.free_rotation_segments > 0
                 {
@@ -198,7 +199,6 @@ fn shipped_scene_motion() {
                     std::fs::write(format!("{out}/{scene}_{label}_{n}.mwbm"), &w.bytes)
                         .expect("writes the stream");
                 }
-                secs += t0.elapsed().as_secs_f64();
                 bytes += w.bytes.len();
                 for &b in &w.bytes {
                     digest = (digest ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3);
