@@ -108,6 +108,14 @@ fn v4_dynamics_header(model: u8, objects: u32, common_frames: Option<u32>) -> Ve
     h
 }
 
+/// The compact (version 6) form of a version-2-to-5 header: the version byte, the flags with the
+/// model as flag 64, then the same fields.
+fn v6_header(legacy: &[u8]) -> Vec<u8> {
+    let mut h = vec![6, legacy[9] | if legacy[8] == 1 { 64 } else { 0 }];
+    h.extend_from_slice(&legacy[10..]);
+    h
+}
+
 fn valid_world() -> Vec<u8> {
     let dt = 1.0 / 120.0;
     let tracks: Vec<_> = (0..4)
@@ -187,6 +195,46 @@ proptest! {
     }
 
     #[test]
+    fn arbitrary_payload_behind_a_valid_v6_header(
+        objects in 0u32..6,
+        frames in proptest::collection::vec(any::<u32>(), 6),
+        common in any::<bool>(),
+        dynamics in any::<bool>(),
+        payload in proptest::collection::vec(any::<u8>(), 0..400),
+        model in 0u8..2,
+    ) {
+        // The compact header (format 6: lattice vectors, free flights with `dynamics`) and an
+        // index whose lengths add up.
+        let common_frames = common.then_some(frames[0] % 3000);
+        let legacy = if dynamics {
+            v4_dynamics_header(model, objects, common_frames)
+        } else {
+            v2_header(model, objects, common_frames)
+        };
+        let mut bytes = v6_header(&legacy);
+        let per = payload.len() / objects.max(1) as usize;
+        for (i, f) in frames.iter().enumerate().take(objects as usize) {
+            let len = if i + 1 == objects as usize { payload.len() - per * i } else { per };
+            let mut v = len as u64;
+            while v >= 0x80 {
+                bytes.push((v as u8) | 0x80);
+                v >>= 7;
+            }
+            bytes.push(v as u8);
+            if !common {
+                bytes.push((f % 100) as u8 + 1);
+            }
+        }
+        if objects > 0 {
+            bytes.extend_from_slice(&payload);
+        }
+        // The header and index are sound: the reader opens, and the payloads are what is tested.
+        let opened = WorldReader::new(&bytes);
+        proptest::prop_assert!(opened.is_ok(), "{:?}", opened.err());
+        exercise(&bytes);
+    }
+
+    #[test]
     fn bit_flipped_valid_streams(flips in proptest::collection::vec(any::<prop::sample::Index>(), 1..8)) {
         let mut bytes = valid_world();
         let bits = bytes.len() * 8;
@@ -230,7 +278,10 @@ fn hostile_frame_counts_are_refused_before_allocating() {
     let mut v3 = v3_header(1, 1, Some(u32::MAX));
     v3.push(64);
     v3.extend_from_slice(&[0x00; 64]);
-    for bytes in [v1, v2, v3] {
+    let mut v6 = v6_header(&v2_header(1, 1, Some(u32::MAX)));
+    v6.push(64);
+    v6.extend_from_slice(&[0x00; 64]);
+    for bytes in [v1, v2, v3, v6] {
         let r = WorldReader::new(&bytes).unwrap();
         assert_eq!(r.frame_count(), u32::MAX as usize);
         assert!(matches!(
