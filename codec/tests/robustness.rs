@@ -108,6 +108,37 @@ fn v4_dynamics_header(model: u8, objects: u32, common_frames: Option<u32>) -> Ve
     h
 }
 
+/// After a version-2-to-6 header: an index whose lengths add up (the payload split between
+/// `objects`, each with its own frame count unless `common`), then the payload.
+fn index_and_payloads(
+    bytes: &mut Vec<u8>,
+    objects: u32,
+    frames: &[u32],
+    common: bool,
+    payload: &[u8],
+) {
+    let per = payload.len() / objects.max(1) as usize;
+    for (i, f) in frames.iter().enumerate().take(objects as usize) {
+        let len = if i + 1 == objects as usize {
+            payload.len() - per * i
+        } else {
+            per
+        };
+        let mut v = len as u64;
+        while v >= 0x80 {
+            bytes.push((v as u8) | 0x80);
+            v >>= 7;
+        }
+        bytes.push(v as u8);
+        if !common {
+            bytes.push((f % 100) as u8 + 1);
+        }
+    }
+    if objects > 0 {
+        bytes.extend_from_slice(payload);
+    }
+}
+
 /// The compact (version 6) form of a version-2-to-5 header: the version byte, the flags with the
 /// model as flag 64, then the same fields.
 fn v6_header(legacy: &[u8]) -> Vec<u8> {
@@ -175,22 +206,7 @@ proptest! {
             v2_header(model, objects, common_frames)
         };
         bytes[4..6].copy_from_slice(&version.min(4).to_le_bytes());
-        let per = payload.len() / objects.max(1) as usize;
-        for (i, f) in frames.iter().enumerate().take(objects as usize) {
-            let len = if i + 1 == objects as usize { payload.len() - per * i } else { per };
-            let mut v = len as u64;
-            while v >= 0x80 {
-                bytes.push((v as u8) | 0x80);
-                v >>= 7;
-            }
-            bytes.push(v as u8);
-            if !common {
-                bytes.push((f % 100) as u8 + 1);
-            }
-        }
-        if objects > 0 {
-            bytes.extend_from_slice(&payload);
-        }
+        index_and_payloads(&mut bytes, objects, &frames, common, &payload);
         exercise(&bytes);
     }
 
@@ -212,22 +228,7 @@ proptest! {
             v2_header(model, objects, common_frames)
         };
         let mut bytes = v6_header(&legacy);
-        let per = payload.len() / objects.max(1) as usize;
-        for (i, f) in frames.iter().enumerate().take(objects as usize) {
-            let len = if i + 1 == objects as usize { payload.len() - per * i } else { per };
-            let mut v = len as u64;
-            while v >= 0x80 {
-                bytes.push((v as u8) | 0x80);
-                v >>= 7;
-            }
-            bytes.push(v as u8);
-            if !common {
-                bytes.push((f % 100) as u8 + 1);
-            }
-        }
-        if objects > 0 {
-            bytes.extend_from_slice(&payload);
-        }
+        index_and_payloads(&mut bytes, objects, &frames, common, &payload);
         // The header and index are sound: the reader opens, and the payloads are what is tested.
         let opened = WorldReader::new(&bytes);
         proptest::prop_assert!(opened.is_ok(), "{:?}", opened.err());
