@@ -30,10 +30,11 @@ const FIXTURES: [(u16, &str, Quality, MotionModel); 10] = [
 
 const GRAVITY: MotionModel = MotionModel::FreeFlightGravity { g: G };
 
-/// The motion of the `*_free_final` fixtures: objects 0 and 1 torque-free bodies with principal moments
-/// `[0.2, 1.1, 0.9]` (`torque_free(Rng::new(41 + object), [0.2, 1.1, 0.9], 120, 1/120, &[60], 5.0,
-/// 0.5)`), the rest the generators' tracks; encoded with `RotationDynamics { substeps: 4,
-/// angular_damping: 0.5 }` and those moments for objects 0 and 1 (three free-flight segments).
+/// The motion of the `*_free_final` fixtures: objects 0 and 1 torque-free bodies with principal
+/// moments `[0.2, 1.1, 0.9]` (`torque_free(Rng::new(41 + object), [0.2, 1.1, 0.9], 120, 1/120,
+/// &[60], 5.0, 0.5)`), the rest the generators' tracks; encoded with `RotationDynamics {
+/// substeps: 4, angular_damping: 0.5 }` and those moments for objects 0 and 1 (three free-flight
+/// segments in each).
 fn free_input(object: usize) -> Track {
     if object < 2 {
         let mut rng = Rng::new(41 + object as u64);
