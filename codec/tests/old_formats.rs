@@ -34,7 +34,7 @@ const GRAVITY: MotionModel = MotionModel::FreeFlightGravity { g: G };
 /// moments `[0.2, 1.1, 0.9]` (`torque_free(Rng::new(41 + object), [0.2, 1.1, 0.9], 120, 1/120,
 /// &[60], 5.0, 0.5)`), the rest the generators' tracks; encoded with `RotationDynamics {
 /// substeps: 4, angular_damping: 0.5 }` and those moments for objects 0 and 1 (three free-flight
-/// segments in each).
+/// segments in all).
 fn free_input(object: usize) -> Track {
     if object < 2 {
         let mut rng = Rng::new(41 + object as u64);
