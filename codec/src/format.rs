@@ -197,7 +197,8 @@ pub const MAGIC: [u8; 4] = *b"MWBM";
 pub const FORMAT_VERSION: u16 = 6;
 /// The first version with the compact header (no magic, no header length).
 pub(crate) const COMPACT_HEADER_VERSION: u16 = 6;
-/// A first byte below this is a compact header's version; every older world starts with `M`.
+/// A first byte below this is a compact header's version; every older world starts with `M`
+/// (0x4D, above it).
 const COMPACT_VERSION_LIMIT: u8 = 0x40;
 pub(crate) const HEADER_LEN_V1: usize = 80;
 pub(crate) const INDEX_ENTRY_LEN_V1: usize = 8;
@@ -501,7 +502,7 @@ impl Header {
     pub(crate) fn parse(bytes: &[u8]) -> Result<Self, CodecError> {
         need(bytes, 1)?;
         let first = bytes[0];
-        if first != MAGIC[0] && first < COMPACT_VERSION_LIMIT {
+        if first < COMPACT_VERSION_LIMIT {
             let version = u16::from(first);
             if !(COMPACT_HEADER_VERSION..=FORMAT_VERSION).contains(&version) {
                 return Err(CodecError::UnsupportedVersion {
@@ -509,7 +510,7 @@ impl Header {
                     supported: FORMAT_VERSION,
                 });
             }
-            return Self::parse_v2(bytes, None, version)?.validate();
+            return Self::parse_fields(bytes, None, version)?.validate();
         }
         need(bytes, 8)?;
         if bytes[..4] != MAGIC {
@@ -522,7 +523,7 @@ impl Header {
         let header_len = usize::from(u16::from_le_bytes([bytes[6], bytes[7]]));
         let header = match version {
             1 => Self::parse_v1(bytes, header_len)?,
-            2..=5 => Self::parse_v2(bytes, Some(header_len), version)?,
+            2..=5 => Self::parse_fields(bytes, Some(header_len), version)?,
             _ => {
                 return Err(CodecError::UnsupportedVersion {
                     found: version,
@@ -562,7 +563,11 @@ impl Header {
     /// The fields of versions 2 to 5 (after magic, version and header length H; `header_len`
     /// is H) or of version 6 (after the version byte; `header_len` is `None`: the header ends
     /// where its fields do).
-    fn parse_v2(bytes: &[u8], header_len: Option<usize>, version: u16) -> Result<Self, CodecError> {
+    fn parse_fields(
+        bytes: &[u8],
+        header_len: Option<usize>,
+        version: u16,
+    ) -> Result<Self, CodecError> {
         // Every field is read from the header's own bytes: a field running past H is corrupt.
         let (h, mut at) = match header_len {
             Some(n) => {

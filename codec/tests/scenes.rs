@@ -180,6 +180,7 @@ fn shipped_scene_motion() {
             let (mut e, mut a) = (0.0f64, 0.0f64);
             let mut parts = SizeBreakdown::default();
             let off = std::env::var("MWB_SCENE_DYNAMICS").is_ok_and(|v| v == "off");
+            let streams_out = std::env::var("MWB_SCENE_STREAMS_OUT").ok();
             let mut free = 0u64;
             // FNV-1a over every stream: "same bytes" checks of exact encoder changes.
             let mut digest = 0xcbf2_9ce4_8422_2325u64;
@@ -189,7 +190,7 @@ fn shipped_scene_motion() {
                 let w = encode_world_with_dynamics(seg, &p, d).expect("encodes");
                 free += w.stats.free_rotation_segments;
                 secs += t0.elapsed().as_secs_f64();
-                if let Ok(out) = std::env::var("MWB_SCENE_STREAMS_OUT")
+                if let Some(out) = &streams_out
                     && w.stats.free_rotation_segments > 0
                 {
                     let label: String = label
