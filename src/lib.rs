@@ -2,9 +2,6 @@
 //! Subcommands are thin: the nodes are libraries (`mwb-sampler`, `mwb-store`, …).
 
 pub mod bench;
-pub mod bench_codec;
-pub mod bench_query;
-pub mod bench_stepper;
 pub mod bus;
 pub mod check;
 pub mod client;

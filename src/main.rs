@@ -250,7 +250,7 @@ fn bench_codec(
     plot: Option<&std::path::Path>,
     tracks_out: Option<&std::path::Path>,
 ) -> Result<()> {
-    use mwb::bench_codec::{PRESETS, SceneMotion, measure, plot_rate_distortion, rate_distortion};
+    use mwb::bench::codec::{PRESETS, SceneMotion, measure, plot_rate_distortion, rate_distortion};
     let scenes = if scenes.is_empty() {
         mwb_core::scene::builtin::NAMES
             .iter()
@@ -477,7 +477,7 @@ async fn run(cli: Cli) -> Result<()> {
         }
         Command::Bench { command } => match command {
             BenchCommand::Stepper { json: _ } => {
-                let b = tokio::task::spawn_blocking(mwb::bench_stepper::run).await??;
+                let b = tokio::task::spawn_blocking(mwb::bench::stepper::run).await??;
                 print_json(&b)?;
             }
             BenchCommand::Reverse {
@@ -519,7 +519,7 @@ async fn run(cli: Cli) -> Result<()> {
                 spread_m,
                 json: _,
             } => {
-                let opts = mwb::bench_query::QueryBenchOptions {
+                let opts = mwb::bench::query::QueryBenchOptions {
                     scene,
                     worlds,
                     objects,
@@ -527,7 +527,7 @@ async fn run(cli: Cli) -> Result<()> {
                     path_tolerance_m: path_tolerance_mm * 1e-3,
                     spread_m,
                 };
-                let b = tokio::task::spawn_blocking(move || mwb::bench_query::bench_query(&opts))
+                let b = tokio::task::spawn_blocking(move || mwb::bench::query::bench_query(&opts))
                     .await??;
                 print_json(&b)?;
             }
@@ -537,7 +537,7 @@ async fn run(cli: Cli) -> Result<()> {
                 json: _,
                 motion,
             } => {
-                let b = mwb::bench::bench_sampler(&scene, worlds, motion).await?;
+                let b = mwb::bench::sampler::bench_sampler(&scene, worlds, motion).await?;
                 print_json(&b)?;
             }
             BenchCommand::Codec {
