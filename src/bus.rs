@@ -116,3 +116,11 @@ impl BusArgs {
 pub async fn close(session: zenoh::Session) {
     let _ = tokio::time::timeout(std::time::Duration::from_secs(3), session.close()).await;
 }
+
+/// Waits for Ctrl-C: how a node serving in the foreground is stopped. If the signal cannot be
+/// watched the node stops at once (better than one that cannot be stopped), and says why.
+pub async fn until_ctrl_c() {
+    if let Err(e) = tokio::signal::ctrl_c().await {
+        tracing::warn!(error = %e, "cannot watch for Ctrl-C; stopping");
+    }
+}

@@ -355,6 +355,28 @@ pub async fn status(session: &Session, keys: &Keys, listen: Duration) -> Result<
     Ok(Status { nodes, jobs })
 }
 
+/// A job's state in one word, as tables print it.
+pub fn state_name(closed: bool, cancelled: bool) -> &'static str {
+    if cancelled {
+        "cancelled"
+    } else if closed {
+        "closed"
+    } else {
+        "open"
+    }
+}
+
+/// The progress bar of a command that follows a job of `worlds` worlds.
+pub fn progress_bar(worlds: u32) -> indicatif::ProgressBar {
+    let b = indicatif::ProgressBar::new(u64::from(worlds));
+    if let Ok(style) = indicatif::ProgressStyle::with_template(
+        "{spinner} {bar:40} {pos}/{len} worlds  {per_sec}  eta {eta}",
+    ) {
+        b.set_style(style);
+    }
+    b
+}
+
 /// Worlds per second over the job's life so far.
 pub fn job_rate(st: &JobState) -> f64 {
     let span = st.last_world_unix_ms.saturating_sub(st.first_world_unix_ms) as f64 / 1000.0;
@@ -398,26 +420,16 @@ impl MotionArgs {
             EncodingArg::Spline => Encoding::SplineV1,
             EncodingArg::Frames => Encoding::QuantisedFramesV1,
         } as i32;
-        job.quality = match self.quality {
+        job.quality = Quality::from(self.quality) as i32;
+    }
+}
+
+impl From<QualityArg> for Quality {
+    fn from(q: QualityArg) -> Self {
+        match q {
             QualityArg::Draft => Quality::Draft,
             QualityArg::Standard => Quality::Standard,
             QualityArg::Final => Quality::Final,
-        } as i32;
-    }
-
-    /// The sampler's run options for these arguments.
-    pub fn run_options(&self) -> mwb_sampler::RunOptions {
-        mwb_sampler::RunOptions {
-            quality: match self.quality {
-                QualityArg::Draft => mwb_codec::Quality::Draft,
-                QualityArg::Standard => mwb_codec::Quality::Standard,
-                QualityArg::Final => mwb_codec::Quality::Final,
-            },
-            encoding: match self.encoding {
-                EncodingArg::Spline => mwb_sampler::PayloadEncoding::Spline,
-                EncodingArg::Frames => mwb_sampler::PayloadEncoding::QuantisedFrames,
-            },
-            ..Default::default()
         }
     }
 }

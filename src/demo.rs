@@ -5,6 +5,7 @@
 use crate::bus::{BusArgs, Mode};
 use crate::check::verify_world;
 use crate::client;
+use crate::output::Summary;
 use anyhow::{Result, bail};
 use mwb_core::browse::api::{Reply, Request};
 use mwb_core::browse::{Aggregate, Metric, Order, RankKey};
@@ -23,7 +24,53 @@ async fn stay_until_ctrl_c(endpoints: &[String]) {
         endpoints.join(", "),
         endpoints.first().map_or(STAY_ENDPOINT, String::as_str)
     );
-    let _ = tokio::signal::ctrl_c().await;
+    crate::bus::until_ctrl_c().await;
+}
+
+/// Arguments of `mwb demo`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct DemoArgs {
+    #[command(flatten)]
+    pub bus: BusArgs,
+    /// Scene file, or a shipped scene name (tumble, pachinko, tower, chute).
+    #[arg(long, default_value = "tumble")]
+    pub scene: String,
+    #[arg(long, default_value_t = 200)]
+    pub worlds: u32,
+    #[arg(long, default_value_t = 2)]
+    pub samplers: usize,
+    /// Store memory cap, MiB (stored motion and the browsing index).
+    #[arg(long, default_value_t = 2048)]
+    pub memory_cap_mib: u64,
+    /// Print the summary as one JSON line.
+    #[arg(long)]
+    pub json: bool,
+    /// Keep serving after the summary (store + node-query) so `mwb query` can browse.
+    #[arg(long)]
+    pub stay: bool,
+    #[command(flatten)]
+    pub motion: client::MotionArgs,
+}
+
+/// Runs `mwb demo`: the summary as a table or one JSON line, then (`--stay`) serves.
+pub async fn run(args: DemoArgs) -> Result<()> {
+    let opts = DemoOptions {
+        stay: args.stay,
+        scene: args.scene,
+        worlds: args.worlds,
+        samplers: args.samplers,
+        memory_cap_bytes: args.memory_cap_mib << 20,
+        motion: args.motion,
+        show_progress: !args.json && std::io::IsTerminal::is_terminal(&std::io::stderr()),
+    };
+    if !args.json {
+        eprintln!(
+            "mwb demo: {} worlds of {} with {} samplers on an embedded bus …",
+            opts.worlds, opts.scene, opts.samplers
+        );
+    }
+    run_demo_with(&args.bus, &opts, |s| crate::output::print(s, args.json)).await?;
+    Ok(())
 }
 
 #[derive(Debug, Clone)]
@@ -62,6 +109,42 @@ pub struct DemoSummary {
     /// The world that comes to rest soonest (node-query ranking over the bus) and its time.
     pub soonest_rest_world: Option<u32>,
     pub soonest_rest_s: Option<f64>,
+}
+
+impl Summary for DemoSummary {
+    fn table(&self) -> String {
+        let mut t = format!(
+            "scene            {}\n\
+             worlds           {} ({} CRC-verified, {} bodies each)\n\
+             time             {:.2} s with {} samplers\n\
+             worlds/s         {:.1}\n\
+             impacts/world    {:.1}\n\
+             perturbs/world   {:.1}\n\
+             frames/world     {:.0}\n\
+             bytes/world      {:.0} (motion codec; 7 × f32 would be {:.0}, {:.0}× more)\n\
+             came to rest     {:.0} %\n\
+             browsable        {} worlds indexed\n",
+            self.scene,
+            self.worlds,
+            self.crc_valid_worlds,
+            self.bodies,
+            self.seconds,
+            self.samplers,
+            self.worlds_per_s,
+            self.impacts_per_world,
+            self.perturbations_per_world,
+            self.frames_per_world,
+            self.bytes_per_world,
+            self.raw_f32_bytes_per_world,
+            self.raw_f32_bytes_per_world / self.bytes_per_world.max(1.0),
+            self.rested_fraction * 100.0,
+            self.browsable_worlds,
+        );
+        if let (Some(w), Some(s)) = (self.soonest_rest_world, self.soonest_rest_s) {
+            t += &format!("rests soonest    world {w} ({s:.2} s; `mwb query show {w}`)\n");
+        }
+        t
+    }
 }
 
 pub async fn run_demo(bus: &BusArgs, opts: &DemoOptions) -> Result<DemoSummary> {
@@ -122,17 +205,9 @@ pub async fn run_demo_with(
     }
     let start = Instant::now();
     client::submit_job(&session, &keys, &job).await?;
-    let bar = if opts.show_progress {
-        let b = indicatif::ProgressBar::new(u64::from(opts.worlds));
-        if let Ok(style) = indicatif::ProgressStyle::with_template(
-            "{spinner} {bar:40} {pos}/{len} worlds  {per_sec}  eta {eta}",
-        ) {
-            b.set_style(style);
-        }
-        Some(b)
-    } else {
-        None
-    };
+    let bar = opts
+        .show_progress
+        .then(|| client::progress_bar(opts.worlds));
     let state = client::wait_job(&session, &keys, &job.id, None, |st| {
         if let Some(b) = &bar {
             b.set_position(u64::from(st.worlds_done));

@@ -1,13 +1,17 @@
-//! The `mwb` command line: one binary for every role (DESIGN.md "Shape of the system").
-//! Subcommands are thin: the nodes are libraries (`mwb-sampler`, `mwb-store`, …).
+//! The `mwb` command line: one binary for every role. Each command is a module here (its
+//! arguments and its `run`); the nodes are libraries (`mwb-sampler`, `mwb-store`, …), and
+//! `bus`, `client`, `check` and `output` are what the commands share.
 
 pub mod bench;
-pub mod bench_codec;
-pub mod bench_query;
-pub mod bench_stepper;
 pub mod bus;
 pub mod check;
 pub mod client;
 pub mod demo;
+pub mod job;
+pub mod output;
 pub mod query;
 pub mod reverse_cmd;
+pub mod sampler;
+pub mod scene;
+pub mod status;
+pub mod store;

@@ -15,6 +15,7 @@
 
 use crate::bus::BusArgs;
 use crate::client::{self, QualityArg};
+use crate::output::Summary;
 use anyhow::{Context, Result, bail};
 use mwb_core::keys::Keys;
 use mwb_proto::v1::{Job, JobKind, JobState, Quality};
@@ -107,11 +108,7 @@ pub fn make_reverse_job(
     // The job carries the whole text, `[reverse]` table included, for the nodes.
     let mut job = client::make_job(file, text, target, priority, id)?;
     job.kind = JobKind::Reverse as i32;
-    job.quality = match quality {
-        QualityArg::Draft => Quality::Draft,
-        QualityArg::Standard => Quality::Standard,
-        QualityArg::Final => Quality::Final,
-    } as i32;
+    job.quality = Quality::from(quality) as i32;
     Ok(job)
 }
 
@@ -151,16 +148,31 @@ fn summary(job: &Job, file: &str, st: &JobState, seconds: f64) -> ReverseSummary
     }
 }
 
-fn print(s: &ReverseSummary, json: bool) -> Result<()> {
-    if json {
-        println!("{}", serde_json::to_string(s)?);
-    } else {
-        println!(
-            "job {}: {}/{} backward worlds of {} in {:.2} s ({:.2} worlds/s), {} rejected",
-            s.job, s.worlds, s.target, s.scene, s.seconds, s.worlds_per_s, s.rejected
-        );
+impl Summary for ReverseSummary {
+    fn table(&self) -> String {
+        format!(
+            "job {}: {}/{} backward worlds of {} in {:.2} s ({:.2} worlds/s), {} rejected\n",
+            self.job,
+            self.worlds,
+            self.target,
+            self.scene,
+            self.seconds,
+            self.worlds_per_s,
+            self.rejected
+        )
     }
-    Ok(())
+}
+
+/// What `mwb reverse --submit` prints without `--wait`: the job to follow.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Submitted {
+    pub job: String,
+}
+
+impl Summary for Submitted {
+    fn table(&self) -> String {
+        format!("{}\n", self.job)
+    }
 }
 
 /// Runs `mwb reverse`.
@@ -175,7 +187,7 @@ pub async fn run(args: ReverseArgs) -> Result<()> {
             node.node_id(),
             args.bus.space
         );
-        let _ = tokio::signal::ctrl_c().await;
+        crate::bus::until_ctrl_c().await;
         node.stop().await;
         crate::bus::close(session).await;
         return Ok(());
@@ -209,18 +221,14 @@ async fn with_scene(
     if args.submit {
         client::submit_job(session, keys, job).await?;
         if !args.wait {
-            if args.json {
-                println!("{}", serde_json::json!({ "job": job.id }));
-            } else {
-                println!("{}", job.id);
-            }
-            return Ok(());
+            let submitted = Submitted {
+                job: job.id.clone(),
+            };
+            return crate::output::print(&submitted, args.json);
         }
         let st = client::wait_job(session, keys, &job.id, timeout, |_| {}).await?;
-        return print(
-            &summary(job, file, &st, started.elapsed().as_secs_f64()),
-            args.json,
-        );
+        let s = summary(job, file, &st, started.elapsed().as_secs_f64());
+        return crate::output::print(&s, args.json);
     }
     let node = mwb_reverse::run_reverse(session.clone(), node_config(args)).await?;
     let st = async {
@@ -230,5 +238,5 @@ async fn with_scene(
     .await;
     let seconds = started.elapsed().as_secs_f64();
     node.stop().await;
-    print(&summary(job, file, &st?, seconds), args.json)
+    crate::output::print(&summary(job, file, &st?, seconds), args.json)
 }

@@ -23,6 +23,7 @@
 //! * ingest: `Shard::insert` of each world as the shard is filled (no live constraint), mean
 //!   and slowest — the slowest is a rebuild of the hierarchies.
 
+use crate::output::{Summary, fields_table};
 use anyhow::{Result, bail};
 use mwb_core::browse::api::{Reply, Request, ShardReply, ShardRequest};
 use mwb_core::browse::{
@@ -37,6 +38,45 @@ use mwb_store::index::{DEFAULT_PATH_TOLERANCE_M, IndexedObject};
 use mwb_store::{IndexedWorld, Shard, ShardSpec, StoredWorld, index_world};
 use std::ops::ControlFlow;
 use std::time::Instant;
+
+/// Arguments of `mwb bench query`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct QueryArgs {
+    /// Scene whose sampled paths the synthetic worlds are made of.
+    #[arg(long, default_value = "tumble")]
+    pub scene: String,
+    #[arg(long, default_value_t = 10_000)]
+    pub worlds: u32,
+    /// Objects per world.
+    #[arg(long, default_value_t = 10)]
+    pub objects: u32,
+    /// Random constraints to time.
+    #[arg(long, default_value_t = 60)]
+    pub constraints: usize,
+    /// The store's path tolerance (polyline vs decoded path), mm.
+    #[arg(long, default_value_t = 10.0)]
+    pub path_tolerance_mm: f64,
+    /// Shift each synthetic object path sideways by up to this many metres.
+    #[arg(long, default_value_t = 1.0)]
+    pub spread_m: f64,
+    /// Print the result as one JSON line.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Runs `mwb bench query`.
+pub async fn run(args: QueryArgs) -> Result<()> {
+    let opts = QueryBenchOptions {
+        scene: args.scene,
+        worlds: args.worlds,
+        objects: args.objects,
+        constraints: args.constraints,
+        path_tolerance_m: args.path_tolerance_mm * 1e-3,
+        spread_m: args.spread_m,
+    };
+    let b = tokio::task::spawn_blocking(move || bench_query(&opts)).await??;
+    crate::output::print(&b, args.json)
+}
 
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct QueryBench {
@@ -72,6 +112,12 @@ pub struct QueryBench {
     /// Polyline vertices per object, mean (the index's size driver).
     pub vertices_per_object: f64,
     pub path_radius_mm_p50: f64,
+}
+
+impl Summary for QueryBench {
+    fn table(&self) -> String {
+        fields_table(self)
+    }
 }
 
 /// The bench's random draws: a SplitMix64 stream of a fixed seed.

@@ -8,8 +8,10 @@
 //! Ratio = pipeline steps/s ÷ raw steps/s (both one simulation thread). Core-seconds per world
 //! is the whole process's CPU time (simulation, zenoh, store) per world of the pipeline run.
 
+use super::free_port;
 use crate::bus::{BusArgs, Mode};
 use crate::client;
+use crate::output::{Summary, fields_table};
 use anyhow::Result;
 use mwb_core::keys::Keys;
 use mwb_core::rng::world_seed;
@@ -18,6 +20,26 @@ use mwb_sampler::{RunOptions, SamplerConfig, run_sampler, run_world};
 use mwb_store::{StoreConfig, run_store};
 use std::ops::ControlFlow;
 use std::time::{Duration, Instant};
+
+/// Arguments of `mwb bench sampler`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct SamplerArgs {
+    #[arg(long, default_value = "tumble")]
+    pub scene: String,
+    #[arg(long, default_value_t = 50)]
+    pub worlds: u32,
+    /// Print the result as one JSON line.
+    #[arg(long)]
+    pub json: bool,
+    #[command(flatten)]
+    pub motion: client::MotionArgs,
+}
+
+/// Runs `mwb bench sampler`.
+pub async fn run(args: SamplerArgs) -> Result<()> {
+    let b = bench_sampler(&args.scene, args.worlds, args.motion).await?;
+    crate::output::print(&b, args.json)
+}
 
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct SamplerBench {
@@ -35,6 +57,12 @@ pub struct SamplerBench {
     pub bytes_per_world: f64,
 }
 
+impl Summary for SamplerBench {
+    fn table(&self) -> String {
+        fields_table(self)
+    }
+}
+
 /// CPU time of the whole process (all threads), seconds.
 pub fn process_cpu_seconds() -> f64 {
     // SAFETY: getrusage fills the struct we pass; a zeroed rusage is a valid value.
@@ -45,13 +73,6 @@ pub fn process_cpu_seconds() -> f64 {
     }
     let tv = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
     tv(ru.ru_utime) + tv(ru.ru_stime)
-}
-
-/// Free TCP port on 127.0.0.1 (bind :0, read, drop).
-pub fn free_port() -> Result<u16> {
-    Ok(std::net::TcpListener::bind("127.0.0.1:0")?
-        .local_addr()?
-        .port())
 }
 
 pub async fn bench_sampler(

@@ -18,10 +18,26 @@
 //!   round bodies carry rolling resistance (rows 5.15–5.18), rapier's do not; both are
 //!   reported as they are.
 
+use crate::output::{Summary, number};
 use anyhow::{Context, Result, bail};
 use mwb_core::scene::SceneTemplate;
 use mwb_sampler::{PayloadEncoding, RunOptions, run_world_observed};
+use std::fmt::Write as _;
 use std::ops::ControlFlow;
+
+/// Arguments of `mwb bench stepper`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct StepperArgs {
+    /// Print the result as one JSON line.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Runs `mwb bench stepper`.
+pub async fn run(args: StepperArgs) -> Result<()> {
+    let b = tokio::task::spawn_blocking(measure).await??;
+    crate::output::print(&b, args.json)
+}
 
 /// One scene, one measured quantity.
 #[derive(Debug, Clone, serde::Serialize)]
@@ -41,6 +57,29 @@ pub struct StepperCase {
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct StepperBench {
     pub cases: Vec<StepperCase>,
+}
+
+impl Summary for StepperBench {
+    fn table(&self) -> String {
+        let mut t = format!(
+            "{:<20} {:<4} {:>9} {:>9} {:>9} {:>11} {:>11}\n",
+            "CASE", "UNIT", "ANALYTIC", "OURS", "RAPIER", "OURS ERR", "RAPIER ERR"
+        );
+        for c in &self.cases {
+            let _ = writeln!(
+                t,
+                "{:<20} {:<4} {:>9} {:>9} {:>9} {:>11} {:>11}",
+                c.case,
+                c.unit,
+                number(c.analytic),
+                number(c.ours),
+                number(c.rapier),
+                number(c.ours_err),
+                number(c.rapier_err)
+            );
+        }
+        t
+    }
 }
 
 const G: f64 = 9.81;
@@ -151,7 +190,8 @@ fn first_apex(track: &[[f64; 3]], offset: f64) -> f64 {
     ys[apex] - offset
 }
 
-pub fn run() -> Result<StepperBench> {
+/// Runs every case on both engines.
+pub fn measure() -> Result<StepperBench> {
     let settings = |end: f64| format!("end_time = {end}");
     let dense = "friction = 0.5\nrestitution = 0.0\ndensity = 1000";
     let cases = vec![

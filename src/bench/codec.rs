@@ -23,6 +23,7 @@
 //! of every frame (the guarantee), `decode_mframes_per_s` is `WorldReader::new` + `decode_all`.
 
 use crate::client;
+use crate::output::{json_line, number};
 use anyhow::{Context, Result, bail};
 use mwb_codec::{
     BaselineRotation, DEFAULT_LOWRES_HZ, EncodeParams, MotionModel, Quality, RotationDynamics,
@@ -44,6 +45,104 @@ pub const PRESETS: [Quality; 3] = [Quality::Draft, Quality::Standard, Quality::F
 /// Bounds swept for the rate–distortion plot (e_max in metres; θ_max = the same number in
 /// radians, as in the presets).
 pub const SWEEP: [f64; 7] = [1e-4, 2e-4, 5e-4, 1e-3, 2e-3, 5e-3, 1e-2];
+
+/// Arguments of `mwb bench codec`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct CodecArgs {
+    /// Scene files or shipped scene names [default: every shipped scene].
+    #[arg(long = "scene")]
+    pub scenes: Vec<String>,
+    /// Worlds sampled per scene.
+    #[arg(long, default_value_t = 8)]
+    pub worlds: u32,
+    /// Also sweep the bounds and write a rate–distortion plot (PNG) here.
+    #[arg(long)]
+    pub plot: Option<std::path::PathBuf>,
+    /// Also write each scene's sampled motion to `<dir>/<scene>.tracks`, the input of the
+    /// codec's own scenes test (`MWB_SCENE_TRACKS=<dir>`, codec/tests/scenes.rs).
+    #[arg(long, value_name = "DIR")]
+    pub tracks_out: Option<std::path::PathBuf>,
+    /// Print one JSON line per (scene, preset) instead of the table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Runs `mwb bench codec`: one line per (scene, preset), printed as soon as it is measured.
+pub fn run(args: CodecArgs) -> Result<()> {
+    let scenes = if args.scenes.is_empty() {
+        mwb_core::scene::builtin::NAMES
+            .iter()
+            .map(|s| (*s).to_owned())
+            .collect()
+    } else {
+        args.scenes
+    };
+    if !args.json {
+        println!("{}", table_row(&TABLE_HEAD));
+    }
+    let mut curves = Vec::new();
+    for scene in &scenes {
+        let motion = SceneMotion::sample(scene, args.worlds)?;
+        if let Some(dir) = &args.tracks_out {
+            motion.write_tracks(dir)?;
+        }
+        for quality in PRESETS {
+            let line = measure(&motion, quality)?;
+            if args.json {
+                json_line(&line)?;
+            } else {
+                println!("{}", table_row(&line.table_cells()));
+            }
+        }
+        if args.plot.is_some() {
+            curves.push((motion.scene.clone(), rate_distortion(&motion)?));
+        }
+    }
+    if let Some(path) = &args.plot {
+        let labelled = plot_rate_distortion(path, &curves)?;
+        eprintln!(
+            "wrote {}{}",
+            path.display(),
+            if labelled {
+                ""
+            } else {
+                " (no font found: drawn without labels)"
+            }
+        );
+    }
+    Ok(())
+}
+
+/// The table's columns; the JSON line has every field. Errors are fractions of the bound.
+const TABLE_HEAD: [&str; 10] = [
+    "SCENE",
+    "PRESET",
+    "B/(OBJ·S)",
+    "×F32",
+    "×ZSTD",
+    "×ZSTD-RV",
+    "POS/EMAX",
+    "ROT/θMAX",
+    "ENC MF/S",
+    "DEC MF/S",
+];
+
+fn table_row<S: AsRef<str>>(cells: &[S; 10]) -> String {
+    let c = |i: usize| cells[i].as_ref();
+    format!(
+        "{:<22} {:<8} {:>9} {:>6} {:>6} {:>8} {:>8} {:>8} {:>8} {:>8}",
+        c(0),
+        c(1),
+        c(2),
+        c(3),
+        c(4),
+        c(5),
+        c(6),
+        c(7),
+        c(8),
+        c(9)
+    )
+}
 
 /// One line of the benchmark: one scene at one preset.
 #[derive(Debug, Clone, serde::Serialize)]
@@ -75,6 +174,23 @@ pub struct CodecBench {
     pub frames_per_rotation_segment: f64,
     /// Largest distance of the decoded motion from its low-res path (4 Hz).
     pub lowres_max_deviation: f64,
+}
+
+impl CodecBench {
+    fn table_cells(&self) -> [String; 10] {
+        [
+            self.scene.clone(),
+            self.preset.clone(),
+            number(self.bytes_per_object_second),
+            number(self.ratio_vs_f32),
+            number(self.ratio_vs_zstd),
+            number(self.ratio_vs_zstd_rotvec),
+            number(self.max_pos_err / self.e_max),
+            number(self.max_rot_err / self.theta_max),
+            number(self.encode_mframes_per_s),
+            number(self.decode_mframes_per_s),
+        ]
+    }
 }
 
 /// The recorded motion of one scene: per world, per segment, one track per body.

@@ -1,0 +1,44 @@
+//! `mwb bench …`: the benchmarks, one module each. Each prints a table, or with `--json` one
+//! JSON line per result; docs/performance.md quotes the JSON fields.
+
+use anyhow::Result;
+use clap::Subcommand;
+
+pub mod codec;
+pub mod query;
+pub mod reverse;
+pub mod sampler;
+pub mod stepper;
+
+#[derive(Debug, Subcommand)]
+pub enum BenchCommand {
+    /// Our LCP stepper (forward) and rapier on the same simple scenes vs analytic answers:
+    /// rest height, bounce apex, slide distance, rolling speed.
+    Stepper(stepper::StepperArgs),
+    /// Our LCP stepper forward vs backward (ch. 5): step cost, round trip, energy growth.
+    Reverse(reverse::ReverseArgs),
+    /// Raw rapier stepping vs the full sampling pipeline into a store over the bus.
+    Sampler(sampler::SamplerArgs),
+    /// Browsing over one store shard: add/remove a constraint, OBB tree vs brute force, rank.
+    Query(query::QueryArgs),
+    /// The motion codec on sampled worlds: one line per (scene, preset).
+    Codec(codec::CodecArgs),
+}
+
+/// Runs `mwb bench …`.
+pub async fn run(command: BenchCommand) -> Result<()> {
+    match command {
+        BenchCommand::Stepper(args) => stepper::run(args).await,
+        BenchCommand::Reverse(args) => reverse::run(args).await,
+        BenchCommand::Sampler(args) => sampler::run(args).await,
+        BenchCommand::Query(args) => query::run(args).await,
+        BenchCommand::Codec(args) => codec::run(args),
+    }
+}
+
+/// Free TCP port on 127.0.0.1 (bind :0, read, drop).
+pub fn free_port() -> Result<u16> {
+    Ok(std::net::TcpListener::bind("127.0.0.1:0")?
+        .local_addr()?
+        .port())
+}
