@@ -13,7 +13,7 @@
 
 use crate::sample::{ReverseScene, SampleError, Segment, provenance, sample_world};
 use mwb_core::keys::role;
-use mwb_node::{SegmentBody, WorkerKind, WorldError, WorldTask, codec_quality};
+use mwb_node::{SegmentBody, WorkerKind, WorldTask, codec_quality};
 use mwb_proto::v1::{Encoding, Job, JobKind, MotionSegment, Scene, WorldDone};
 use std::ops::ControlFlow;
 use tracing::debug;
@@ -55,24 +55,23 @@ impl WorkerKind for Backward {
         w: &WorldTask<'_>,
         scene: &ReverseScene,
         emit: &mut dyn FnMut(MotionSegment) -> ControlFlow<()>,
-    ) -> Result<WorldDone, WorldError<SampleError>> {
+    ) -> Result<WorldDone, SampleError> {
         let quality = codec_quality(w.job.quality());
         let mut emit =
             |seg: Segment| emit(segment_message(&w.job.id, w.node, w.counter, w.seed, seg));
-        match sample_world(scene, w.seed, quality, &mut emit) {
-            Ok(summary) => {
-                debug!(
-                    job = %w.job.id,
-                    counter = w.counter,
-                    energy_growth = summary.report.energy_growth,
-                    angular_speed_growth = summary.report.angular_speed_growth,
-                    "backward world done"
-                );
-                Ok(summary.world_done(&w.job.id, w.node, w.counter))
-            }
-            Err(SampleError::Stopped) => Err(WorldError::Stopped),
-            Err(e) => Err(WorldError::Failed(e)),
-        }
+        let summary = sample_world(scene, w.seed, quality, &mut emit)?;
+        debug!(
+            job = %w.job.id,
+            counter = w.counter,
+            energy_growth = summary.report.energy_growth,
+            angular_speed_growth = summary.report.angular_speed_growth,
+            "backward world done"
+        );
+        Ok(summary.world_done(&w.job.id, w.node, w.counter))
+    }
+
+    fn stopped(e: &SampleError) -> bool {
+        matches!(e, SampleError::Stopped)
     }
 
     fn provenance(&self) -> String {
@@ -173,7 +172,7 @@ mod tests {
         );
         assert!(matches!(
             Backward.run(&w, &scene, &mut |_| ControlFlow::Break(())),
-            Err(WorldError::Stopped)
+            Err(SampleError::Stopped)
         ));
     }
 }

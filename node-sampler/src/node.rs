@@ -6,7 +6,7 @@
 use crate::world::{PayloadEncoding, RunError, RunOptions, Segment, provenance, run_world};
 use mwb_core::keys::role;
 use mwb_core::scene::{SceneError, SceneTemplate};
-use mwb_node::{SegmentBody, WorkerKind, WorldError, WorldTask, codec_quality};
+use mwb_node::{SegmentBody, WorkerKind, WorldTask, codec_quality};
 use mwb_proto::v1::{Encoding, Job, JobKind, MotionSegment, Scene, WorldDone};
 use std::ops::ControlFlow;
 use zenoh::Session;
@@ -46,7 +46,7 @@ impl WorkerKind for Forward {
         w: &WorldTask<'_>,
         template: &SceneTemplate,
         emit: &mut dyn FnMut(MotionSegment) -> ControlFlow<()>,
-    ) -> Result<WorldDone, WorldError<RunError>> {
+    ) -> Result<WorldDone, RunError> {
         let opts = RunOptions {
             quality: codec_quality(w.job.quality()),
             encoding: match w.job.encoding() {
@@ -57,11 +57,12 @@ impl WorkerKind for Forward {
         };
         let mut emit =
             |seg: Segment| emit(segment_message(&w.job.id, w.node, w.counter, w.seed, seg));
-        match run_world(template, w.seed, opts, &mut emit) {
-            Ok(summary) => Ok(world_done(&w.job.id, w.node, w.counter, &summary)),
-            Err(RunError::Stopped) => Err(WorldError::Stopped),
-            Err(e) => Err(WorldError::Failed(e)),
-        }
+        let summary = run_world(template, w.seed, opts, &mut emit)?;
+        Ok(world_done(&w.job.id, w.node, w.counter, &summary))
+    }
+
+    fn stopped(e: &RunError) -> bool {
+        matches!(e, RunError::Stopped)
     }
 
     fn provenance(&self) -> String {
@@ -199,7 +200,7 @@ mod tests {
         assert!(segs.iter().all(|s| s.node_id == "n" && s.seed == 17));
         assert!(matches!(
             Forward.run(&w, &template, &mut |_| ControlFlow::Break(())),
-            Err(WorldError::Stopped)
+            Err(RunError::Stopped)
         ));
     }
 }

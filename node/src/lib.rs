@@ -17,18 +17,22 @@
 //! A kind of worker, in full (this one records a single empty segment per world):
 //!
 //! ```
-//! use mwb_node::{WorkerKind, WorldError, WorldTask, SegmentBody, segment_message};
+//! use mwb_node::{WorkerKind, WorldTask, SegmentBody, segment_message};
 //! use mwb_proto::v1::{Encoding, Job, JobKind, MotionSegment, Scene, WorldDone};
 //! use std::ops::ControlFlow;
 //!
 //! struct Empty;
+//!
+//! #[derive(Debug, thiserror::Error)]
+//! #[error("stopped by the caller")]
+//! struct Stopped;
 //!
 //! impl WorkerKind for Empty {
 //!     const ROLE: &'static str = "sampler";
 //!     const GIVE_UP_AFTER: u32 = 1;
 //!     type Scene = String;
 //!     type SceneError = std::convert::Infallible;
-//!     type WorldError = std::convert::Infallible;
+//!     type WorldError = Stopped;
 //!
 //!     fn takes(kind: JobKind) -> bool {
 //!         kind == JobKind::Sample
@@ -41,7 +45,7 @@
 //!         w: &WorldTask<'_>,
 //!         _scene: &String,
 //!         emit: &mut dyn FnMut(MotionSegment) -> ControlFlow<()>,
-//!     ) -> Result<WorldDone, WorldError<Self::WorldError>> {
+//!     ) -> Result<WorldDone, Stopped> {
 //!         let body = SegmentBody {
 //!             seq: 0,
 //!             first_frame: 0,
@@ -52,9 +56,12 @@
 //!             lowres: Vec::new(),
 //!         };
 //!         if emit(segment_message(&w.job.id, w.node, w.counter, w.seed, body)).is_break() {
-//!             return Err(WorldError::Stopped);
+//!             return Err(Stopped);
 //!         }
 //!         Ok(WorldDone { seed: w.seed, frame_count: 1, segment_count: 1, ..Default::default() })
+//!     }
+//!     fn stopped(_: &Stopped) -> bool {
+//!         true
 //!     }
 //!     fn provenance(&self) -> String {
 //!         "empty-worlds".into()
@@ -70,4 +77,4 @@ pub mod worker;
 
 pub use bus::{Node, NodeError, cpu_time};
 pub use wire::{SegmentBody, codec_quality, segment_message};
-pub use worker::{WorkerConfig, WorkerHandle, WorkerKind, WorldError, WorldTask, run_workers};
+pub use worker::{WorkerConfig, WorkerHandle, WorkerKind, WorldTask, run_workers};

@@ -40,7 +40,7 @@ pub trait WorkerKind: Send + Sync + 'static {
     type Scene: Send + Sync + 'static;
     /// Why a scene cannot be run by this kind.
     type SceneError: std::error::Error;
-    /// Why one world failed.
+    /// Why one world did not finish: stopped (see [`WorkerKind::stopped`]) or failed.
     type WorldError: std::error::Error;
 
     /// Whether this kind runs jobs of `kind`; the others are left to other nodes.
@@ -51,14 +51,18 @@ pub trait WorkerKind: Send + Sync + 'static {
     fn prepare(&self, job: &Job, scene: &Scene) -> Result<Self::Scene, Self::SceneError>;
 
     /// Runs world `world` of `scene`, handing each segment to `emit` as soon as it is recorded
-    /// and stopping when `emit` breaks (then the answer is [`WorldError::Stopped`]). Returns
-    /// the world's summary; the skeleton adds CPU time, provenance and scene hash.
+    /// and stopping when `emit` breaks. Returns the world's summary; the skeleton adds CPU
+    /// time, provenance and scene hash.
     fn run(
         &self,
         world: &WorldTask<'_>,
         scene: &Self::Scene,
         emit: &mut dyn FnMut(MotionSegment) -> ControlFlow<()>,
-    ) -> Result<WorldDone, WorldError<Self::WorldError>>;
+    ) -> Result<WorldDone, Self::WorldError>;
+
+    /// Whether `e` says only that `emit` broke (the job closed, the node is stopping): not a
+    /// failure of the job.
+    fn stopped(e: &Self::WorldError) -> bool;
 
     /// What computed the worlds (binary version and physics build), recorded in each.
     fn provenance(&self) -> String;
@@ -71,17 +75,6 @@ pub struct WorldTask<'a> {
     pub node: &'a str,
     pub counter: u64,
     pub seed: u64,
-}
-
-/// How a world that was not finished ended.
-#[derive(Debug, thiserror::Error)]
-pub enum WorldError<E> {
-    /// `emit` broke: the job closed or the node is stopping. Nothing is wrong with the job.
-    #[error("stopped by the caller")]
-    Stopped,
-    /// The world failed.
-    #[error(transparent)]
-    Failed(E),
 }
 
 /// Worker node settings.
@@ -213,7 +206,13 @@ impl WorkerHandle {
         self.control.stop.store(true, Ordering::SeqCst);
         self.control.wake.notify_all();
         for w in self.workers {
-            let _ = tokio::task::spawn_blocking(move || w.join()).await;
+            let name = w.thread().name().unwrap_or("worker").to_owned();
+            if !matches!(
+                tokio::task::spawn_blocking(move || w.join()).await,
+                Ok(Ok(()))
+            ) {
+                warn!(thread = %name, "a worker thread panicked");
+            }
         }
         for t in self.tasks {
             t.abort();
@@ -384,8 +383,8 @@ fn run_world<K: WorkerKind>(
     let result = shared.kind.run(&world, &scene, &mut emit);
     let ended = match &result {
         Ok(_) => Ended::Stored,
-        Err(WorldError::Stopped) => Ended::Stopped,
-        Err(WorldError::Failed(_)) => Ended::Failed,
+        Err(e) if K::stopped(e) => Ended::Stopped,
+        Err(_) => Ended::Failed,
     };
     if let Some(failures) = shared.lock().finished(&job.id, ended) {
         warn!(job = %job.id, failures, "worlds keep failing; giving the job up locally");
@@ -410,8 +409,8 @@ fn run_world<K: WorkerKind>(
             control.steps.fetch_add(steps, Ordering::Relaxed);
             control.bytes.fetch_add(payload_bytes, Ordering::Relaxed);
         }
-        Err(WorldError::Stopped) => debug!(job = %job.id, counter, "world abandoned: job closed"),
-        Err(WorldError::Failed(e)) => {
+        Err(e) if K::stopped(&e) => debug!(job = %job.id, counter, "world abandoned: job closed"),
+        Err(e) => {
             control.failed.fetch_add(1, Ordering::Relaxed);
             warn!(job = %job.id, counter, error = %e, "world failed");
         }

@@ -4,9 +4,7 @@
 //! jobs are given up, malformed announcements are counted, statistics are published.
 
 use mwb_core::keys::{Keys, role};
-use mwb_node::{
-    SegmentBody, WorkerConfig, WorkerKind, WorldError, WorldTask, run_workers, segment_message,
-};
+use mwb_node::{SegmentBody, WorkerConfig, WorkerKind, WorldTask, run_workers, segment_message};
 use mwb_proto::v1::{
     Encoding, Job, JobKind, JobState, Message, MotionSegment, NodeStats, Scene, WorldDone,
 };
@@ -18,8 +16,14 @@ use zenoh::qos::CongestionControl;
 struct Trivial;
 
 #[derive(Debug, thiserror::Error)]
-#[error("{0}")]
-struct Refused(String);
+enum Refused {
+    #[error("{0}")]
+    Scene(String),
+    #[error("no world today")]
+    World,
+    #[error("stopped by the caller")]
+    Stopped,
+}
 
 impl WorkerKind for Trivial {
     const ROLE: &'static str = role::SAMPLER;
@@ -34,7 +38,7 @@ impl WorkerKind for Trivial {
 
     fn prepare(&self, _job: &Job, scene: &Scene) -> Result<String, Refused> {
         if scene.name == "refuse" {
-            Err(Refused("refused".into()))
+            Err(Refused::Scene("refused".into()))
         } else {
             Ok(scene.name.clone())
         }
@@ -45,9 +49,9 @@ impl WorkerKind for Trivial {
         w: &WorldTask<'_>,
         scene: &String,
         emit: &mut dyn FnMut(MotionSegment) -> ControlFlow<()>,
-    ) -> Result<WorldDone, WorldError<Refused>> {
+    ) -> Result<WorldDone, Refused> {
         if scene == "fail" {
-            return Err(WorldError::Failed(Refused("no world today".into())));
+            return Err(Refused::World);
         }
         for seq in 0..2 {
             let body = SegmentBody {
@@ -60,7 +64,7 @@ impl WorkerKind for Trivial {
                 lowres: Vec::new(),
             };
             if emit(segment_message(&w.job.id, w.node, w.counter, w.seed, body)).is_break() {
-                return Err(WorldError::Stopped);
+                return Err(Refused::Stopped);
             }
         }
         // Slow enough that the test's subscribers (which it drains only now and then) never
@@ -76,6 +80,10 @@ impl WorkerKind for Trivial {
             sim_steps: 20,
             ..Default::default()
         })
+    }
+
+    fn stopped(e: &Refused) -> bool {
+        matches!(e, Refused::Stopped)
     }
 
     fn provenance(&self) -> String {
