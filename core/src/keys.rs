@@ -5,6 +5,9 @@
 
 use thiserror::Error;
 
+/// The space every node and client uses unless told otherwise (`mwb/default/…`).
+pub const DEFAULT_SPACE: &str = "default";
+
 /// An identifier that cannot be a key chunk.
 #[derive(Debug, Error, PartialEq, Eq)]
 #[error("{what} {value:?} is not a valid identifier: use 1-64 characters from [A-Za-z0-9_.-]")]

@@ -11,7 +11,9 @@
 //! the same constraints and merged answers are consistent.
 
 use mwb_core::browse::api::{MergeError, Reply, Request, ShardReply, ShardRequest, merge};
-use mwb_core::keys::{Keys, check_identifier, role};
+use mwb_core::keys::{Keys, check_identifier, last_chunk, role};
+use mwb_node::bus::{self, Queries, Subscription};
+use mwb_node::{Node, NodeError};
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -23,34 +25,50 @@ use zenoh::sample::SampleKind;
 /// Coordinator settings.
 #[derive(Debug, Clone)]
 pub struct QueryConfig {
+    /// Browsing space (`mwb/<space>/…`); default [`mwb_core::keys::DEFAULT_SPACE`].
     pub space: String,
+    /// Node id; default: the session's zenoh id.
     pub node_id: Option<String>,
-    /// How long to wait for the shards' answers to one request.
+    /// How long to wait for the shards' answers to one request; default 5 s.
     pub shard_timeout: Duration,
 }
 
 impl Default for QueryConfig {
     fn default() -> Self {
         Self {
-            space: "default".into(),
+            space: mwb_core::keys::DEFAULT_SPACE.into(),
             node_id: None,
             shard_timeout: Duration::from_secs(5),
         }
     }
 }
 
+/// Why a browsing request (or the coordinator's start) failed.
 #[derive(Debug, thiserror::Error)]
 pub enum QueryError {
+    /// The coordinator could not start.
+    #[error(transparent)]
+    Start(#[from] NodeError),
+    /// The session is not a valid key chunk.
     #[error(transparent)]
     Key(#[from] mwb_core::keys::BadIdentifier),
-    #[error("zenoh: {0}")]
-    Zenoh(String),
+    /// zenoh refused a query.
+    #[error("zenoh refused the query")]
+    Zenoh(#[from] zenoh::Error),
+    /// A request could not be serialised.
+    #[error("serialising a request")]
+    Encode(#[source] serde_json::Error),
     #[error("no store shard is alive")]
     NoShards,
     #[error("shard(s) {0} did not answer")]
     Missing(String),
-    #[error("shard {0} sent a malformed answer: {1}")]
-    Malformed(String, String),
+    /// An answer that is not the JSON it should be.
+    #[error("shard {shard} sent a malformed answer")]
+    Malformed {
+        shard: String,
+        #[source]
+        source: serde_json::Error,
+    },
     #[error("shard {shard} stays behind: it has {edits} edits, the session {expected}")]
     Behind {
         shard: String,
@@ -61,14 +79,21 @@ pub enum QueryError {
     Merge(#[from] MergeError),
 }
 
-fn zerr(e: impl std::fmt::Display) -> QueryError {
-    QueryError::Zenoh(e.to_string())
+/// `e` and its sources, for a reply's error message (the client sees no error chain).
+fn message(e: &dyn std::error::Error) -> String {
+    let mut m = e.to_string();
+    let mut source = e.source();
+    while let Some(s) = source {
+        m.push_str(": ");
+        m.push_str(&s.to_string());
+        source = s.source();
+    }
+    m
 }
 
 /// The coordinator's state: the live shards and every session's edit log.
 struct Inner {
-    session: Session,
-    keys: Keys,
+    node: Arc<Node>,
     cfg: QueryConfig,
     shards: Mutex<BTreeSet<String>>,
     /// One async lock per browsing session: its requests are handled one at a time, in order.
@@ -78,13 +103,12 @@ struct Inner {
 /// A running coordinator.
 pub struct QueryHandle {
     inner: Arc<Inner>,
-    node_id: String,
     tasks: Vec<tokio::task::JoinHandle<()>>,
 }
 
 impl QueryHandle {
     pub fn node_id(&self) -> &str {
-        &self.node_id
+        self.inner.node.id()
     }
 
     /// Handles a request in-process (what the bus queryable does).
@@ -105,6 +129,10 @@ impl QueryHandle {
 }
 
 impl Inner {
+    fn keys(&self) -> &Keys {
+        self.node.keys()
+    }
+
     fn live_shards(&self) -> BTreeSet<String> {
         self.shards
             .lock()
@@ -129,33 +157,38 @@ impl Inner {
         req: &ShardRequest,
     ) -> Result<BTreeMap<String, ShardReply>, QueryError> {
         let key = match target {
-            Some(node) => self.keys.shard_browse(node, &req.session),
-            None => self.keys.shards_browse(&req.session),
+            Some(node) => self.keys().shard_browse(node, &req.session),
+            None => self.keys().shards_browse(&req.session),
         };
-        let payload = serde_json::to_vec(req).map_err(|e| QueryError::Zenoh(e.to_string()))?;
+        let payload = serde_json::to_vec(req).map_err(QueryError::Encode)?;
         let replies = self
-            .session
+            .node
+            .session()
             .get(key)
             .payload(payload)
             .consolidation(ConsolidationMode::None)
             .target(QueryTarget::All)
             .timeout(self.cfg.shard_timeout)
-            .await
-            .map_err(zerr)?;
+            .await?;
         let mut out = BTreeMap::new();
         while let Ok(reply) = replies.recv_async().await {
             let Ok(sample) = reply.result() else {
                 continue;
             };
             let Some(node) = self
-                .keys
+                .keys()
                 .split(sample.key_expr().as_str())
                 .and_then(|c| c.get(2).map(|s| (*s).to_owned()))
             else {
                 continue;
             };
-            let parsed: ShardReply = serde_json::from_slice(&sample.payload().to_bytes())
-                .map_err(|e| QueryError::Malformed(node.clone(), e.to_string()))?;
+            let parsed: ShardReply =
+                serde_json::from_slice(&sample.payload().to_bytes()).map_err(|source| {
+                    QueryError::Malformed {
+                        shard: node.clone(),
+                        source,
+                    }
+                })?;
             out.insert(node, parsed);
         }
         Ok(out)
@@ -196,16 +229,15 @@ impl Inner {
     /// Adds every store whose liveliness token is up right now.
     async fn refresh_shards(&self) -> Result<(), QueryError> {
         let replies = self
-            .session
+            .node
+            .session()
             .liveliness()
-            .get(self.keys.alive_role(role::STORE))
-            .timeout(Duration::from_secs(2))
-            .await
-            .map_err(zerr)?;
+            .get(self.keys().alive_role(role::STORE))
+            .timeout(bus::QUERY_TIMEOUT)
+            .await?;
         while let Ok(reply) = replies.recv_async().await {
-            if let Ok(sample) = reply.result()
-                && let Some(node) = sample.key_expr().as_str().rsplit('/').next()
-            {
+            if let Ok(sample) = reply.result() {
+                let node = last_chunk(sample.key_expr().as_str());
                 self.shards
                     .lock()
                     .unwrap_or_else(|p| p.into_inner())
@@ -319,95 +351,83 @@ impl Inner {
 
 /// Starts a coordinator on `session` (in the current tokio runtime).
 pub async fn run_query(session: Session, cfg: QueryConfig) -> Result<QueryHandle, QueryError> {
-    let keys = Keys::new(&cfg.space)?;
-    let node_id = cfg
-        .node_id
-        .clone()
-        .unwrap_or_else(|| session.zid().to_string());
-    check_identifier("node id", &node_id)?;
+    let node = Node::new(&session, &cfg.space, cfg.node_id.as_deref(), role::QUERY)?;
+    let stores = node
+        .session()
+        .liveliness()
+        .declare_subscriber(node.keys().alive_role(role::STORE))
+        .history(true)
+        .await?;
+    let api = node.queryable(node.keys().browse_all()).await?;
+    let token = node.declare_alive().await?;
     let inner = Arc::new(Inner {
-        session: session.clone(),
-        keys: keys.clone(),
+        node: node.clone(),
         cfg: cfg.clone(),
         shards: Mutex::new(BTreeSet::new()),
         logs: Mutex::new(HashMap::new()),
     });
-    let alive = session
-        .liveliness()
-        .declare_subscriber(keys.alive_role(role::STORE))
-        .history(true)
-        .await
-        .map_err(zerr)?;
-    let api = session
-        .declare_queryable(keys.browse_all())
-        .await
-        .map_err(zerr)?;
-    let token = session
-        .liveliness()
-        .declare_token(keys.alive(role::QUERY, &node_id))
-        .await
-        .map_err(zerr)?;
-    let mut tasks = Vec::new();
-    {
-        let inner = inner.clone();
-        tasks.push(tokio::spawn(async move {
-            let _token = token;
-            while let Ok(s) = alive.recv_async().await {
-                let Some(node) = s.key_expr().as_str().rsplit('/').next() else {
-                    continue;
-                };
-                let mut shards = inner.shards.lock().unwrap_or_else(|p| p.into_inner());
-                if s.kind() == SampleKind::Delete {
-                    info!(%node, "store shard left");
-                    shards.remove(node);
-                } else if shards.insert(node.to_owned()) {
-                    info!(%node, "store shard joined");
-                }
-            }
-        }));
+    let stats = {
+        let node = node.clone();
+        move || node.stats()
+    };
+    let tasks = vec![
+        tokio::spawn(bus::hold(token)),
+        tokio::spawn(follow_shards(inner.clone(), stores)),
+        tokio::spawn(serve(inner.clone(), api)),
+        tokio::spawn(bus::publish_stats(node.clone(), stats)),
+    ];
+    info!(node = %node.id(), space = %cfg.space, "query coordinator started");
+    Ok(QueryHandle { inner, tasks })
+}
+
+/// The live store shards, from their liveliness tokens.
+async fn follow_shards(inner: Arc<Inner>, stores: Subscription) {
+    while let Ok(s) = stores.recv_async().await {
+        let node = last_chunk(s.key_expr().as_str());
+        let mut shards = inner.shards.lock().unwrap_or_else(|p| p.into_inner());
+        if s.kind() == SampleKind::Delete {
+            info!(%node, "store shard left");
+            shards.remove(node);
+        } else if shards.insert(node.to_owned()) {
+            info!(%node, "store shard joined");
+        }
     }
-    {
-        let inner = inner.clone();
-        tasks.push(tokio::spawn(async move {
-            while let Ok(q) = api.recv_async().await {
-                // Each request gets its own task: a slow session must not hold up the others
-                // (requests of one session still run one at a time, under its lock).
-                let inner = inner.clone();
-                tokio::spawn(async move {
-                    let session = mwb_core::keys::last_chunk(q.key_expr().as_str()).to_owned();
-                    let request = q
-                        .payload()
-                        .map(|p| serde_json::from_slice::<Request>(&p.to_bytes()));
-                    let reply = match request {
-                        None => Reply::Error {
-                            message: "empty request: send a JSON browse request".into(),
-                        },
-                        Some(Err(e)) => Reply::Error {
-                            message: format!("malformed request: {e}"),
-                        },
-                        Some(Ok(req)) => match inner.handle(&session, req).await {
-                            Ok(r) => r,
-                            Err(e) => Reply::Error {
-                                message: e.to_string(),
-                            },
-                        },
-                    };
-                    match serde_json::to_vec(&reply) {
-                        Ok(bytes) => {
-                            let _ = q.reply(inner.keys.browse(&session), bytes).await;
-                        }
-                        Err(e) => warn!(error = %e, "serialising a reply"),
-                    }
-                });
-            }
-        }));
+}
+
+/// The browsing API. Each request gets its own task: a slow session must not hold up the
+/// others (requests of one session still run one at a time, under its lock).
+async fn serve(inner: Arc<Inner>, api: Queries) {
+    while let Ok(q) = api.recv_async().await {
+        tokio::spawn(answer(inner.clone(), q));
     }
-    info!(node = %node_id, space = %cfg.space, "query coordinator started");
-    Ok(QueryHandle {
-        inner,
-        node_id,
-        tasks,
-    })
+}
+
+async fn answer(inner: Arc<Inner>, q: zenoh::query::Query) {
+    let session = last_chunk(q.key_expr().as_str()).to_owned();
+    let request = q
+        .payload()
+        .map(|p| serde_json::from_slice::<Request>(&p.to_bytes()));
+    let reply = match request {
+        None => Reply::Error {
+            message: "empty request: send a JSON browse request".into(),
+        },
+        Some(Err(e)) => Reply::Error {
+            message: format!("malformed request: {e}"),
+        },
+        Some(Ok(req)) => match inner.handle(&session, req).await {
+            Ok(r) => r,
+            Err(e) => Reply::Error {
+                message: message(&e),
+            },
+        },
+    };
+    match serde_json::to_vec(&reply) {
+        Ok(bytes) => {
+            let key = inner.keys().browse(&session);
+            inner.node.reply(&q, &key, bytes).await;
+        }
+        Err(e) => warn!(error = %e, "serialising a reply"),
+    }
 }
 
 /// Sends one browsing request to node-query over the bus and returns its reply (for the CLI,
@@ -420,17 +440,20 @@ pub async fn send(
     timeout: Duration,
 ) -> Result<Reply, QueryError> {
     check_identifier("session", browse_session)?;
-    let payload = serde_json::to_vec(request).map_err(|e| QueryError::Zenoh(e.to_string()))?;
+    let payload = serde_json::to_vec(request).map_err(QueryError::Encode)?;
     let replies = session
         .get(keys.browse(browse_session))
         .payload(payload)
         .timeout(timeout)
-        .await
-        .map_err(zerr)?;
+        .await?;
     while let Ok(reply) = replies.recv_async().await {
         if let Ok(sample) = reply.result() {
-            return serde_json::from_slice(&sample.payload().to_bytes())
-                .map_err(|e| QueryError::Malformed("node-query".into(), e.to_string()));
+            return serde_json::from_slice(&sample.payload().to_bytes()).map_err(|source| {
+                QueryError::Malformed {
+                    shard: "node-query".into(),
+                    source,
+                }
+            });
         }
     }
     Err(QueryError::Missing(

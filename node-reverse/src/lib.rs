@@ -196,7 +196,7 @@ pub use body::{Body, Material, StaticBody};
 pub use chain::{ChainLearning, ContactChain};
 pub use contact::{Contact, ContactSet, Island, Partner};
 pub use joint::{Joint, JointError, JointKind, JointRow, JointType};
-pub use node::{ReverseConfig, ReverseHandle, ReverseNodeError, run_reverse};
+pub use node::{Backward, ReverseConfig, ReverseHandle, ReverseNodeError, run_reverse};
 pub use run::{
     BackwardRun, BackwardRunReport, Frame, Heuristics, HintMotion, MixedRun, Pose, ReverseSettings,
     Sampling, UserHint, run_backward, run_mixed,

@@ -18,4 +18,4 @@ pub mod spatial;
 pub use assembly::{Assembler, Outcome, Rejection, StoredWorld};
 pub use browse::{Shard, ShardSpec};
 pub use index::{IndexError, IndexedWorld, index_world};
-pub use node::{StoreConfig, StoreHandle, run_store};
+pub use node::{DEFAULT_MEMORY_CAP_MIB, StoreConfig, StoreError, StoreHandle, run_store};
