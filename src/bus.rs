@@ -38,7 +38,7 @@ pub struct BusArgs {
     #[arg(long, value_enum)]
     pub mode: Option<Mode>,
     /// Browsing space: all keys live under mwb/<space>/.
-    #[arg(long, default_value = "default", env = "MWB_SPACE")]
+    #[arg(long, default_value = mwb_core::keys::DEFAULT_SPACE, env = "MWB_SPACE")]
     pub space: String,
     /// Enable multicast scouting (off by default: nodes find each other by --connect).
     #[arg(long)]

@@ -10,7 +10,7 @@ pub struct StoreArgs {
     #[command(flatten)]
     pub bus: BusArgs,
     /// Refuse new worlds past this many MiB in memory.
-    #[arg(long, default_value_t = 4096)]
+    #[arg(long, default_value_t = mwb_store::DEFAULT_MEMORY_CAP_MIB)]
     pub memory_cap_mib: u64,
     /// This store's shard when several split the worlds: INDEX/COUNT, e.g. 1/3. Start every
     /// shard before submitting jobs; shard 0 answers job states.
@@ -30,7 +30,7 @@ pub async fn run(args: StoreArgs) -> Result<()> {
         shard,
         no_query,
     } = args;
-    let shard = mwb_store::ShardSpec::parse(&shard).map_err(|e| anyhow::anyhow!(e))?;
+    let shard = mwb_store::ShardSpec::parse(&shard)?;
     let session = bus.open(Mode::Router).await?;
     let store = mwb_store::run_store(
         session.clone(),
