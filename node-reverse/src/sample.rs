@@ -142,11 +142,6 @@ impl ReverseScene {
         self.mode
     }
 
-    /// The run settings (editable: hints, heuristics, sampling ranges).
-    pub fn settings_mut(&mut self) -> &mut ReverseSettings {
-        &mut self.settings
-    }
-
     /// The run settings.
     pub fn settings(&self) -> &ReverseSettings {
         &self.settings

@@ -296,8 +296,3 @@ pub fn world_from_toml(src: &str, file: &str) -> Result<World, SceneConvertError
     let template = SceneTemplate::parse(src, file)?;
     world_from_scene(&template.instantiate(0))
 }
-
-/// The scene's time step (`[settings] dt`).
-pub fn scene_dt(src: &str, file: &str) -> Result<f64, SceneConvertError> {
-    Ok(SceneTemplate::parse(src, file)?.settings().dt)
-}

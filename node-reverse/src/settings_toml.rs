@@ -49,10 +49,10 @@ use std::collections::BTreeMap;
 use std::collections::HashMap;
 use std::ops::Range;
 
+use mwb_core::scene::toml_span::{Source, Table, Value};
 use mwb_core::scene::{SceneError, SceneTemplate};
 use nalgebra::Vector3;
-use toml::Spanned;
-use toml::de::{DeTable, DeValue};
+use toml::de::DeValue;
 
 use crate::run::{HintMotion, UserHint};
 
@@ -86,168 +86,83 @@ const TABLE_KEYS: &[&str] = &["mode", "forward_time", "hint"];
 const HINT_KEYS: &[&str] = &["body", "motion", "direction", "release_before_end"];
 const MOTIONS: &str = "\"free\", \"slide\", \"bounce\" or \"stay\"";
 
-type Val<'a> = Spanned<DeValue<'a>>;
 /// A vector and where it was written.
 type SpannedVec3 = (Vector3<f64>, Range<usize>);
 
-/// Turns byte offsets into lines and builds the errors.
-#[derive(Clone, Copy)]
-struct Src<'a> {
-    text: &'a str,
-    file: &'a str,
-}
-
-impl Src<'_> {
-    fn line(&self, offset: usize) -> usize {
-        let end = offset.min(self.text.len());
-        self.text.as_bytes()[..end]
-            .iter()
-            .filter(|b| **b == b'\n')
-            .count()
-            + 1
-    }
-
-    fn err(
-        &self,
-        span: Option<Range<usize>>,
-        item: &str,
-        field: Option<&str>,
-        message: impl Into<String>,
-    ) -> SceneError {
-        SceneError {
-            file: self.file.to_owned(),
-            line: span.map(|s| self.line(s.start)),
-            item: Some(item.to_owned()),
-            field: field.map(str::to_owned),
-            message: message.into(),
+/// Unknown keys are errors; `explain` words the message for a key it knows is misplaced.
+fn check_keys(
+    part: &Table<'_>,
+    allowed: &[&str],
+    explain: &dyn Fn(&str) -> Option<&'static str>,
+) -> Result<(), SceneError> {
+    match part.unknown_key(allowed) {
+        None => Ok(()),
+        Some((key, span)) => {
+            let msg = explain(key).map_or_else(
+                || format!("unknown field; expected one of {}", allowed.join(", ")),
+                str::to_owned,
+            );
+            Err(part.err(key, span, msg))
         }
     }
 }
 
-/// One table of the `[reverse]` part and how to blame it.
-struct Part<'a> {
-    src: Src<'a>,
-    item: String,
-    span: Range<usize>,
-    table: &'a DeTable<'a>,
+fn number_value(part: &Table<'_>, field: &str, v: &Value<'_>) -> Result<f64, SceneError> {
+    match part.number(field, v)? {
+        Some(x) if x.is_finite() && x.abs() <= mwb_core::scene::LIMIT => Ok(x),
+        _ => Err(part.err(
+            field,
+            v.span(),
+            "must be a finite number of magnitude at most 1e12",
+        )),
+    }
 }
 
-impl<'a> Part<'a> {
-    fn err(&self, field: &str, span: Range<usize>, msg: impl Into<String>) -> SceneError {
-        self.src.err(Some(span), &self.item, Some(field), msg)
-    }
+fn number(part: &Table<'_>, key: &str) -> Result<Option<(f64, Range<usize>)>, SceneError> {
+    part.get(key)
+        .map(|v| Ok((number_value(part, key, v)?, v.span())))
+        .transpose()
+}
 
-    fn get(&self, key: &str) -> Option<&'a Val<'a>> {
-        self.table.get(key)
+fn vec3(part: &Table<'_>, key: &str) -> Result<Option<SpannedVec3>, SceneError> {
+    let Some(v) = part.get(key) else {
+        return Ok(None);
+    };
+    let DeValue::Array(items) = v.get_ref() else {
+        return Err(part.err(
+            key,
+            v.span(),
+            format!(
+                "expected an array of 3 numbers, found {}",
+                v.get_ref().type_str()
+            ),
+        ));
+    };
+    if items.len() != 3 {
+        return Err(part.err(
+            key,
+            v.span(),
+            format!("expected 3 numbers [x, y, z], found {}", items.len()),
+        ));
     }
-
-    fn check_keys(
-        &self,
-        allowed: &[&str],
-        explain: &dyn Fn(&str) -> Option<&'static str>,
-    ) -> Result<(), SceneError> {
-        let bad = self
-            .table
-            .iter()
-            .filter(|(k, _)| !allowed.contains(&k.get_ref().as_ref()))
-            .min_by_key(|(k, _)| k.span().start);
-        match bad {
-            None => Ok(()),
-            Some((k, _)) => {
-                let key = k.get_ref().as_ref();
-                let msg = explain(key).map_or_else(
-                    || format!("unknown field; expected one of {}", allowed.join(", ")),
-                    str::to_owned,
-                );
-                Err(self.err(key, k.span(), msg))
-            }
-        }
+    let mut out = Vector3::zeros();
+    for (i, item) in items.iter().enumerate() {
+        out[i] = number_value(part, &format!("{key}[{i}]"), item)?;
     }
-
-    fn string(&self, key: &str) -> Result<Option<(&'a str, Range<usize>)>, SceneError> {
-        match self.get(key) {
-            None => Ok(None),
-            Some(v) => match v.get_ref() {
-                DeValue::String(s) => Ok(Some((s.as_ref(), v.span()))),
-                other => Err(self.err(
-                    key,
-                    v.span(),
-                    format!("expected a string, found {}", other.type_str()),
-                )),
-            },
-        }
-    }
-
-    fn number_value(&self, field: &str, v: &Val<'_>) -> Result<f64, SceneError> {
-        let x = match v.get_ref() {
-            DeValue::Integer(i) => i64::from_str_radix(i.as_str(), i.radix())
-                .ok()
-                .map(|n| n as f64),
-            DeValue::Float(f) => f.as_str().parse::<f64>().ok(),
-            other => {
-                return Err(self.err(
-                    field,
-                    v.span(),
-                    format!("expected a number, found {}", other.type_str()),
-                ));
-            }
-        };
-        match x {
-            Some(x) if x.is_finite() && x.abs() <= mwb_core::scene::LIMIT => Ok(x),
-            _ => Err(self.err(
-                field,
-                v.span(),
-                "must be a finite number of magnitude at most 1e12",
-            )),
-        }
-    }
-
-    fn number(&self, key: &str) -> Result<Option<(f64, Range<usize>)>, SceneError> {
-        self.get(key)
-            .map(|v| Ok((self.number_value(key, v)?, v.span())))
-            .transpose()
-    }
-
-    fn vec3(&self, key: &str) -> Result<Option<SpannedVec3>, SceneError> {
-        let Some(v) = self.get(key) else {
-            return Ok(None);
-        };
-        let DeValue::Array(items) = v.get_ref() else {
-            return Err(self.err(
-                key,
-                v.span(),
-                format!(
-                    "expected an array of 3 numbers, found {}",
-                    v.get_ref().type_str()
-                ),
-            ));
-        };
-        if items.len() != 3 {
-            return Err(self.err(
-                key,
-                v.span(),
-                format!("expected 3 numbers [x, y, z], found {}", items.len()),
-            ));
-        }
-        let mut out = Vector3::zeros();
-        for (i, item) in items.iter().enumerate() {
-            out[i] = self.number_value(&format!("{key}[{i}]"), item)?;
-        }
-        Ok(Some((out, v.span())))
-    }
+    Ok(Some((out, v.span())))
 }
 
 /// A hint as written, before its body name is resolved.
 struct RawHint<'a> {
-    part: Part<'a>,
+    part: Table<'a>,
     body: (&'a str, Range<usize>),
     motion: HintMotion,
     direction: Option<Range<usize>>,
     release: Option<(f64, Range<usize>)>,
 }
 
-fn motion_of(part: Part<'_>) -> Result<RawHint<'_>, SceneError> {
-    part.check_keys(HINT_KEYS, &|k| match k {
+fn motion_of(part: Table<'_>) -> Result<RawHint<'_>, SceneError> {
+    check_keys(&part, HINT_KEYS, &|k| match k {
         "speed" => Some(
             "a hint has no speed: a slide's speed is sampled (Sampling::slide_speed), only its \
              direction is given",
@@ -258,16 +173,11 @@ fn motion_of(part: Part<'_>) -> Result<RawHint<'_>, SceneError> {
         ),
         _ => None,
     })?;
-    let body = part.string("body")?.ok_or_else(|| {
-        part.src.err(
-            Some(part.span.clone()),
-            &part.item,
-            Some("body"),
-            "missing: every hint names a [[body]]",
-        )
-    })?;
+    let body = part
+        .string("body")?
+        .ok_or_else(|| part.missing("body", "every hint names a [[body]]"))?;
     let motion_name = part.string("motion")?;
-    let direction = part.vec3("direction")?;
+    let direction = vec3(&part, "direction")?;
     let motion = match motion_name.as_ref().map(|(m, _)| *m).unwrap_or("free") {
         "free" => HintMotion::Free,
         "bounce" => HintMotion::Bounce,
@@ -275,12 +185,9 @@ fn motion_of(part: Part<'_>) -> Result<RawHint<'_>, SceneError> {
         "slide" => match &direction {
             Some((d, _)) => HintMotion::Slide(*d),
             None => {
-                return Err(part.src.err(
-                    Some(part.span.clone()),
-                    &part.item,
-                    Some("direction"),
-                    "missing: a slide hint needs the direction the body arrives along, e.g. \
-                     [1, 0, 0]",
+                return Err(part.missing(
+                    "direction",
+                    "a slide hint needs the direction the body arrives along, e.g. [1, 0, 0]",
                 ));
             }
         },
@@ -300,7 +207,7 @@ fn motion_of(part: Part<'_>) -> Result<RawHint<'_>, SceneError> {
             "only a slide hint (motion = \"slide\") takes a direction",
         ));
     }
-    let release = part.number("release_before_end")?;
+    let release = number(&part, "release_before_end")?;
     Ok(RawHint {
         body,
         motion,
@@ -316,12 +223,12 @@ struct RawTable<'a> {
     hints: Vec<RawHint<'a>>,
 }
 
-fn raw_table<'a>(src: Src<'a>, v: &'a Val<'a>) -> Result<RawTable<'a>, SceneError> {
+fn raw_table<'a>(src: Source<'a>, v: &'a Value<'a>) -> Result<RawTable<'a>, SceneError> {
     let item = "[reverse]";
     let DeValue::Table(table) = v.get_ref() else {
-        return Err(src.err(
+        return Err(src.error(
             Some(v.span()),
-            item,
+            Some(item.to_owned()),
             None,
             format!(
                 "`reverse` must be a table, found {}",
@@ -329,16 +236,11 @@ fn raw_table<'a>(src: Src<'a>, v: &'a Val<'a>) -> Result<RawTable<'a>, SceneErro
             ),
         ));
     };
-    let part = Part {
-        src,
-        item: item.to_owned(),
-        span: v.span(),
-        table,
-    };
-    part.check_keys(TABLE_KEYS, &|k| {
+    let part = Table::new(src, item, v.span(), table);
+    check_keys(&part, TABLE_KEYS, &|k| {
         (k == "hints").then_some("unknown field (hints are [[reverse.hint]] tables)")
     })?;
-    let forward = part.number("forward_time")?;
+    let forward = number(&part, "forward_time")?;
     let mode = match part.string("mode")? {
         None | Some(("backward", _)) => {
             if let Some((_, span)) = forward {
@@ -356,10 +258,9 @@ fn raw_table<'a>(src: Src<'a>, v: &'a Val<'a>) -> Result<RawTable<'a>, SceneErro
                 return Err(part.err("forward_time", span, format!("must be > 0, found {t}")));
             }
             None => {
-                return Err(part.err(
+                return Err(part.missing(
                     "forward_time",
-                    part.span.clone(),
-                    "missing: a mixed run needs the seconds to run forward from the given state",
+                    "a mixed run needs the seconds to run forward from the given state",
                 ));
             }
         },
@@ -394,12 +295,7 @@ fn raw_table<'a>(src: Src<'a>, v: &'a Val<'a>) -> Result<RawTable<'a>, SceneErro
                     ),
                 ));
             };
-            let hint = Part {
-                src,
-                item: format!("[[reverse.hint]] #{}", i + 1),
-                span: e.span(),
-                table: t,
-            };
+            let hint = Table::new(src, format!("[[reverse.hint]] #{}", i + 1), e.span(), t);
             hints.push(motion_of(hint)?);
         }
     }
@@ -412,17 +308,8 @@ pub fn parse_reverse_scene(
     text: &str,
     file: &str,
 ) -> Result<(SceneTemplate, ReverseTable), SceneError> {
-    let src = Src { text, file };
-    let doc = DeTable::parse(text).map_err(|e| SceneError {
-        file: file.to_owned(),
-        line: e.span().map(|s| src.line(s.start)),
-        item: None,
-        field: None,
-        message: format!(
-            "invalid TOML: {}",
-            e.message().lines().next().unwrap_or("").trim()
-        ),
-    })?;
+    let src = Source { text, file };
+    let doc = src.parse()?;
     let Some(value) = doc.get_ref().get(TABLE) else {
         return Ok((SceneTemplate::parse(text, file)?, ReverseTable::default()));
     };

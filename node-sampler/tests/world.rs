@@ -437,3 +437,77 @@ fn rotation_dynamics_are_the_solvers_and_the_bodies_moments() {
     scene.settings.solver_iterations = 17;
     assert!(mwb_sampler::world::rotation_dynamics(&scene, &sim).is_none());
 }
+
+/// The tumble scene (shipped, `scenes/tumble.toml`), seed 0xfeed, default options (standard
+/// quality, perturbed, spline codec), as this source tree simulates and encodes it: the
+/// [`world_digest`] and the encoded size. See [`the_pinned_world_is_unchanged`] for what a
+/// mismatch means.
+const TUMBLE_FEED: (u32, u64) = (0xce5f_3670, 1552);
+
+/// A CRC-32 over every segment's numbering and payload and over every summary field.
+fn world_digest(segs: &[Segment], summary: &WorldSummary) -> u32 {
+    let mut h = crc32fast::Hasher::new();
+    for s in segs {
+        for x in [s.seq, s.first_frame, s.frame_count, s.body_count] {
+            h.update(&x.to_le_bytes());
+        }
+        // The codec's format version byte leads every payload and is left out: the format is
+        // being renumbered (6 becomes release version 1) with the bytes after it unchanged,
+        // so this digest holds across that. Once it has landed the whole payload can go in
+        // (and the value be re-minted).
+        h.update(s.payload.get(1..).unwrap_or_default());
+    }
+    // Every field, by destructuring: a new one does not compile until it is digested too.
+    let WorldSummary {
+        seed,
+        frame_count,
+        segment_count,
+        frame_dt,
+        rested,
+        impacts,
+        rest_time_s,
+        body_rested,
+        perturbations,
+        steps,
+        payload_bytes,
+    } = summary;
+    h.update(&seed.to_le_bytes());
+    h.update(&frame_count.to_le_bytes());
+    h.update(&segment_count.to_le_bytes());
+    h.update(&frame_dt.to_bits().to_le_bytes());
+    h.update(&[u8::from(*rested)]);
+    impacts.iter().for_each(|x| h.update(&x.to_le_bytes()));
+    rest_time_s
+        .iter()
+        .for_each(|x| h.update(&x.to_bits().to_le_bytes()));
+    body_rested.iter().for_each(|x| h.update(&[u8::from(*x)]));
+    h.update(&perturbations.to_le_bytes());
+    h.update(&steps.to_le_bytes());
+    h.update(&payload_bytes.to_le_bytes());
+    h.finalize()
+}
+
+/// Golden values, where the determinism test above only compares two runs of one binary: a change
+/// of the simulated or encoded worlds between builds is caught here. Rapier is built with
+/// `enhanced-determinism` (IEEE-754-strict, libm instead of the platform's maths, no SIMD), so its
+/// part is the same on every machine for one source tree and one Cargo.lock; what still comes from
+/// the platform's libm are the few `f64` sin/cos/ln/powf calls of our own code (scene
+/// distributions, §4.1.2 perturbations): the value holds on x86-64 Linux (glibc) and may differ
+/// under a libm that rounds one of them differently.
+#[test]
+fn the_pinned_world_is_unchanged() {
+    let (summary, segs) = run(&parse(builtin::TUMBLE), 0xfeed, RunOptions::default());
+    let (crc, bytes) = (world_digest(&segs, &summary), summary.payload_bytes);
+    assert!(
+        (crc, bytes) == TUMBLE_FEED,
+        "the pinned tumble world (seed 0xfeed) is now ({crc:#010x}, {bytes}), pinned \
+         ({:#010x}, {}).\n\
+         A dependency bump (rapier, parry, nalgebra) or a change to the sampler, the scene \
+         format, the perturbations or the codec altered the simulated worlds: a world stored or \
+         recorded by an earlier binary is not what this one regenerates from its (scene, seed). \
+         If that is deliberate, re-mint: set TUMBLE_FEED in node-sampler/tests/world.rs to the \
+         value printed here (`cargo test -p mwb-sampler --test world pinned`).",
+        TUMBLE_FEED.0,
+        TUMBLE_FEED.1
+    );
+}

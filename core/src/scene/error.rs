@@ -1,7 +1,7 @@
-//! Errors of the scene format: every refusal names the file, the line, the item and the field.
+//! Errors of the scene format: every refusal names the file, the line, the item and the field
+//! ([`super::toml_span`] builds them from byte spans).
 
 use std::fmt;
-use std::ops::Range;
 
 /// Why a scene file was refused.
 ///
@@ -37,54 +37,5 @@ impl fmt::Display for SceneError {
             write!(f, "field `{field}`: ")?;
         }
         f.write_str(&self.message)
-    }
-}
-
-/// The text being parsed, for turning byte offsets into line numbers.
-#[derive(Debug, Clone, Copy)]
-pub(crate) struct Source<'a> {
-    pub text: &'a str,
-    pub file: &'a str,
-}
-
-impl Source<'_> {
-    /// 1-based line of a byte offset (offsets past the end count as the last line).
-    pub fn line_of(&self, offset: usize) -> usize {
-        let end = offset.min(self.text.len());
-        self.text.as_bytes()[..end]
-            .iter()
-            .filter(|b| **b == b'\n')
-            .count()
-            + 1
-    }
-
-    pub fn error(
-        &self,
-        span: Option<Range<usize>>,
-        item: Option<String>,
-        field: Option<String>,
-        message: impl Into<String>,
-    ) -> SceneError {
-        SceneError {
-            file: self.file.to_owned(),
-            line: span.map(|s| self.line_of(s.start)),
-            item,
-            field,
-            message: message.into(),
-        }
-    }
-
-    /// A syntax error reported by the toml crate, with its span turned into a line.
-    pub fn toml_error(&self, err: &toml::de::Error) -> SceneError {
-        // The toml crate's message may span several lines (it quotes the source when it knows
-        // it); we keep the first, since file:line already says where.
-        let message = err
-            .message()
-            .lines()
-            .next()
-            .unwrap_or("invalid TOML")
-            .trim()
-            .to_owned();
-        self.error(err.span(), None, None, format!("invalid TOML: {message}"))
     }
 }

@@ -17,6 +17,7 @@ mod generators;
 pub mod model;
 mod parse;
 mod template;
+pub mod toml_span;
 
 pub use error::SceneError;
 pub use generators::MAX_INSTANCES;

@@ -9,17 +9,16 @@
 use std::collections::HashMap;
 use std::ops::Range;
 
-use toml::Spanned;
 use toml::de::{DeTable, DeValue};
 
-use super::error::{SceneError, Source};
+use super::error::SceneError;
 use super::generators::{Layout, MAX_INSTANCES};
 use super::model::{BodyRef, Settings, Vec3};
 use super::template::{
     BodyT, Dist, JointKindT, JointT, MaterialT, Num, NumVec3, RotationT, SceneTemplate, ShapeT,
 };
-
-type Val<'a> = Spanned<DeValue<'a>>;
+// An item of the scene (`body "ball"`, `settings`, …) is a table of the shared reader.
+use super::toml_span::{Source, Table as Item, Value as Val};
 
 /// Largest magnitude of any number in a scene. Far beyond anything physical, and small enough
 /// that squares and products downstream (inertia, bounding radii) stay finite.
@@ -152,18 +151,6 @@ fn suggestion<'c>(word: &str, candidates: impl IntoIterator<Item = &'c str>) -> 
         .unwrap_or_default()
 }
 
-/// One table of the document (an item, or a sub-table of one) and how to blame it.
-#[derive(Clone)]
-struct Item<'a> {
-    src: Source<'a>,
-    /// `body "ball"`, `settings`, …
-    label: String,
-    /// Field-path prefix for sub-tables (`grid.`), empty for items.
-    prefix: String,
-    span: Range<usize>,
-    table: &'a DeTable<'a>,
-}
-
 impl<'a> Item<'a> {
     fn sub(&self, key: &str, val: &'a Val<'a>) -> Result<Item<'a>, SceneError> {
         match val.get_ref() {
@@ -182,29 +169,6 @@ impl<'a> Item<'a> {
         }
     }
 
-    fn err(&self, field: &str, span: Range<usize>, msg: impl Into<String>) -> SceneError {
-        self.src.error(
-            Some(span),
-            Some(self.label.clone()),
-            Some(format!("{}{field}", self.prefix)),
-            msg,
-        )
-    }
-
-    /// An error about a field that is missing: blamed on the item's own line.
-    fn missing(&self, field: &str, msg: &str) -> SceneError {
-        let (sep, msg) = if msg.is_empty() {
-            (" ", "(required)")
-        } else {
-            (": ", msg)
-        };
-        self.err(field, self.span.clone(), format!("missing{sep}{msg}"))
-    }
-
-    fn get(&self, key: &str) -> Option<&'a Val<'a>> {
-        self.table.get(key)
-    }
-
     /// Unknown keys are errors (they are almost always typos). `misplaced` explains keys that
     /// are valid elsewhere but not here; the earliest offending key in the file is reported.
     fn check_keys(
@@ -212,33 +176,13 @@ impl<'a> Item<'a> {
         allowed: &[&str],
         misplaced: &dyn Fn(&str) -> Option<String>,
     ) -> Result<(), SceneError> {
-        let bad = self
-            .table
-            .iter()
-            .filter(|(k, _)| !allowed.contains(&k.get_ref().as_ref()))
-            .min_by_key(|(k, _)| k.span().start);
-        if let Some((k, _)) = bad {
-            let key = k.get_ref().as_ref();
+        if let Some((key, span)) = self.unknown_key(allowed) {
             let msg = misplaced(key).unwrap_or_else(|| {
                 format!("unknown field{}", suggestion(key, allowed.iter().copied()))
             });
-            return Err(self.err(key, k.span(), msg));
+            return Err(self.err(key, span, msg));
         }
         Ok(())
-    }
-
-    fn string(&self, key: &str) -> Result<Option<(&'a str, Range<usize>)>, SceneError> {
-        match self.get(key) {
-            None => Ok(None),
-            Some(v) => match v.get_ref() {
-                DeValue::String(s) => Ok(Some((s.as_ref(), v.span()))),
-                other => Err(self.err(
-                    key,
-                    v.span(),
-                    format!("expected a string, found {}", other.type_str()),
-                )),
-            },
-        }
     }
 
     fn required_string(
@@ -359,19 +303,7 @@ impl<'a> Item<'a> {
     }
 
     fn plain_number(&self, path: &str, v: &Val<'_>) -> Result<f64, SceneError> {
-        let x = match v.get_ref() {
-            DeValue::Integer(i) => i64::from_str_radix(i.as_str(), i.radix())
-                .ok()
-                .map(|n| n as f64),
-            DeValue::Float(f) => f.as_str().parse::<f64>().ok(),
-            other => {
-                return Err(self.err(
-                    path,
-                    v.span(),
-                    format!("expected a number, found {}", other.type_str()),
-                ));
-            }
-        };
+        let x = self.number(path, v)?;
         let x = x.ok_or_else(|| self.err(path, v.span(), "not a representable number"))?;
         if !x.is_finite() {
             return Err(self.err(path, v.span(), format!("must be finite, found {x}")));
@@ -582,14 +514,8 @@ fn tables<'a>(
 }
 
 pub(crate) fn parse(src: Source<'_>) -> Result<SceneTemplate, SceneError> {
-    let doc = DeTable::parse(src.text).map_err(|e| src.toml_error(&e))?;
-    let root = Item {
-        src,
-        label: "scene".to_owned(),
-        prefix: String::new(),
-        span: 0..0,
-        table: doc.get_ref(),
-    };
+    let doc = src.parse()?;
+    let root = Item::new(src, "scene", 0..0, doc.get_ref());
     // `reverse`: the backward-run table of a final-state scene, read and validated by
     // mwb-reverse (`settings_toml`); every other reader (samplers, the store's rest thresholds,
     // `mwb scene`) ignores it.
@@ -619,13 +545,7 @@ pub(crate) fn parse(src: Source<'_>) -> Result<SceneTemplate, SceneError> {
     let mut materials = Vec::new();
     let mut material_index: HashMap<String, usize> = HashMap::new();
     for (i, (table, span)) in tables(&root, "material")?.into_iter().enumerate() {
-        let mut item = Item {
-            src,
-            label: format!("material #{}", i + 1),
-            prefix: String::new(),
-            span,
-            table,
-        };
+        let mut item = Item::new(src, format!("material #{}", i + 1), span, table);
         let (name, name_span) = item.required_string("name", "every material needs a `name`")?;
         item.label = format!("material \"{name}\"");
         check_name(&item, name, name_span.clone())?;
@@ -648,13 +568,7 @@ pub(crate) fn parse(src: Source<'_>) -> Result<SceneTemplate, SceneError> {
     let mut instances: u64 = 0;
     let mut statics = Vec::new();
     for (i, (table, span)) in tables(&root, "static")?.into_iter().enumerate() {
-        let item = Item {
-            src,
-            label: format!("static #{}", i + 1),
-            prefix: String::new(),
-            span,
-            table,
-        };
+        let item = Item::new(src, format!("static #{}", i + 1), span, table);
         statics.push(parse_body(
             item,
             false,
@@ -665,13 +579,7 @@ pub(crate) fn parse(src: Source<'_>) -> Result<SceneTemplate, SceneError> {
     }
     let mut bodies = Vec::new();
     for (i, (table, span)) in tables(&root, "body")?.into_iter().enumerate() {
-        let item = Item {
-            src,
-            label: format!("body #{}", i + 1),
-            prefix: String::new(),
-            span,
-            table,
-        };
+        let item = Item::new(src, format!("body #{}", i + 1), span, table);
         bodies.push(parse_body(
             item,
             true,
@@ -696,13 +604,7 @@ pub(crate) fn parse(src: Source<'_>) -> Result<SceneTemplate, SceneError> {
         .collect();
     let mut joints: Vec<JointT> = Vec::new();
     for (i, (table, span)) in tables(&root, "joint")?.into_iter().enumerate() {
-        let mut item = Item {
-            src,
-            label: format!("joint #{}", i + 1),
-            prefix: String::new(),
-            span,
-            table,
-        };
+        let mut item = Item::new(src, format!("joint #{}", i + 1), span, table);
         let (name, name_span) = item.required_string("name", "every joint needs a `name`")?;
         item.label = format!("joint \"{name}\"");
         check_name(&item, name, name_span.clone())?;

@@ -6,12 +6,13 @@
 //! (`WorldRng::new(seed, Stream::Scene)`), so a world is regenerable from its seed alone
 //! (DESIGN.md "World identity").
 
-use super::error::{SceneError, Source};
+use super::error::SceneError;
 use super::generators::Placement;
 use super::model::{
     Body, BodyRef, IDENTITY, Joint, JointKind, Material, Quat, Scene, Settings, Shape, StaticBody,
     Vec3,
 };
+use super::toml_span::Source;
 use crate::rng::{Stream, WorldRng};
 
 /// How one number of the scene is chosen per world.
