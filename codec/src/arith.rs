@@ -1,17 +1,16 @@
-//! Format 3's entropy code: a binary adaptive range coder (the LZMA coder: 32-bit range, carry
+//! The entropy code: a binary adaptive range coder (the LZMA coder: 32-bit range, carry
 //! propagation through a cached byte) with context-modelled binarisations of every integer.
 //!
-//! Rice codes (format 2) spend at least one bit on every value and every segment type; in contact
-//! phases most residuals are 0 or ±1 and most types repeat the previous one, so a coder that can
-//! spend a fraction of a bit on a likely symbol is what is left to gain (§4.3 names Rice codes;
-//! this replaces them, the residuals they code are the same).
+//! Rice codes (§4.3 names them) spend at least one bit on every value and every segment type; in
+//! contact phases most residuals are 0 or ±1 and most types repeat the previous one, so a coder
+//! that spends a fraction of a bit on a likely symbol codes the same residuals in fewer bits.
 //!
 //! * **Bits** ([`Bit`]) carry the probability of a 0 in 1/65536, adapted after every use with a
 //!   rate that starts at 1/2 and settles at 1/2^[`RATE_LIMIT`] (fast learning for the few hundred
 //!   symbols of one object's ~1 s track, then a moving average).
 //! * **Values** ([`ValueModel`]): `m = v + 1` is written as the bit length of `m` in unary (each
 //!   unary position its own context, counted from the magnitude of the stream's recent values as
-//!   the format-2 [`AdaptiveRice`] rule tracks it: few contexts, learnt within a ~1 s track),
+//!   the [`AdaptiveRice`] rule tracks it: few contexts, learnt within a ~1 s track),
 //!   then the two bits below the leading one with contexts, then the rest as equiprobable bits.
 //! * **Types** ([`TypeModel`]): "same as the previous type" (a context per previous type), else
 //!   the rank among the others as three tree-coded bits.
@@ -22,7 +21,7 @@
 
 use std::sync::LazyLock;
 
-use crate::bits::{AdaptiveRice, RICE2_ESCAPE};
+use crate::bits::{AdaptiveRice, RICE_ESCAPE};
 use crate::error::CodecError;
 
 /// Probabilities are of a 0 bit, in units of 2⁻¹⁶.
@@ -278,28 +277,29 @@ impl<'a> RangeDecoder<'a> {
     }
 }
 
-/// A format-2 Rice code (`BitWriter::write_rice2`, `bits.rs`) as equiprobable bits: the
-/// start values, three per object, are too few to adapt to (the header holds their parameter).
-pub(crate) fn encode_rice2_direct(e: &mut RangeEncoder, v: u64, k: u32) {
+/// A Rice code with parameter `k` (escape after [`RICE_ESCAPE`] ones, see `bits::rice_len`) as
+/// equiprobable bits: the start values, three per object, are too few to adapt to (the header
+/// holds their parameter).
+pub(crate) fn encode_rice_direct(e: &mut RangeEncoder, v: u64, k: u32) {
     let q = v >> k;
-    if q < RICE2_ESCAPE {
+    if q < RICE_ESCAPE {
         e.direct(u64::MAX, q as u32);
         e.direct(0, 1);
         e.direct(v, k);
     } else {
         let n = 64 - v.leading_zeros();
-        e.direct(u64::MAX, RICE2_ESCAPE as u32);
+        e.direct(u64::MAX, RICE_ESCAPE as u32);
         e.direct(u64::from(n - 1), 6);
         e.direct(v, n - 1);
     }
 }
 
-pub(crate) fn decode_rice2_direct(d: &mut RangeDecoder<'_>, k: u32) -> Result<u64, CodecError> {
+pub(crate) fn decode_rice_direct(d: &mut RangeDecoder<'_>, k: u32) -> Result<u64, CodecError> {
     let mut q = 0u64;
-    while q < RICE2_ESCAPE && d.direct(1)? == 1 {
+    while q < RICE_ESCAPE && d.direct(1)? == 1 {
         q += 1;
     }
-    if q == RICE2_ESCAPE {
+    if q == RICE_ESCAPE {
         let n = d.direct(6)? as u32 + 1;
         let low = d.direct(n - 1)?;
         return Ok((1u64 << (n - 1)) | low);
@@ -573,6 +573,27 @@ mod tests {
             assert_eq!(d.direct(n).unwrap(), v & mask);
         }
         assert!(cost > 0);
+    }
+
+    /// Start values: every value, escapes included, reads back, in the bits `rice_len` counts.
+    #[test]
+    fn direct_rice_codes_roundtrip_in_their_length() {
+        let values = [0u64, 1, 2, 7, 100, 1 << 20, u64::MAX, (1 << 40) + 3];
+        for k in [0u32, 1, 5, 13, 60] {
+            let mut e = RangeEncoder::default();
+            let mut bits = 0;
+            for &v in &values {
+                encode_rice_direct(&mut e, v, k);
+                bits += crate::bits::rice_len(v, k);
+            }
+            let bytes = e.finish();
+            // Equiprobable bits cost one bit each (plus the coder's flush).
+            assert!((bytes.len() as u64 * 8).abs_diff(bits) <= 40, "k = {k}");
+            let mut d = RangeDecoder::new(&bytes).unwrap();
+            for &v in &values {
+                assert_eq!(decode_rice_direct(&mut d, k).unwrap(), v, "k = {k}");
+            }
+        }
     }
 
     #[test]

@@ -7,16 +7,16 @@
 //! bound cannot come from the input length alone) and are only made once the header and index
 //! have been validated against the input length.
 
-mod v1;
-pub(crate) mod v2;
+mod object;
 
 use crate::Track;
-use crate::bits::{BitReader, read_varint};
+use crate::bits::read_varint;
 use crate::error::CodecError;
-use crate::format::{Header, INDEX_ENTRY_LEN_V1};
+use crate::format::{FORMAT_VERSION, Header};
 use crate::params::{MotionModel, Quality};
 use crate::rotation::{self, Quat, Vec3};
 use crate::segment::{Lattice, PositionCurve, RotationCurve};
+use object::ObjectStream;
 
 /// Caps on what one decode call may allocate.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -66,61 +66,37 @@ impl<'a> WorldReader<'a> {
 
     /// Like [`WorldReader::new`], with explicit allocation caps.
     pub fn with_limits(bytes: &'a [u8], limits: DecodeLimits) -> Result<Self, CodecError> {
-        let header = Header::parse(bytes)?;
+        let (header, header_len) = Header::parse(bytes)?;
         let n = header.object_count as usize;
-        let rest = &bytes[header.header_len..];
+        let rest = &bytes[header_len..];
+        // Varint lengths (and frame counts): each entry takes at least one byte, so a hostile
+        // object count ends at the end of the input.
+        let mut at = 0usize;
+        let mut total = 0u64;
+        for _ in 0..n {
+            total = total.saturating_add(read_varint(rest, &mut at)?);
+            if header.common_frames.is_none() {
+                let frames = read_varint(rest, &mut at)?;
+                if frames > u64::from(u32::MAX) {
+                    return Err(CodecError::Corrupt {
+                        what: "object frame count above 2^32 − 1",
+                    });
+                }
+            }
+        }
+        let (index, payload) = rest.split_at(at);
+        if total != payload.len() as u64 {
+            return Err(CodecError::Corrupt {
+                what: "object payload lengths must add up to the payload",
+            });
+        }
         let mut reader = Self {
             header,
-            index: &[],
-            payload: &[],
+            index,
+            payload,
             max_frames: 0,
             limits,
         };
-        if header.version == 1 {
-            let index_len = n
-                .checked_mul(INDEX_ENTRY_LEN_V1)
-                .filter(|&l| l <= rest.len())
-                .ok_or(CodecError::Truncated {
-                    at_bit: bytes.len() as u64 * 8,
-                    needed_bits: (n as u64 * INDEX_ENTRY_LEN_V1 as u64)
-                        .saturating_sub(rest.len() as u64)
-                        .saturating_mul(8),
-                })?;
-            (reader.index, reader.payload) = rest.split_at(index_len);
-            let mut prev = 0usize;
-            for i in 0..n {
-                let e = &reader.index[i * INDEX_ENTRY_LEN_V1..(i + 1) * INDEX_ENTRY_LEN_V1];
-                let offset = u32::from_le_bytes([e[0], e[1], e[2], e[3]]) as usize;
-                if offset < prev || offset > reader.payload.len() {
-                    return Err(CodecError::Corrupt {
-                        what: "object offsets must be increasing and inside the payload",
-                    });
-                }
-                prev = offset;
-            }
-        } else {
-            // Varint lengths (and frame counts): each entry takes at least one byte, so a
-            // hostile object count ends at the end of the input.
-            let mut at = 0usize;
-            let mut total = 0u64;
-            for _ in 0..n {
-                total = total.saturating_add(read_varint(rest, &mut at)?);
-                if header.common_frames.is_none() {
-                    let frames = read_varint(rest, &mut at)?;
-                    if frames > u64::from(u32::MAX) {
-                        return Err(CodecError::Corrupt {
-                            what: "object frame count above 2^32 − 1",
-                        });
-                    }
-                }
-            }
-            (reader.index, reader.payload) = rest.split_at(at);
-            if total != reader.payload.len() as u64 {
-                return Err(CodecError::Corrupt {
-                    what: "object payload lengths must add up to the payload",
-                });
-            }
-        }
         reader.max_frames = reader.entries().map(|e| e.frames).max().unwrap_or(0);
         Ok(reader)
     }
@@ -146,9 +122,9 @@ impl<'a> WorldReader<'a> {
         Ok((&self.payload[e.start..e.end], e.frames))
     }
 
-    /// Format version of the input.
-    pub fn version(&self) -> u16 {
-        self.header.version
+    /// Format version of the input ([`FORMAT_VERSION`], the only one this build opens).
+    pub fn version(&self) -> u8 {
+        FORMAT_VERSION
     }
 
     /// Number of objects in the world.
@@ -193,12 +169,12 @@ impl<'a> WorldReader<'a> {
             .find(|q| q.bounds() == (self.header.e_max, self.header.theta_max))
     }
 
-    fn open(&self, i: usize) -> Result<Option<ObjectStreams<'a>>, CodecError> {
+    fn open(&self, i: usize) -> Result<Option<ObjectStream<'a>>, CodecError> {
         let (bytes, frames) = self.object(i)?;
         if frames == 0 {
             return Ok(None);
         }
-        ObjectStreams::open(bytes, frames, &self.header, self.limits.max_object_frames).map(Some)
+        ObjectStream::open(bytes, frames, &self.header, self.limits.max_object_frames).map(Some)
     }
 
     fn decode_entry(&self, bytes: &'a [u8], frames: u32) -> Result<Track, CodecError> {
@@ -213,12 +189,12 @@ impl<'a> WorldReader<'a> {
             return Ok(Track::default());
         }
         let mut streams =
-            ObjectStreams::open(bytes, frames, &self.header, self.limits.max_object_frames)?;
+            ObjectStream::open(bytes, frames, &self.header, self.limits.max_object_frames)?;
         let mut track = Track {
             positions: Vec::with_capacity(frames as usize),
             rotations: Vec::with_capacity(frames as usize),
         };
-        track.positions.push(streams.position_start());
+        track.positions.push(streams.position_start);
         while let Some(seg) = streams.next_position()? {
             for u in 1..=seg.len {
                 track
@@ -313,7 +289,7 @@ impl<'a> WorldReader<'a> {
                 what: "object has no frames",
             });
         };
-        let mut pos = streams.position_start();
+        let mut pos = streams.position_start;
         while let Some(seg) = streams.next_position()? {
             let s = f64::from(seg.start);
             if f <= s + f64::from(seg.len) {
@@ -340,13 +316,13 @@ struct Entry {
     frames: u32,
 }
 
-/// Walks a validated index (version 1: fixed-size offsets; version 2: varint lengths).
+/// Walks a validated index.
 struct Entries<'r> {
     reader: &'r WorldReader<'r>,
     i: usize,
-    /// Version 2: byte position in the index.
+    /// Byte position in the index.
     at: usize,
-    /// Version 2: payload offset of object `i`.
+    /// Payload offset of object `i`.
     offset: usize,
 }
 
@@ -359,25 +335,7 @@ impl Iterator for Entries<'_> {
         if self.i >= n {
             return None;
         }
-        let i = self.i;
         self.i += 1;
-        if r.header.version == 1 {
-            let field = |j: usize, k: usize| {
-                let e = &r.index[j * INDEX_ENTRY_LEN_V1..(j + 1) * INDEX_ENTRY_LEN_V1];
-                u32::from_le_bytes([e[k], e[k + 1], e[k + 2], e[k + 3]])
-            };
-            let start = field(i, 0) as usize;
-            let end = if i + 1 < n {
-                field(i + 1, 0) as usize
-            } else {
-                r.payload.len()
-            };
-            return Some(Entry {
-                start,
-                end,
-                frames: field(i, 4),
-            });
-        }
         let len = read_varint(r.index, &mut self.at).ok()? as usize;
         let frames = match r.header.common_frames {
             Some(f) => f,
@@ -403,17 +361,6 @@ fn finite_position(p: Vec3) -> Result<Vec3, CodecError> {
     }
 }
 
-fn read_f64(r: &mut BitReader<'_>) -> Result<f64, CodecError> {
-    Ok(f64::from_bits(r.read_bits(64)?))
-}
-
-fn read_quat(r: &mut BitReader<'_>) -> Result<Quat, CodecError> {
-    let q = [read_f64(r)?, read_f64(r)?, read_f64(r)?, read_f64(r)?];
-    rotation::normalise(q).ok_or(CodecError::Corrupt {
-        what: "stored quaternion cannot be normalised",
-    })
-}
-
 pub(crate) struct PositionSegment {
     pub start: u32,
     pub len: u32,
@@ -428,80 +375,8 @@ pub(crate) struct RotationSegment {
     pub curve: RotationCurve,
 }
 
-/// One object's segments, whatever the format version: positions first, then rotations.
-enum ObjectStreams<'a> {
-    V1(Box<v1::ObjectStreams<'a>>),
-    V2(Box<v2::ObjectStream<v2::RiceSymbols<'a>>>),
-    V3(Box<v2::ObjectStream<v2::RangeSymbols<'a>>>),
-}
-
-impl<'a> ObjectStreams<'a> {
-    /// `free_budget`: most free-flight frames the object's decoder may simulate (they cost time,
-    /// not memory: a hostile stream could otherwise claim billions of them).
-    fn open(
-        bytes: &'a [u8],
-        frames: u32,
-        header: &Header,
-        free_budget: u64,
-    ) -> Result<Self, CodecError> {
-        Ok(match header.version {
-            1 => Self::V1(Box::new(v1::ObjectStreams::open(bytes, frames, header)?)),
-            2 => Self::V2(Box::new(v2::ObjectStream::open(
-                v2::RiceSymbols::new(bytes),
-                frames,
-                header,
-                free_budget,
-            )?)),
-            _ => Self::V3(Box::new(v2::ObjectStream::open(
-                v2::RangeSymbols::new(bytes)?,
-                frames,
-                header,
-                free_budget,
-            )?)),
-        })
-    }
-
-    fn position_start(&self) -> Vec3 {
-        match self {
-            Self::V1(s) => s.positions.start,
-            Self::V2(s) => s.position_start,
-            Self::V3(s) => s.position_start,
-        }
-    }
-
-    fn next_position(&mut self) -> Result<Option<PositionSegment>, CodecError> {
-        match self {
-            Self::V1(s) => s.positions.next_segment(),
-            Self::V2(s) => s.next_position(),
-            Self::V3(s) => s.next_position(),
-        }
-    }
-
-    /// The first orientation (version 2 reads past the remaining position segments first).
-    fn start_rotations(&mut self) -> Result<Quat, CodecError> {
-        match self {
-            Self::V1(s) => Ok(s.rotations.start),
-            Self::V2(s) => s.start_rotations(),
-            Self::V3(s) => s.start_rotations(),
-        }
-    }
-
-    /// The next rotation segment; a free flight's frames are pushed onto `frames`, if given
-    /// (version 1 has none).
-    fn next_rotation(
-        &mut self,
-        frames: Option<&mut Vec<Quat>>,
-    ) -> Result<Option<RotationSegment>, CodecError> {
-        match self {
-            Self::V1(s) => s.rotations.next_segment(),
-            Self::V2(s) => s.next_rotation(frames),
-            Self::V3(s) => s.next_rotation(frames),
-        }
-    }
-}
-
 /// The decoded first orientation from its quantised rotation vector (lattice coordinates;
-/// shared with the encoder). `start_step`: the rotation step over the version's start divisor.
+/// shared with the encoder). `start_step`: the rotation step over its start divisor.
 pub(crate) fn start_orientation(q: [i64; 3], start_step: f64, lattice: Lattice) -> Quat {
     let r = lattice.point(q, start_step);
     rotation::normalise(rotation::exp(r)).unwrap_or(rotation::IDENTITY)

@@ -1,5 +1,5 @@
 //! Encoding a world: validate, fit segments per object (positions and rotations separately, §4.3),
-//! Rice-code them, assemble header + index + payloads, then decode the result and check the bound
+//! range-code them, assemble header + index + payloads, then decode the result and check the bound
 //! on every frame before handing it out.
 //!
 //! At every segment start the encoder gathers candidates — rest, a one-frame step, and the
@@ -7,9 +7,8 @@
 //! coders' current state, and writes the one with the fewest bits per frame (§4.3 extends the
 //! segment as far as it goes; measured on the shipped scenes, pricing is 5–12 % smaller).
 
-use crate::arith::{Bit, COST_SCALE, RangeEncoder, TypeModel, ValueModel, encode_rice2_direct};
-use crate::bits::{best_rice2_k, rice2_len, write_varint, zigzag};
-use crate::decode::v2::{FLAG_POS_RAW, FLAG_POS_REST, FLAG_ROT_RAW, FLAG_ROT_REST};
+use crate::arith::{Bit, COST_SCALE, RangeEncoder, TypeModel, ValueModel, encode_rice_direct};
+use crate::bits::{best_rice_k, rice_len, write_varint, zigzag};
 use crate::decode::{DecodeLimits, WorldReader, start_orientation};
 use crate::error::CodecError;
 use crate::fit::{
@@ -17,9 +16,9 @@ use crate::fit::{
     RotationScratch, fit_free, fit_position, fit_rotation, rest_length, rotation_rest_length,
 };
 use crate::format::{
-    FORMAT_VERSION, Header, HeaderDynamics, MAX_START_K, S_POS_LEN, S_POS_LINEAR, S_POS_QUADRATIC,
-    S_POS_REST_LEN, S_POS_STEP, S_ROT_ACC, S_ROT_FREE, S_ROT_LEN, S_ROT_REST_LEN, S_ROT_STEP,
-    S_ROT_W, STREAMS_V3_ALL, axis_stream, value_models,
+    FLAG_POS_RAW, FLAG_POS_REST, FLAG_ROT_RAW, FLAG_ROT_REST, Header, HeaderDynamics, MAX_START_K,
+    S_POS_LEN, S_POS_LINEAR, S_POS_QUADRATIC, S_POS_REST_LEN, S_POS_STEP, S_ROT_ACC, S_ROT_FREE,
+    S_ROT_LEN, S_ROT_REST_LEN, S_ROT_STEP, S_ROT_W, STREAMS, value_models,
 };
 use crate::lowres::LowResPath;
 use crate::params::{
@@ -56,7 +55,8 @@ impl Track {
 /// What [`encode_world`] produces.
 #[derive(Debug, Clone, PartialEq)]
 pub struct EncodedWorld {
-    /// The versioned bitstream (read it with [`WorldReader`]).
+    /// The encoded stream, format version [`crate::FORMAT_VERSION`] (read it with
+    /// [`WorldReader`]).
     pub bytes: Vec<u8>,
     /// One uncompressed low-rate polyline per object, in object order.
     pub lowres: Vec<LowResPath>,
@@ -78,7 +78,7 @@ pub struct EncodeStats {
     pub rotation_segments: u64,
     /// Segments that fell back to an exactly stored frame.
     pub key_segments: u64,
-    /// Rotation segments that are free flights (format 4, counted in `rotation_segments` too).
+    /// Rotation segments that are free flights (counted in `rotation_segments` too).
     pub free_rotation_segments: u64,
     /// Largest Euclidean position error over all decoded frames (metres).
     pub max_position_error: f64,
@@ -142,7 +142,7 @@ pub fn encode_world(tracks: &[Track], p: &EncodeParams) -> Result<EncodedWorld, 
 }
 
 /// [`encode_world`], also given how the simulator turns bodies in free flight: objects with a
-/// known inertia may then use free-flight rotation segments (format 4, [`RotationDynamics`]).
+/// known inertia may then use free-flight rotation segments ([`RotationDynamics`]).
 /// The decoder needs nothing extra: what it needs travels in the stream.
 pub fn encode_world_with_dynamics(
     tracks: &[Track],
@@ -184,7 +184,7 @@ pub fn encode_world_with_dynamics(
         MotionModel::General => None,
         MotionModel::FreeFlightGravity { g } => Some(g),
     };
-    let coding = PositionCoding::new(p.pos_step(), gravity, p.frame_dt, FORMAT_VERSION);
+    let coding = PositionCoding::new(p.pos_step(), gravity, p.frame_dt);
     let theta_lim = p.theta_max * (1.0 - ROT_BOUND_MARGIN);
     // The start values first: their Rice parameters are chosen for the whole world.
     let starts: Vec<Start> = tracks
@@ -198,11 +198,9 @@ pub fn encode_world_with_dynamics(
             .flat_map(|q| coding.lattice.coset_and_integers(q).1)
             .map(zigzag)
             .collect();
-        best_rice2_k(&values, MAX_START_K)
+        best_rice_k(&values, MAX_START_K)
     });
     let mut header = Header {
-        version: crate::format::FORMAT_VERSION,
-        header_len: 0,
         model: p.model,
         object_count,
         frame_dt: p.frame_dt,
@@ -423,12 +421,12 @@ fn validate_track(object: usize, track: &Track) -> Result<Vec<Quat>, CodecError>
         .collect()
 }
 
-/// One object's stream under construction (format 3): the range coder, the context models of
+/// One object's stream under construction: the range coder, the context models of
 /// every stream (the decoder mirrors them) and where the bits went (in 1/256 bit while writing:
 /// the coder's estimate of each symbol's cost).
 struct ObjectWriter {
     e: RangeEncoder,
-    values: Box<[ValueModel; STREAMS_V3_ALL]>,
+    values: Box<[ValueModel; STREAMS]>,
     types: [TypeModel; 2],
     flags: [Bit; 4],
     /// The world's Rice parameters for start positions and orientations.
@@ -467,14 +465,12 @@ impl ObjectWriter {
         match quantised {
             Some(q) => {
                 let (coset, k) = lattice.coset_and_integers(q);
-                if let Some(coset) = coset {
-                    self.e.direct(coset, 1);
-                    cost += COST_SCALE;
-                }
+                self.e.direct(coset, 1);
+                cost += COST_SCALE;
                 for v in k {
                     let k = self.start_k[which];
-                    encode_rice2_direct(&mut self.e, zigzag(v), k);
-                    cost += rice2_len(zigzag(v), k) * COST_SCALE;
+                    encode_rice_direct(&mut self.e, zigzag(v), k);
+                    cost += rice_len(zigzag(v), k) * COST_SCALE;
                 }
             }
             None => cost += self.raw(raw),
@@ -523,30 +519,26 @@ impl ObjectWriter {
     /// Three residuals against a prediction.
     fn residuals(&mut self, stream: usize, q: [i64; 3], pred: [i64; 3]) -> u64 {
         (0..3)
-            .map(|i| self.code(axis_stream(stream, i), residual(q[i], pred[i])))
+            .map(|i| self.code(stream, residual(q[i], pred[i])))
             .sum()
     }
 
-    /// A lattice vector as [`Lattice::split`] writes it against its prediction (on the BCC
-    /// lattice its coset bit first); returns its cost.
+    /// A lattice vector as [`Lattice::split`] writes it against its prediction (its coset bit
+    /// first); returns its cost.
     fn vector(&mut self, stream: usize, c: Coded) -> u64 {
-        let mut cost = 0;
-        if let Some(coset) = c.coset {
-            self.e.direct(coset, 1);
-            cost += COST_SCALE;
-        }
-        cost + self.residuals(stream, c.k, c.pred)
+        self.e.direct(c.coset, 1);
+        COST_SCALE + self.residuals(stream, c.k, c.pred)
     }
 
     /// Cost of [`Self::vector`] now.
     fn vector_cost(&self, stream: usize, c: Coded) -> u64 {
-        COST_SCALE * u64::from(c.coset.is_some()) + self.residuals_cost(stream, c.k, c.pred)
+        COST_SCALE + self.residuals_cost(stream, c.k, c.pred)
     }
 
     /// Cost of three residuals now (the estimate that ranks candidate segments).
     fn residuals_cost(&self, stream: usize, q: [i64; 3], pred: [i64; 3]) -> u64 {
         (0..3)
-            .map(|i| self.values[axis_stream(stream, i)].cost(residual(q[i], pred[i])))
+            .map(|i| self.values[stream].cost(residual(q[i], pred[i])))
             .sum()
     }
 
@@ -581,11 +573,11 @@ impl ObjectWriter {
 /// frames is nearly an interpolation: it costs six coefficients where steps cost less, and its
 /// end velocity predicts the next segment badly — which the per-frame cost of the greedy choice
 /// cannot see. Measured on the shipped scenes: 1–5 % smaller at every preset (flat from 4 to 6).
-/// Since version 5's lattice search makes linear segments longer, 7 (0.4–1.2 % smaller than 5 at
+/// With the lattice search making linear segments longer, 7 (0.4–1.2 % smaller than 5 at
 /// Standard; 8 and 10 no better, worse at Final).
 const MIN_QUADRATIC_LEN: u32 = 7;
 
-/// An object's first position and orientation, quantised finely (`start_step_divisors`) if that
+/// An object's first position and orientation, quantised finely (`START_STEP_DIVISORS`) if that
 /// meets the bounds, else `None` (stored raw).
 struct Start {
     position: Option<[i64; 3]>,
@@ -683,7 +675,7 @@ impl PositionChoice {
 }
 
 /// Encodes an object's positions; returns, per frame, whether a gravity parabola (free flight,
-/// format 2's `Gravity` type) covers the step into it — where the rotation encoder tries free
+/// the `Gravity` type) covers the step into it — where the rotation encoder tries free
 /// flights (every frame, in a world without the gravity model).
 fn encode_positions(
     x: &[Vec3],
@@ -849,7 +841,7 @@ enum RotationChoice {
     /// One frame: the quantised residual and the decoded rotation vector of the frame.
     Step([i64; 3], Vec3),
     Fit(RotationKind, RotationFit),
-    /// Format 4: torque-free flight.
+    /// Torque-free flight.
     Free(RotationFit),
 }
 
@@ -877,7 +869,7 @@ impl RotationChoice {
 struct RotationCoding<'a> {
     /// Δθ.
     step: f64,
-    /// The start orientation's step (Δθ over the version's divisor).
+    /// The start orientation's step (Δθ over its divisor).
     start_step: f64,
     theta_lim: f64,
     /// The world's rotation types, in code order.
@@ -1102,8 +1094,6 @@ mod tests {
     fn free_flights(frames: u32, lengths: &[u64]) -> Vec<u8> {
         let (e, t) = Quality::Standard.bounds();
         let header = Header {
-            version: FORMAT_VERSION,
-            header_len: 0,
             model: MotionModel::General,
             object_count: 1,
             frame_dt: 1.0 / 120.0,
@@ -1119,9 +1109,9 @@ mod tests {
             }),
         };
         let mut out = ObjectWriter::new([0, 0]);
-        out.start(0, Some([0; 3]), &[0.0; 3], Lattice::of(FORMAT_VERSION));
+        out.start(0, Some([0; 3]), &[0.0; 3], Lattice);
         out.flag(FLAG_POS_REST, true);
-        out.start(1, Some([0; 3]), &[0.0; 4], Lattice::of(FORMAT_VERSION));
+        out.start(1, Some([0; 3]), &[0.0; 4], Lattice);
         out.flag(FLAG_ROT_REST, false);
         let free = rotation_types(true)
             .iter()
@@ -1135,10 +1125,7 @@ mod tests {
             }
             // Lattice coordinates of one parity (a BCC point).
             let step = step_linear(1.1 * t, bucket(len.max(1) as u32));
-            out.vector(
-                S_ROT_FREE,
-                Lattice::of(FORMAT_VERSION).split([10, -4, 6], [0.0; 3], step),
-            );
+            out.vector(S_ROT_FREE, Lattice.split([10, -4, 6], [0.0; 3], step));
         }
         let payload = out.finish(&mut SizeBreakdown::default());
         let mut bytes = Vec::new();

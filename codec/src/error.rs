@@ -38,15 +38,13 @@ pub enum CodecError {
     /// The encoded world does not fit the 32-bit offset index.
     #[error("encoded world payload is {bytes} bytes, the format allows at most {max}")]
     TooLarge { bytes: usize, max: usize },
-    /// The input starts neither with a version-6-or-later version byte (below 0x40) nor with the
-    /// magic bytes of versions 1 to 5.
-    #[error(
-        "not an encoded world: expected a version byte or the magic {expected:?}, found {found:?}"
-    )]
-    BadMagic { expected: [u8; 4], found: Vec<u8> },
-    /// A recording from a newer (or unknown) format version.
-    #[error("unsupported format version {found} (this build reads versions 1..={supported})")]
-    UnsupportedVersion { found: u16, supported: u16 },
+    /// The first byte is no format version (versions are below 0x40): the input is not an
+    /// encoded world (text, another container, a corrupted stream).
+    #[error("not an encoded world: the first byte {found:#04x} is no format version")]
+    NotAWorld { found: u8 },
+    /// A stream of a format version this build does not read (a newer one, or none that exists).
+    #[error("unsupported format version {found} (this build reads version {supported})")]
+    UnsupportedVersion { found: u8, supported: u8 },
     /// The input ends before a field that must be there.
     #[error("truncated input: {needed_bits} more bits needed at bit {at_bit}")]
     Truncated { at_bit: u64, needed_bits: u64 },

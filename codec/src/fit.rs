@@ -9,7 +9,7 @@
 //! crosses a power of two; that costs O(L) per doubling, so the fitter stays linear.
 //!
 //! Where the lattice point nearest the least-squares coefficients breaks the bound, the next
-//! nearest points (`RESCUE_CANDIDATES`, format 5's BCC lattice) are tried before the segment
+//! nearest points (`RESCUE_CANDIDATES`, on the BCC lattice) are tried before the segment
 //! ends: the nearest coefficients are not always those that stay within the bound longest, and
 //! a point of a coarser lattice is further from the fit on average. Each try re-checks the
 //! segment's frames, once per break, so the fitter stays linear (with a larger constant).
@@ -21,8 +21,8 @@ use crate::segment::{
     RotationCurve, bucket, step_angular_acceleration, step_linear, step_quadratic,
 };
 
-/// The position models a segment may use (format 2 chooses per segment; §4.3: "model only what
-/// the scene requires").
+/// The position models a segment may use (chosen per segment; §4.3: "model only what the scene
+/// requires").
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) enum PositionKind {
     /// Free flight: linear term fitted, quadratic term `h²g/2`.
@@ -81,9 +81,8 @@ pub(crate) enum StartCorrection {
     Horizon(f64),
 }
 
-/// Both strategies (format 1 tried these and `Horizon(∞)`, keeping the offset for good; with
-/// steps and per-frame costs in format 2 that one never produced the chosen segment on the
-/// shipped scenes).
+/// Both strategies (`Horizon(∞)`, keeping the offset for good, was tried too: with steps and
+/// per-frame costs it never produced the chosen segment on the shipped scenes).
 const CORRECTIONS: [StartCorrection; 2] = [
     StartCorrection::Anchored,
     StartCorrection::Horizon(4.0 * FIT_WINDOW as f64),
@@ -875,7 +874,7 @@ const FREE_MIN_TURN: f64 = 4.0;
 const FREE_FIT_ITERATIONS: usize = 2;
 const FREE_FIT_EPS: f64 = 1e-7;
 
-/// Format 4: the longest torque-free flight ([`RotationCurve::Free`]) from frame `s` (decoded
+/// The longest torque-free flight ([`RotationCurve::Free`]) from frame `s` (decoded
 /// start orientation `q0`) that stays within `θ_lim`, or `None`. `flight`: how many frames on
 /// the positions fly freely (a hint for the fit's window).
 ///
@@ -1264,7 +1263,7 @@ mod tests {
     #[test]
     fn a_gravity_parabola_is_one_segment() {
         let dt = 1.0 / 120.0;
-        let coding = PositionCoding::new(1e-3, Some([0.0, -9.81, 0.0]), dt, 4);
+        let coding = PositionCoding::new(1e-3, Some([0.0, -9.81, 0.0]), dt);
         let x: Vec<Vec3> = (0..400)
             .map(|i| {
                 let t = i as f64 * dt;
@@ -1303,7 +1302,7 @@ mod tests {
                 kind,
                 StartCorrection::Anchored,
                 1e-3,
-                Lattice::Bcc,
+                Lattice,
                 1e-3,
                 &mut RotationScratch::default(),
             )
@@ -1327,7 +1326,7 @@ mod tests {
             RotationKind::Linear,
             StartCorrection::Anchored,
             1e-3,
-            Lattice::Bcc,
+            Lattice,
             1e-3,
             &mut RotationScratch::default(),
         )

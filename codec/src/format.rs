@@ -1,294 +1,276 @@
-//! The versioned byte layout of an encoded world. This build writes version 6 and reads 1 to 6.
+//! The byte layout of an encoded world: **format version 1**, the released format, the one this
+//! build writes and the only one it reads. A later format gets the next version number and a
+//! reader of its own beside this one, so that what was recorded in version 1 stays readable.
 //!
-//! # Version 6
+//! Notation: all multi-byte fields of the header and index are little endian; "varint" is
+//! unsigned LEB128 (at most 10 bytes); "f64" is 8 bytes of an IEEE 754 double; a **decimal** is
+//! a varint m (1 ≤ m ≤ 2⁵³) then a byte k (0 ≤ k ≤ 22), the value being the f64 division
+//! `m / 10ᵏ` (both operands are exact in f64, so the value is the correctly rounded decimal — what
+//! a settings file's `0.002` parses to; a writer uses one only where the division gives its
+//! number back bit for bit). Arithmetic in the formulas below is f64, evaluated left to right as
+//! written; positions use only `+ − × / √` and decode bit for bit on every IEEE 754 platform,
+//! rotations also use `sin`, `cos` and `atan2` (see `rotation`), whose last bit may
+//! differ between math libraries — the encoder keeps θ_max·10⁻⁹ of margin for it.
 //!
-//! Version 5 (below) with a compact header: the 4-byte magic, the 2-byte version, the 2-byte
-//! header length and the model byte become one version byte and a flag, 8 bytes less on every
-//! stream. A world segment restates its header every ~1 s; for a one-body object group that was
-//! 8 B/(obj·s) of ~96.
-//!
-//! ```text
-//! offset  size  field
-//!      0     1  format version (6); versions 1–5 start with the magic b"MWBM" (0x4D), so a
-//!               first byte below 0x40 is a version-6-or-later header and anything else with
-//!               the wrong magic is not a world
-//!      1     1  flags: version 5's, plus 64 = the motion model is FreeFlightGravity
-//!      2        version 5's header fields from the bounds on (preset byte or bounds, frame rate,
-//!               steps, gravity, start Rice parameters, object count, common frame count,
-//!               dynamics); the header ends with its last field (no length: a reader of a later
-//!               version's header refuses it by its version byte)
-//!               the object index and payloads as in version 5
-//! ```
-//!
-//! The magic's job — telling a world from other bytes — is the bus envelope's: a
-//! `MotionSegment` names its encoding and carries a CRC32 of the payload (DESIGN.md), and a
-//! recording keeps the envelope.
-//!
-//! # Version 5
-//!
-//! Version 4 (below, with the version field 5) with two changes.
-//!
-//! **Lattice vectors.** Every quantised 3-vector — start values, one-frame steps, the linear and
-//! quadratic coefficients of position and rotation segments, free-flight velocities — is a point
-//! of the body-centred cubic lattice instead of the cubic one (`segment::Lattice`): for a step s
-//! the lattice with the same covering radius √3/2·s, spacing a = s·2√3/√5. Its lattice
-//! coordinates K (doubled: the point is K·a/2, the three of one parity c) are written as the
-//! coset bit c (equiprobable), then k = (K − c)/2: start values Rice-coded with the header's
-//! parameter as before, other vectors as residuals against `round(p/a − c/2)` per axis, p the
-//! predicted vector (the previous segment's end velocity, quadratic term, angular velocity or
-//! angular acceleration as a point of space; 0 for steps). Start orientations are quantised at
-//! Δθ/4 (positions still Δ/8).
-//!
-//! **Decimal header numbers**: a world segment restates its header every ~1 s, and a one-body
-//! scene at bounds other than a preset paid 16 bytes a second for them (chute at e_max = 2 mm:
-//! 37.8 B/(obj·s) of header, against 21.5 at the 1 mm preset).
-//!
-//! * **Bounds** (header flag 32, not with flag 1): e_max then θ_max, each a *decimal*: varint m
-//!   (1 ≤ m ≤ 2⁵³), then a byte k (0–22); the value is the f64 division m / 10ᵏ. Both operands
-//!   are exact in f64, so the division is the correctly rounded decimal: what a settings file's
-//!   `0.002` parses to. An encoder writes it only when the division gives the bound back bit for
-//!   bit (else the two f64s, as before).
-//! * **Gravity** (model 1, gravity byte with bit 0x40): bits 0–2 mark the non-zero components as
-//!   before, bits 3–5 their negative signs; each non-zero component follows as a decimal of its
-//!   magnitude.
-//!
-//! # Version 4
-//!
-//! Version 3 (below, with the version field 4) plus:
-//!
-//! * **Derived steps** (no stored steps, flag 4 clear): Δ = 1.1·e_max, Δθ = 1.1·θ_max (versions
-//!   2–3: 1.0); start values in steps of Δ/8 and Δθ/8 (versions 1–3: /16).
-//! * **Rotation dynamics** (header flag 16), after the common frame count: varint substeps per
-//!   frame (1–16), then the angular damping `c`: a byte 0 (none), 1 + varint n (c = n/1000) or
-//!   2 + f64. A world written with them has a sixth rotation type, *free flight* (rank 5, after
-//!   Key), coded with the others' type model; without the flag there are five.
-//! * **Free-flight segment**: length (on the rotation length stream, at most 4096 frames), then —
-//!   before the object's first free flight only — its three principal moments as 12-bit integers
-//!   (equiprobable bits; moments relative to the largest, which is 4095), then three
-//!   angular-velocity residuals on their own stream (`S_ROT_FREE`, prior of `S_ROT_W`) against
-//!   the predicted angular velocity, in steps of Δθ·2⁻ᵏ (k = ⌈log₂ L⌉, as a linear segment). The
-//!   decoded curve is `segment::FreeDynamics` simulated from the start orientation q₀, in the
-//!   body frame (ω_b = q₀⁻¹ ω q₀ once): per frame, `substeps` times (h = 1/substeps: the explicit
-//!   gyroscopic step L = I ω_b, L' = L − h·(ω_b × L), ω_b = I⁻¹ L'·|L|/|L'|; then
-//!   `q ← normalise(q ⊗ (h·ω_b/2, 1))`), then ω_b × 1/(1 + dt·c). Bit-exact decoding needs these
-//!   operations in this order (`FreeDynamics::frame`).
-//!
-//! # Version 3
-//!
-//! The header, the index and the symbols of a payload are version 2's (below, with the version
-//! field 3); what differs is how a payload codes its symbols. It is one range-coded stream per
-//! object (`arith`: the LZMA binary coder, its always-zero first byte and up to 8 trailing zero
-//! bytes not stored — the reader reads zeros past the end), every model starting afresh at the
-//! object's first byte (objects stay independently decodable):
+//! # Stream
 //!
 //! ```text
-//! flag bits        (start raw/quantised and at rest, for positions and for rotations) one
-//!                  adaptive context each
-//! start values     the version-2 Rice code with the header's parameter, as equiprobable bits
-//! raw f64          64 equiprobable bits
-//! segment type     a bit "not the previous type" (context: the previous type), then the rank
-//!                  among the other types as 3 bits of a context tree (one tree per previous
-//!                  type); positions and rotations have their own models
-//! integers         per stream (the version-2 streams, plus two for the lengths of rest
-//!                  segments, `S_POS_REST_LEN` and `S_ROT_REST_LEN`): m = v + 1 as the bit
-//!                  length n of m in unary — bit j's context is j − k + 3 clamped to 0..=7,
-//!                  k the stream's version-2 adaptive Rice parameter (starting from
-//!                  `PRIORS_V3`), one set for k = 0 and one for k > 0 — then the two bits below
-//!                  m's leading one with contexts (by n capped at 19, the second also by the
-//!                  first), then the other n − 2 bits equiprobable
+//! header   byte 0: the format version (1). A first byte below 0x40 is a format version (an
+//!                  unknown one is refused by number); any other first byte means the bytes are
+//!                  not an encoded world.
+//!          byte 1: flags   1  bounds are a preset
+//!                          2  the frame time is 1/n s
+//!                          4  the quantisation steps are stored
+//!                          8  every object has the same frame count
+//!                         16  rotation dynamics follow (free-flight rotation segments exist)
+//!                         32  the bounds are decimals (ignored with flag 1)
+//!                         64  the motion model is FreeFlightGravity (clear: General)
+//!                        128  reserved, written 0
+//!          then, in this order, each only where its flag says:
+//!          bounds      flag 1: a byte, the preset: 0 Draft (e_max = 5e-3 m, θ_max = 5e-3 rad),
+//!                      1 Standard (1e-3, 1e-3), 2 Final (1e-4, 1e-4); else flag 32: e_max and
+//!                      θ_max as decimals; else e_max and θ_max as f64s
+//!          frame time  flag 2: varint n ≥ 1, frame_dt = 1.0 / n; else f64 frame_dt
+//!          steps       flag 4: f64 Δ, f64 Δθ; else Δ = 1.1·e_max, Δθ = 1.1·θ_max
+//!          gravity     flag 64 only: a byte G. G & 0x80: g is the well-known vector G & 0x7F:
+//!                      0 (0, −9.81, 0), 1 (0, 0, −9.81), 2 (0, −9.80665, 0),
+//!                      3 (0, 0, −9.80665); else bit i (0–2) marks a non-zero g[i], and each
+//!                      marked component follows in order x, y, z: with G & 0x40 as a decimal
+//!                      of its magnitude, negative if bit 3 + i is set; without, as an f64
+//!          start codes two bytes k_pos, k_rot (each ≤ 60): the Rice parameters of the start
+//!                      values of positions and of orientations
+//!          objects     varint N (< 2³²)
+//!          frames      flag 8: varint F (< 2³²), every object's frame count
+//!          dynamics    flag 16: varint substeps S (1–16), then the angular damping c (1/s): a
+//!                      byte 0 (c = 0), or 1 and a varint n (c = n / 1000.0), or 2 and an f64
+//!          The header ends with its last field: it has no length.
+//! index    N entries, in object order: varint payload length in bytes, then (without flag 8)
+//!          varint frame count (< 2³²). The lengths add up to exactly the rest of the stream.
+//! payloads the objects' payloads, concatenated in object order
 //! ```
 //!
-//! Contexts start at probability ½ (the unary ones at `arith::PREFIX_INIT`) and adapt at rate
-//! 1/2, 1/4, … settling at 1/32 (`arith::Bit`).
+//! A reader refuses a header whose frame time, bounds or steps are not finite numbers in
+//! (10⁻²⁸⁰, 10²⁸⁰), a gravity that is not finite, or a damping c that is negative, not finite or
+//! has `c·frame_dt ≥ 10¹²`. The magic bytes and checksums other containers carry live one layer
+//! up: a bus `MotionSegment` names its encoding and carries a CRC32 of these bytes (DESIGN.md),
+//! and a recording keeps that envelope.
 //!
-//! # Version 2
+//! # Object payload
+//!
+//! An object of 0 frames has an empty payload. Any other object's payload is one range-coded
+//! stream, decodable without any other object's bytes (every model below starts afresh at its
+//! first byte). Its symbols, in order:
 //!
 //! ```text
-//! offset  size  field (little endian; "varint" = unsigned LEB128)
-//!      0     4  magic  b"MWBM"
-//!      4     2  format version (2)
-//!      6     2  header length H in bytes (readers skip fields they do not know)
-//!      8     1  motion model: 0 = General, 1 = FreeFlightGravity
-//!      9     1  flags: 1 = bounds are a preset, 2 = frame_dt is 1/n, 4 = steps stored,
-//!               8 = every object has the same frame count
-//!     10        bounds: preset byte (0 draft, 1 standard, 2 final) | e_max f64, θ_max f64
-//!               frame_dt: varint n (frame_dt = 1.0 / n) | f64
-//!               steps (flag 4): Δ f64, Δθ f64; otherwise Δ = e_max, Δθ = θ_max
-//!               gravity (model 1): a byte with bit i set for a non-zero g[i], then those f64s;
-//!               or 0x80 | i for the i-th of the well-known vectors (`KNOWN_GRAVITY`)
-//!               2 bytes: Rice parameters of the start positions and of the start orientations
-//!               varint object count N; varint common frame count (flag 8)
-//!      H        object index: N × (varint payload length in bytes [, varint frame count])
-//!               payloads, object after object, each a whole number of bytes
+//! position start      flag POS_RAW: 1 → 3 × f64 (x, y, z); 0 → a start vector with k_pos,
+//!                     step Δ/8
+//! at rest             if F ≥ 2: flag POS_REST: 1 → the start point holds for the whole track and
+//!                     no position segments follow
+//! position segments   until frames 1 … F − 1 are covered, each: its type, then
+//!   Gravity           length on POS_LEN, linear term b                     (FreeFlightGravity only)
+//!   Quadratic         length on POS_LEN, linear term b, quadratic term a
+//!   Step              no length (one frame): a lattice vector d on POS_STEP, step Δ, against 0
+//!   Linear            length on POS_LEN, linear term b
+//!   Rest              length on POS_REST_LEN
+//!   Key               no length (one frame): 3 × f64, the frame stored exactly
+//! rotation start      flag ROT_RAW: 1 → 4 × f64 (x, y, z, w), normalised; 0 → a start vector
+//!                     with k_rot, step Δθ/4
+//! at rest             if F ≥ 2: flag ROT_REST, as for positions
+//! rotation segments   until frames 1 … F − 1 are covered, each: its type, then
+//!   Linear            length on ROT_LEN, angular velocity ω on ROT_W
+//!   Quadratic         length on ROT_LEN, ω on ROT_W, angular acceleration α on ROT_ACC
+//!   Step              no length: a lattice vector d on ROT_STEP, step Δθ, against 0
+//!   Rest              length on ROT_REST_LEN
+//!   Key               no length: 4 × f64, normalised
+//!   Free              (header flag 16 only) length on ROT_LEN, at most 4096; before the
+//!                     object's first free flight only, its principal moments as 3 × 12 direct
+//!                     bits (each 1–4095, the largest moment being 4095); ω on ROT_FREE
 //! ```
 //!
-//! An object's payload is one bit stream (most significant bit first). Every integer is an
-//! adaptive Rice code ([`crate::bits::AdaptiveRice`]) of its own stream, starting from the prior
-//! in [`ADAPTIVE_PRIORS`], except the start values, which use the header's Rice parameters;
-//! signed values are zig-zag mapped.
+//! **Types** are listed in code order: the rank of a position type is its place among Gravity,
+//! Quadratic, Step, Linear, Rest, Key (without Gravity in a General world: 5 types), that of a
+//! rotation type among Linear, Quadratic, Step, Rest, Key, Free (without Free unless flag 16).
+//! **Lengths** L are values: 0 means "the rest of the track", otherwise 1 ≤ L ≤ the frames not yet
+//! covered. A segment of length L starting after frame s covers frames s + 1 … s + L, evaluated at
+//! local times u = 1 … L from its start frame (u = 0, the previous segment's end: C⁰ continuity).
+//! **Buckets**: a segment of length L has k = ⌈log₂ L⌉; its linear coefficients (b, ω) are
+//! lattice vectors at step Δ·2⁻ᵏ (Δθ·2⁻ᵏ), its quadratic ones (a, α) at Δ·4⁻ᵏ (Δθ·4⁻ᵏ): over
+//! u ≤ 2ᵏ each term then errs by at most the covering radius of its lattice.
+//!
+//! ## Symbols
+//!
+//! The range decoder is the LZMA binary coder. State: `range = 0xFFFF_FFFF`, `code` = the first
+//! 4 bytes, big endian (the encoder's first output byte is always 0 and is not stored; a code of
+//! 0xFFFF_FFFF is refused). Past the end of the payload the decoder reads zero bytes, at most 8
+//! (the encoder drops up to 8 trailing zeros), then fails. *Normalise*: while range < 2²⁴,
+//! `range <<= 8`, `code = code << 8 | next byte`.
+//!
+//! * A **context bit** with a context (p, r) — p the probability of a 0 in units of 2⁻¹⁶, r the
+//!   adaptation shift: `bound = (range >> 16)·p`; if code < bound the bit is 0 and range = bound,
+//!   else it is 1, code −= bound, range −= bound. Then `p += (t − p) >> r` (arithmetic shift; t =
+//!   65 536 after a 0, 0 after a 1), p clamped to 32 … 65 504, r = min(r + 1, 5); then normalise.
+//!   A context starts at (32 768, 1) unless said otherwise.
+//! * A **direct bit**: `range >>= 1`; the bit is `code ≥ range` (then code −= range); normalise.
+//!   n direct bits are an integer, most significant first; an **f64** is 64 direct bits (its IEEE
+//!   754 bit pattern).
+//! * A **flag** is a context bit; POS_RAW, POS_REST, ROT_RAW and ROT_REST have one context each.
+//! * A **type** after the previous type `prev` (initially rank 0) among n types: a context bit of
+//!   `same[prev]`; 0 → the type is prev; 1 → three context bits down a tree, `node = 1` then
+//!   `node = 2·node + bit` with context `other[prev][node]`, then `o = node − 8`, and the rank is o
+//!   if o < prev, else o + 1 (a rank ≥ n is an error). Positions and rotations have their own
+//!   contexts (`same`: 8, `other`: 8 × 8).
+//! * A **value** on a stream (below) is an unsigned integer v, coded as m = v + 1: its bit length
+//!   n + 1 in unary, then the bits below its leading one. The stream's state is an adaptive Rice
+//!   parameter k — from sum = the stream's prior, count = 1 — and the contexts
+//!   `prefix[2][8]`, starting at p = 9830, 9830, 13107, 29491, 39321, 42598, 42598, 42598 with
+//!   r = 2, and `mantissa[20][3]`. Decoding: with class = min(k, 1), n counts context bits of
+//!   `prefix[class][clamp(n − k + 3, 0, 7)]` while they are 1, at most 64 (after 64 ones no 0
+//!   follows); m = 1; if n ≥ 1, m = 2m + b₁ with b₁ a context bit of `mantissa[min(n, 19)][0]`;
+//!   if n ≥ 2, m = 2m + b₂ with context `mantissa[min(n, 19)][1 + b₁]`; if n ≥ 3, m = m·2ⁿ⁻² +
+//!   (n − 2 direct bits); v = m − 1 (v ≥ 2⁶⁴ is an error). Then sum += min(v, 2⁴⁰), count += 1;
+//!   if count ≥ 4, sum = ⌈sum / 2⌉ and count = ⌊count / 2⌋; k = the smallest integer ≥ 0 with
+//!   count·2ᵏ ≥ sum, at most 48.
+//! * A **signed value** is a value zig-zag mapped: 0, 1, 2, 3, 4 … → 0, −1, 1, −2, 2 …
+//! * A **start value** with the header's parameter k: q = the number of direct 1 bits before a
+//!   direct 0, at most 16 (after 16 ones no 0 follows); if q < 16, v = q·2ᵏ + (k direct bits);
+//!   else 6 direct bits are n − 1 and v = 2ⁿ⁻¹ + (n − 1 direct bits). Then zig-zag mapped.
+//!
+//! The streams and the priors (initial sums) of their value models:
 //!
 //! ```text
-//! position start   1 bit: 0 → 3 × Rice(c₀ / (Δ/16)), 1 → 3 × raw f64
-//! at rest          (tracks of two or more frames) 1 bit: 1 → the start point holds for the
-//!                  whole track, no segments follow
-//! position segments until the track is covered, each:
-//!   type           1 bit "same type as the previous segment", else the new type's rank
-//!                  among the others (truncated binary; the first previous type is Gravity in
-//!                  FreeFlightGravity worlds, Quadratic otherwise)
-//!   length         (not for Step, Key) 0 = to the end of the track, else L frames
-//!   Gravity        3 × linear residual (the quadratic term is h²g/2)
-//!   Quadratic      3 × linear, 3 × quadratic residuals
-//!   Linear         3 × linear residual (no quadratic term)
-//!   Rest           nothing: the segment holds its start point
-//!   Step           no length (one frame): 3 × step residual, the frame minus its prediction
-//!                  from the two frames before (see `segment::position_step_prediction`), in Δ
-//!   Key            3 × raw f64: one frame, stored exactly
-//! rotation start   1 bit: 0 → 3 × Rice(log q₀ / (Δθ/16)), 1 → 4 × raw f64
-//! at rest          as for positions
-//! rotation segments: type (first previous: Linear), length as above, then
-//!   Linear         3 × angular-velocity residual
-//!   Quadratic      3 × angular-velocity, 3 × angular-acceleration residual
-//!   Rest           nothing
-//!   Step           no length: 3 × residual of the frame's rotation vector against the last
-//!                  frame-to-frame rotation, in Δθ
-//!   Key            4 × raw f64
+//! POS_LEN 24   POS_LINEAR 6   POS_QUADRATIC 6   POS_STEP 3    POS_REST_LEN 24
+//! ROT_LEN 12   ROT_W 12       ROT_ACC 6         ROT_STEP 3    ROT_REST_LEN 12   ROT_FREE 12
 //! ```
 //!
-//! Residuals are quantised coefficients minus a prediction from the previous segment (see
-//! `segment`). Every segment consumes at least one bit and covers at least one frame, so a hostile
-//! stream ends in an error after at most as many segments as it has bits. (Version 3: a symbol
-//! consumes at least ~1/1400 bit, no probability being above 1 − 2⁻¹¹, and the reader fails 8
-//! bytes past the end, so a hostile stream ends after a number of segments proportional to its
-//! length.)
+//! ## Lattice vectors
 //!
-//! # Version 1
+//! Every quantised 3-vector is a point of the body-centred cubic lattice with the covering
+//! radius √3/2·s of the cubic lattice of step s (the BCC lattice is the thinnest covering of
+//! space: 1.86× fewer points than the cubic one at the same worst-case error; see
+//! `segment::Lattice`). With `a = s·B`, B = 1.5491933384829668 (2√3/√5), its points are
+//! `K·(a·0.5)` per axis for integer coordinates K whose three components share one parity c.
 //!
-//! ```text
-//!      0     4  magic  b"MWBM"
-//!      4     2  format version (1)
-//!      6     2  header length H in bytes (80)
-//!      8     1  motion model          9   3  reserved, zero       12  4  object count N
-//!     16     8  frame_dt (s)          24  8  e_max (m)            32  8  θ_max (rad)
-//!     40     8  position step Δ (m)   48  8  rotation step Δθ (rad)
-//!     56    24  gravity g (3 × f64; zero for General)
-//!      H   8·N  object index: N × (payload byte offset u32, frame count u32)
-//!   H+8N        payloads, object after object
-//! ```
+//! * A **lattice vector** on a stream at step s against a prediction p (a 3-vector): c = 1 direct
+//!   bit; per axis i, P_i = round((p_i − off)/a) with off = 0.5·a if c = 1 else 0 (round half
+//!   away from zero; a quotient beyond ±2⁵² clamps there, a non-finite one gives 0); then three
+//!   signed values r_i on the stream; k_i = P_i + r_i (|k_i| ≤ 2⁵², else an error); K_i = 2k_i + c.
+//! * A **start vector** at step s with parameter k: c = 1 direct bit, then three start values
+//!   k_i (|k_i| ≤ 2⁵²), K_i = 2k_i + c.
 //!
-//! A version-1 payload starts with 7 × 6-bit Rice parameters (one per stream: pos length, pos
-//! linear, pos quadratic, pos start, rot length, rot angular velocity, rot start) and the
-//! Elias-gamma bit length of the position stream; segments are `Rice length L (0 = key)`, a
-//! gravity flag bit (FreeFlightGravity only), linear and (unless gravity) quadratic residuals;
-//! rotation segments are a length and three angular-velocity residuals.
+//! ## Decoding positions
 //!
-//! The quantisation steps are part of the header (stored, or a fixed derivation of the bounds), so
-//! a future encoder may choose them differently and old readers still decode its output. Per-
-//! segment CRCs live one layer up, on the bus (DESIGN.md).
+//! With Δ the header's step and gravity term `γ_i = g_i·(dt·dt)·0.5` (0 in a General world), the
+//! decoder keeps the current point c (frame 0: the start, which must be finite), the decoded frame
+//! before it (none at first), a predicted velocity v = 0 and a predicted quadratic term â = γ.
+//!
+//! * Quadratic, Linear, Gravity: b against v; a against â (Quadratic), a = 0 (Linear) or a = γ
+//!   (Gravity). Frame u: `c_i + (b_i·u + a_i·(u·u))`. Then v_i = `b_i + 2·a_i·L` and â = a.
+//! * Step: the prediction e = c + (c − before) per axis, or c + v at the start of a track; the
+//!   frame is e + d. Key: the stored frame (which must be finite). Both cover one frame and set
+//!   v = frame − c.
+//! * Rest: every frame is c; v = 0.
+//!
+//! After a segment, "before" is its frame L − 1 (for L = 1 the point c itself) and c its frame L
+//! (which must be finite).
+//!
+//! ## Decoding rotations
+//!
+//! Quaternions are (x, y, z, w); `exp`, `log`, `⊗` (Hamilton product), `normalise` and
+//! `rotate(q, v)` are those of `rotation`; a stored quaternion whose squared norm is not
+//! finite or ≤ 10⁻²⁰⁰ is an error. The start orientation from a start vector K is
+//! `normalise(exp(K·((Δθ/4·B)·0.5)))` (the identity if that fails). The decoder keeps the current
+//! orientation q, the frame before it, a predicted angular velocity ŵ = 0 and acceleration α̂ = 0.
+//!
+//! * Linear (ω against ŵ), Quadratic (and α against α̂): frame u is `normalise(exp(r) ⊗ q)` (q if
+//!   that fails) with r = `ω·u` or `ω_i·u + α_i·(u·u)`. Then ŵ = ω (Linear) or `ω_i + 2·α_i·L`
+//!   and α̂ = α (Quadratic).
+//! * Step: the prediction e = log(q ⊗ before⁻¹), or ŵ at the start of a track; the segment is a
+//!   one-frame Linear one with ω = e + d (and sets ŵ so).
+//! * Key: the stored orientation, one frame; ŵ unchanged. Rest: q held; ŵ = 0.
+//! * Free (torque-free flight): moments I_i = code_i / 4095.0, J_i = 1 / I_i, damping factor
+//!   `d = 1 / (1 + dt·c)`; the body-frame velocity ω_b = rotate(q⁻¹, ω) once, then per frame,
+//!   S times with h = 1/S: unless I = (1, 1, 1), the gyroscopic step `l = I∘ω_b`,
+//!   `g = ω_b × l`, `l' = l − g·h`, and if |l'|² is finite and > 0, `σ = √(|l|²/|l'|²)` and
+//!   `ω_b = (l'_i·σ·J_i)` (if all finite); then `n = q ⊗ (ω_b·(0.5·h), 1)` and, if |n|² is
+//!   finite and > 0, `q = n·(1/√|n|²)`; after the S substeps `ω_b = ω_b·d`. Frame u is the
+//!   orientation after u frames; ŵ = rotate(q, ω_b) at the flight's end (`segment::FreeDynamics`
+//!   has the exact operation order).
+//!
+//! # Limits
+//!
+//! Every segment covers at least one frame and every symbol consumes input (no context
+//! probability reaches 0 or 1), so a hostile payload ends in an error after a number of segments
+//! proportional to its length. A free flight costs its length in simulated frames; readers bound
+//! that work by their frame limit (`DecodeLimits`).
 
 use crate::arith::ValueModel;
-use crate::bits::{AdaptiveRice, read_varint, write_varint};
+use crate::bits::{read_varint, write_varint};
 use crate::error::CodecError;
-use crate::params::{MotionModel, Quality, step_ratio};
+use crate::params::{MotionModel, Quality, STEP_RATIO};
 
-/// First four bytes of an encoded world of versions 1 to 5 (from version 6 a world starts with
-/// its version byte; see "Version 6" above).
-pub const MAGIC: [u8; 4] = *b"MWBM";
-/// The format version this build writes (and the newest it reads).
-pub const FORMAT_VERSION: u16 = 6;
-/// The first version with the compact header (no magic, no header length).
-pub(crate) const COMPACT_HEADER_VERSION: u16 = 6;
-/// A first byte below this is a compact header's version; every older world starts with `M`
-/// (0x4D, above it).
-const COMPACT_VERSION_LIMIT: u8 = 0x40;
-pub(crate) const HEADER_LEN_V1: usize = 80;
-pub(crate) const INDEX_ENTRY_LEN_V1: usize = 8;
+/// The format version this build writes and reads: the stream's first byte.
+pub const FORMAT_VERSION: u8 = 1;
+/// A first byte below this is a format version; any other is not an encoded world. Keeps text,
+/// JSON and other containers (all starting with printable ASCII) apart from worlds.
+pub(crate) const VERSION_LIMIT: u8 = 0x40;
 
-/// Number of Rice-coded streams per object in version 1, each with its own parameter.
-pub(crate) const STREAMS_V1: usize = 7;
+/// The integer streams of an object's payload, each with its own value model (see the module
+/// doc). Positions: segment lengths, linear and quadratic coefficients, steps, rest lengths.
 pub(crate) const S_POS_LEN: usize = 0;
 pub(crate) const S_POS_LINEAR: usize = 1;
 pub(crate) const S_POS_QUADRATIC: usize = 2;
-pub(crate) const S_POS_START: usize = 3;
-pub(crate) const S_ROT_LEN: usize = 4;
-pub(crate) const S_ROT_W: usize = 5;
-pub(crate) const S_ROT_START: usize = 6;
-/// Version 2 adds streams for angular accelerations and for one-frame steps.
+pub(crate) const S_POS_STEP: usize = 3;
+/// A rest lasts until the next impact, a curve until the bound breaks: their lengths are coded
+/// apart.
+pub(crate) const S_POS_REST_LEN: usize = 4;
+/// Rotations: segment lengths, angular velocities, angular accelerations, steps, rest lengths.
+pub(crate) const S_ROT_LEN: usize = 5;
+pub(crate) const S_ROT_W: usize = 6;
 pub(crate) const S_ROT_ACC: usize = 7;
-pub(crate) const S_POS_STEP: usize = 8;
-pub(crate) const S_ROT_STEP: usize = 9;
-pub(crate) const STREAMS_V2: usize = 10;
-/// Version 3 codes the lengths of rest segments apart from those of curves (a rest lasts until
-/// the next impact; a curve until the bound breaks). In version 2 they are `S_POS_LEN`, `S_ROT_LEN`.
-pub(crate) const S_POS_REST_LEN: usize = 10;
-pub(crate) const S_ROT_REST_LEN: usize = 11;
-pub(crate) const STREAMS_V3: usize = 12;
+pub(crate) const S_ROT_STEP: usize = 8;
+pub(crate) const S_ROT_REST_LEN: usize = 9;
+/// The start angular velocities of free flights: their own statistics (a flight starts after an
+/// impact, where the last velocity predicts little).
+pub(crate) const S_ROT_FREE: usize = 10;
+pub(crate) const STREAMS: usize = 11;
 
-/// Version 4: the start angular velocities of free-flight rotation segments (their own
-/// statistics: a flight starts after an impact, where the last velocity predicts little).
-pub(crate) const S_ROT_FREE: usize = 12;
+/// Each stream's prior: the expected value before it has seen any. Only a prior — the models
+/// adapt within a few values — chosen from the shipped scenes at Standard quality. (Every axis
+/// of a vector is on its vector's stream; separate streams per axis measured no better.)
+const PRIORS: [u64; STREAMS] = [24, 6, 6, 3, 24, 12, 12, 6, 3, 12, 12];
 
-/// The number of integer streams of versions 3 and 4 (every axis of a triple on its stream, as
-/// in version 2; separate streams per axis measured no better). Version 3 leaves `S_ROT_FREE`
-/// unused.
-pub(crate) const STREAMS_V3_ALL: usize = STREAMS_V3 + 1;
-
-pub(crate) fn axis_stream(stream: usize, _axis: usize) -> usize {
-    stream
+/// The value models of one object's payload, all at their priors.
+pub(crate) fn value_models() -> Box<[ValueModel; STREAMS]> {
+    Box::new(PRIORS.map(ValueModel::new))
 }
 
-/// The version-2 stream that codes what version 3 codes on `stream` (for version 4's free
-/// flights: the stream whose prior they start from).
-pub(crate) fn v2_stream(stream: usize) -> usize {
-    match stream {
-        S_POS_REST_LEN => S_POS_LEN,
-        S_ROT_REST_LEN => S_ROT_LEN,
-        S_ROT_FREE => S_ROT_W,
-        s => s,
-    }
-}
+/// The flags of an object's payload, one context each (see the module doc).
+pub(crate) const FLAG_POS_RAW: usize = 0;
+pub(crate) const FLAG_POS_REST: usize = 1;
+pub(crate) const FLAG_ROT_RAW: usize = 2;
+pub(crate) const FLAG_ROT_REST: usize = 3;
 
-/// Version 3: the priors of the value models' magnitude classes (by stream index).
-pub(crate) const PRIORS_V3: [u64; STREAMS_V3] = [24, 6, 6, 0, 12, 12, 0, 6, 3, 3, 24, 24];
-
-/// Version 2: the expected value of each stream before it has seen any (by stream index above).
-/// Only a prior — the parameter adapts within a few values — chosen from the shipped scenes at
-/// Standard quality.
-/// (The start streams, 3 and 6, use the header's parameters instead.)
-pub(crate) const ADAPTIVE_PRIORS: [u64; STREAMS_V2] = [24, 6, 6, 0, 12, 12, 0, 6, 3, 3];
-
-/// The adaptive coders of one object's payload (version 2), all at their priors.
-pub(crate) fn adaptive_streams() -> [AdaptiveRice; STREAMS_V2] {
-    ADAPTIVE_PRIORS.map(AdaptiveRice::new)
-}
-
-/// The value models of one object's payload (version 3), all at their priors.
-pub(crate) fn value_models() -> Box<[ValueModel; STREAMS_V3_ALL]> {
-    Box::new(std::array::from_fn(|s| {
-        ValueModel::new(PRIORS_V3[v2_stream(s)])
-    }))
-}
-
-/// Largest start Rice parameter a version-2 header may hold.
+/// Largest start Rice parameter a header may hold.
 pub(crate) const MAX_START_K: u32 = 60;
 
 const FLAG_PRESET: u8 = 1;
 const FLAG_RATE: u8 = 2;
 const FLAG_STEPS: u8 = 4;
 const FLAG_COMMON_FRAMES: u8 = 8;
-/// Version 4: the world carries rotation dynamics (free-flight rotation segments).
+/// The world carries rotation dynamics (free-flight rotation segments).
 const FLAG_DYNAMICS: u8 = 16;
-/// Version 5: the bounds are decimals (see the module doc).
+/// The bounds are decimals.
 const FLAG_DECIMAL_BOUNDS: u8 = 32;
-/// Version 6: the motion model is FreeFlightGravity (the model byte of versions 2–5).
+/// The motion model is FreeFlightGravity.
 const FLAG_GRAVITY_MODEL: u8 = 64;
-/// Most substeps per frame a version-4 header may hold (each costs decoding time per simulated
-/// frame; rapier's default is 4).
+/// Most substeps per frame a header may hold (each costs decoding time per simulated frame;
+/// rapier's default is 4).
 pub(crate) const MAX_SUBSTEPS: u32 = 16;
 const PRESETS: [Quality; 3] = [Quality::Draft, Quality::Standard, Quality::Final];
 
-/// Gravity vectors a version-2 header names by number (the gravity byte is `0x80 | i`) instead
-/// of storing them: y-up and z-up at 9.81 and at standard gravity 9.80665 m/s². A ~1 s segment
-/// of a one-body scene restates its header every second, so 8 bytes matter.
+/// Gravity vectors a header names by number (the gravity byte is `0x80 | i`) instead of storing
+/// them: y-up and z-up at 9.81 and at standard gravity 9.80665 m/s². A ~1 s segment of a
+/// one-body scene restates its header every second, so bytes matter.
 const KNOWN_GRAVITY: [[f64; 3]; 4] = [
     [0.0, -9.81, 0.0],
     [0.0, 0.0, -9.81],
@@ -296,18 +278,18 @@ const KNOWN_GRAVITY: [[f64; 3]; 4] = [
     [0.0, 0.0, -9.80665],
 ];
 const GRAVITY_KNOWN: u8 = 0x80;
-/// Version 5: the gravity byte's non-zero components are decimals, bits 3–5 their signs.
+/// The gravity byte's non-zero components are decimals, bits 3–5 their signs.
 const GRAVITY_DECIMAL: u8 = 0x40;
 
-/// The powers of ten a version-5 decimal divides by; every one is exact in f64.
+/// The powers of ten a decimal divides by; every one is exact in f64.
 const POW10: [f64; 23] = [
     1e0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9, 1e10, 1e11, 1e12, 1e13, 1e14, 1e15, 1e16,
     1e17, 1e18, 1e19, 1e20, 1e21, 1e22,
 ];
-/// Largest mantissa of a version-5 decimal: integers up to 2⁵³ are exact in f64.
+/// Largest mantissa of a decimal: integers up to 2⁵³ are exact in f64.
 const MAX_DECIMAL_MANTISSA: u64 = 1 << 53;
 
-/// `x > 0` as a version-5 decimal `(m, k)`, `x = m / 10ᵏ` with the smallest k, if the division
+/// `x > 0` as a decimal `(m, k)`, `x = m / 10ᵏ` with the smallest k, if the division
 /// gives `x` back bit for bit; else `None` (the caller stores the f64).
 pub(crate) fn as_decimal(x: f64) -> Option<(u64, u8)> {
     if !(x.is_finite() && x > 0.0) {
@@ -330,7 +312,7 @@ fn write_decimal(out: &mut Vec<u8>, (m, k): (u64, u8)) {
     out.push(k);
 }
 
-/// Reads a version-5 decimal; a zero or too large mantissa or exponent is an error naming `field`.
+/// Reads a decimal; a zero or too large mantissa or exponent is an error naming `field`.
 fn read_decimal(h: &[u8], at: &mut usize, field: &'static str) -> Result<f64, CodecError> {
     let m = read_varint(h, at)?;
     let k = *h.get(*at).ok_or(CodecError::Truncated {
@@ -349,8 +331,6 @@ fn read_decimal(h: &[u8], at: &mut usize, field: &'static str) -> Result<f64, Co
 
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(crate) struct Header {
-    pub version: u16,
-    pub header_len: usize,
     pub model: MotionModel,
     pub object_count: u32,
     pub frame_dt: f64,
@@ -358,17 +338,17 @@ pub(crate) struct Header {
     pub theta_max: f64,
     pub pos_step: f64,
     pub rot_step: f64,
-    /// Version 2: the frame count shared by every object (then the index omits it).
+    /// The frame count shared by every object (then the index omits it).
     pub common_frames: Option<u32>,
-    /// Version 2: the Rice parameters of the start positions and start orientations, chosen for
-    /// the whole world (three values per object are too few to adapt to).
+    /// The Rice parameters of the start positions and start orientations, chosen for the whole
+    /// world (three values per object are too few to adapt to).
     pub start_k: [u32; 2],
-    /// Version 4: the simulator's rotation integration, for free-flight rotation segments.
+    /// The simulator's rotation integration, for free-flight rotation segments.
     pub dynamics: Option<HeaderDynamics>,
 }
 
-/// Version 4: what every free-flight rotation segment of a world shares (the per-object part,
-/// the principal moments, is in the object's payload).
+/// What every free-flight rotation segment of a world shares (the per-object part, the
+/// principal moments, is in the object's payload).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(crate) struct HeaderDynamics {
     /// Integration substeps per frame, `1..=MAX_SUBSTEPS`.
@@ -377,24 +357,23 @@ pub(crate) struct HeaderDynamics {
     pub angular_damping: f64,
 }
 
-/// The steps a header derives from the bounds when it does not store them (version 2 on).
-pub(crate) fn derived_steps(version: u16, e_max: f64, theta_max: f64) -> (f64, f64) {
-    let r = step_ratio(version);
-    (r * e_max, r * theta_max)
+/// The steps a header derives from the bounds when it does not store them.
+pub(crate) fn derived_steps(e_max: f64, theta_max: f64) -> (f64, f64) {
+    (STEP_RATIO * e_max, STEP_RATIO * theta_max)
 }
 
 impl Header {
-    /// Writes a header of the current version (the compact layout of version 6).
+    /// Writes the header (see the module doc).
     pub(crate) fn write(&self, out: &mut Vec<u8>) {
-        out.push(FORMAT_VERSION as u8);
+        out.push(FORMAT_VERSION);
         let preset = PRESETS
             .iter()
             .position(|q| q.bounds() == (self.e_max, self.theta_max));
         let rate = (1.0 / self.frame_dt).round();
         let rate = (rate >= 1.0 && rate <= f64::from(u32::MAX) && 1.0 / rate == self.frame_dt)
             .then_some(rate as u64);
-        let steps_stored = derived_steps(self.version, self.e_max, self.theta_max)
-            != (self.pos_step, self.rot_step);
+        let steps_stored =
+            derived_steps(self.e_max, self.theta_max) != (self.pos_step, self.rot_step);
         let decimal_bounds = match (
             preset,
             short_decimal(self.e_max),
@@ -422,7 +401,7 @@ impl Header {
         } else {
             0
         };
-        flags |= if self.model.wire_id() == 1 {
+        flags |= if matches!(self.model, MotionModel::FreeFlightGravity { .. }) {
             FLAG_GRAVITY_MODEL
         } else {
             0
@@ -499,83 +478,26 @@ impl Header {
         }
     }
 
-    pub(crate) fn parse(bytes: &[u8]) -> Result<Self, CodecError> {
+    /// Parses and validates a header; returns it and its length in bytes.
+    pub(crate) fn parse(bytes: &[u8]) -> Result<(Self, usize), CodecError> {
         need(bytes, 1)?;
-        let first = bytes[0];
-        if first < COMPACT_VERSION_LIMIT {
-            let version = u16::from(first);
-            if !(COMPACT_HEADER_VERSION..=FORMAT_VERSION).contains(&version) {
+        match bytes[0] {
+            FORMAT_VERSION => {}
+            found if found < VERSION_LIMIT => {
                 return Err(CodecError::UnsupportedVersion {
-                    found: version,
+                    found,
                     supported: FORMAT_VERSION,
                 });
             }
-            return Self::parse_fields(bytes, None, version)?.validate();
+            found => return Err(CodecError::NotAWorld { found }),
         }
-        need(bytes, 8)?;
-        if bytes[..4] != MAGIC {
-            return Err(CodecError::BadMagic {
-                expected: MAGIC,
-                found: bytes[..4].to_vec(),
-            });
-        }
-        let version = u16::from_le_bytes([bytes[4], bytes[5]]);
-        let header_len = usize::from(u16::from_le_bytes([bytes[6], bytes[7]]));
-        let header = match version {
-            1 => Self::parse_v1(bytes, header_len)?,
-            2..=5 => Self::parse_fields(bytes, Some(header_len), version)?,
-            _ => {
-                return Err(CodecError::UnsupportedVersion {
-                    found: version,
-                    supported: FORMAT_VERSION,
-                });
-            }
-        };
-        header.validate()
+        let (header, len) = Self::parse_fields(bytes)?;
+        Ok((header.validate()?, len))
     }
 
-    fn parse_v1(bytes: &[u8], header_len: usize) -> Result<Self, CodecError> {
-        if header_len < HEADER_LEN_V1 {
-            return Err(CodecError::BadHeaderField {
-                field: "header_len",
-                value: header_len as f64,
-            });
-        }
-        need(bytes, header_len)?;
-        let f = |at: usize| f64_at(bytes, at);
-        let g = [f(56), f(64), f(72)];
-        Ok(Header {
-            version: 1,
-            header_len,
-            model: model(bytes[8], g)?,
-            object_count: u32::from_le_bytes([bytes[12], bytes[13], bytes[14], bytes[15]]),
-            frame_dt: f(16),
-            e_max: f(24),
-            theta_max: f(32),
-            pos_step: f(40),
-            rot_step: f(48),
-            common_frames: None,
-            start_k: [0; 2],
-            dynamics: None,
-        })
-    }
-
-    /// The fields of versions 2 to 5 (after magic, version and header length H; `header_len`
-    /// is H) or of version 6 (after the version byte; `header_len` is `None`: the header ends
-    /// where its fields do).
-    fn parse_fields(
-        bytes: &[u8],
-        header_len: Option<usize>,
-        version: u16,
-    ) -> Result<Self, CodecError> {
-        // Every field is read from the header's own bytes: a field running past H is corrupt.
-        let (h, mut at) = match header_len {
-            Some(n) => {
-                need(bytes, n)?;
-                (&bytes[..n], 8)
-            }
-            None => (bytes, 1),
-        };
+    /// The fields after the version byte; the header ends where its last field does.
+    fn parse_fields(h: &[u8]) -> Result<(Self, usize), CodecError> {
+        let mut at = 1;
         let byte = |at: &mut usize| -> Result<u8, CodecError> {
             let b = *h.get(*at).ok_or(CodecError::Truncated {
                 at_bit: *at as u64 * 8,
@@ -590,13 +512,7 @@ impl Header {
             *at += 8;
             Ok(v)
         };
-        let (model_id, flags) = match header_len {
-            Some(_) => (byte(&mut at)?, byte(&mut at)?),
-            None => {
-                let flags = byte(&mut at)?;
-                (u8::from(flags & FLAG_GRAVITY_MODEL != 0), flags)
-            }
-        };
+        let flags = byte(&mut at)?;
         let (e_max, theta_max) = if flags & FLAG_PRESET != 0 {
             let i = byte(&mut at)?;
             PRESETS
@@ -606,7 +522,7 @@ impl Header {
                     value: f64::from(i),
                 })?
                 .bounds()
-        } else if version >= 5 && flags & FLAG_DECIMAL_BOUNDS != 0 {
+        } else if flags & FLAG_DECIMAL_BOUNDS != 0 {
             (
                 read_decimal(h, &mut at, "e_max")?,
                 read_decimal(h, &mut at, "theta_max")?,
@@ -629,10 +545,10 @@ impl Header {
         let (pos_step, rot_step) = if flags & FLAG_STEPS != 0 {
             (float(&mut at)?, float(&mut at)?)
         } else {
-            derived_steps(version, e_max, theta_max)
+            derived_steps(e_max, theta_max)
         };
         let mut g = [0.0; 3];
-        if model_id == 1 {
+        if flags & FLAG_GRAVITY_MODEL != 0 {
             let mask = byte(&mut at)?;
             if mask & GRAVITY_KNOWN != 0 {
                 g = *KNOWN_GRAVITY
@@ -641,7 +557,7 @@ impl Header {
                         field: "gravity",
                         value: f64::from(mask),
                     })?;
-            } else if version >= 5 && mask & GRAVITY_DECIMAL != 0 {
+            } else if mask & GRAVITY_DECIMAL != 0 {
                 for (i, v) in g.iter_mut().enumerate() {
                     if mask & (1 << i) != 0 {
                         let magnitude = read_decimal(h, &mut at, "gravity")?;
@@ -685,7 +601,7 @@ impl Header {
         } else {
             None
         };
-        let dynamics = if version >= 4 && flags & FLAG_DYNAMICS != 0 {
+        let dynamics = if flags & FLAG_DYNAMICS != 0 {
             let substeps = read_varint(h, &mut at)?;
             if !(1..=u64::from(MAX_SUBSTEPS)).contains(&substeps) {
                 return Err(CodecError::BadHeaderField {
@@ -711,10 +627,13 @@ impl Header {
         } else {
             None
         };
-        Ok(Header {
-            version,
-            header_len: header_len.unwrap_or(at),
-            model: model(model_id, g)?,
+        let model = if flags & FLAG_GRAVITY_MODEL != 0 {
+            MotionModel::FreeFlightGravity { g }
+        } else {
+            MotionModel::General
+        };
+        let header = Header {
+            model,
             object_count,
             frame_dt,
             e_max,
@@ -724,7 +643,8 @@ impl Header {
             common_frames,
             start_k,
             dynamics,
-        })
+        };
+        Ok((header, at))
     }
 
     fn validate(self) -> Result<Self, CodecError> {
@@ -778,17 +698,6 @@ fn f64_at(bytes: &[u8], at: usize) -> f64 {
     f64::from_le_bytes(b)
 }
 
-fn model(id: u8, g: [f64; 3]) -> Result<MotionModel, CodecError> {
-    match id {
-        0 => Ok(MotionModel::General),
-        1 => Ok(MotionModel::FreeFlightGravity { g }),
-        other => Err(CodecError::BadHeaderField {
-            field: "model",
-            value: f64::from(other),
-        }),
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -799,10 +708,8 @@ mod tests {
         bounds: (f64, f64),
         common: Option<u32>,
     ) -> Header {
-        let (pos_step, rot_step) = derived_steps(FORMAT_VERSION, bounds.0, bounds.1);
+        let (pos_step, rot_step) = derived_steps(bounds.0, bounds.1);
         Header {
-            version: FORMAT_VERSION,
-            header_len: 0,
             model,
             object_count: 300,
             frame_dt,
@@ -869,14 +776,7 @@ mod tests {
 
     /// `out`, written from `h`, parses back to `h` (with its length).
     fn reads_back(h: &Header, out: &[u8]) {
-        let back = Header::parse(out).unwrap();
-        assert_eq!(
-            back,
-            Header {
-                header_len: out.len(),
-                ..*h
-            }
-        );
+        assert_eq!(Header::parse(out).unwrap(), (*h, out.len()));
     }
 
     #[test]
@@ -928,8 +828,8 @@ mod tests {
         }
     }
 
-    /// Version 5: bounds other than a preset and gravities other than the well-known vectors cost
-    /// a few bytes when they are decimals, and read back exactly; bad decimals are errors naming
+    /// Bounds other than a preset and gravities other than the well-known vectors cost a few
+    /// bytes when they are decimals, and read back exactly; bad decimals are errors naming
     /// the field.
     #[test]
     fn decimal_header_numbers_roundtrip_and_are_short() {
@@ -940,12 +840,11 @@ mod tests {
         let mut out = Vec::new();
         h.write(&mut out);
         // Version 1, flags 1, bounds 2 × 2, rate 1, gravity 1 + 3 × 2, start parameters 2, object
-        // count 2, frame count 1 (versions 2–5: 8 bytes more, magic, a two-byte version, the
-        // header length and the model).
+        // count 2, frame count 1.
         assert_eq!(out.len(), 19);
         assert_eq!(out[1] & FLAG_DECIMAL_BOUNDS, FLAG_DECIMAL_BOUNDS);
         reads_back(&h, &out);
-        // Not decimals: the f64s, as in version 4 (16 + 24 bytes more).
+        // Not decimals: the f64s (16 + 24 bytes more).
         let third = 1.0 / 3.0;
         let mut f = Vec::new();
         Header {
@@ -1006,8 +905,8 @@ mod tests {
                 },
                 52,
             ),
-            // Version 4's dynamics: no damping (2 bytes more), a decimal damping (4), any
-            // other (10).
+            // Rotation dynamics: no damping (2 bytes more), a decimal damping (4), any other
+            // (10).
             (
                 Header {
                     dynamics: Some(HeaderDynamics {

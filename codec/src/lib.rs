@@ -8,15 +8,17 @@
 //! where contact makes the motion change every frame; given the simulator's rotation dynamics
 //! ([`encode_world_with_dynamics`]), also torque-free flights simulated from their start angular
 //! velocity (a wobbling thrown box is one segment, not a quadratic every few frames).
-//! Coefficients are quantised, predicted from the previous segment and range-coded with adaptive
-//! context models (format 3 on; format 2: adaptive Golomb–Rice). For **every object and every
-//! frame** the decoded position is within `e_max` of the input (Euclidean norm, which also bounds
-//! each axis) and the decoded orientation within `θ_max` (angle of the residual rotation); the
-//! encoder checks this on the decoded bytes before returning them. The encoder writes format
-//! version 6 (every quantised 3-vector a point of the body-centred cubic lattice, which covers
-//! space as the cubic one does with 1.86× fewer points; bounds and gravity other than the
-//! well-known ones as short decimals in the header; a header without magic or length, 8 bytes
-//! shorter than version 5's) and the reader reads versions 1 to 6 (`format` has the layouts).
+//! Coefficients are quantised — every 3-vector a point of the body-centred cubic lattice, which
+//! covers space as the cubic one does with 1.86× fewer points — predicted from the previous
+//! segment and range-coded with adaptive context models. For **every object and every frame**
+//! the decoded position is within `e_max` of the input (Euclidean norm, which also bounds each
+//! axis) and the decoded orientation within `θ_max` (angle of the residual rotation); the encoder
+//! checks this on the decoded bytes before returning them.
+//!
+//! The bytes are format version [`FORMAT_VERSION`] (1, the released format; `format` specifies
+//! it completely), the stream's first byte. This build writes and reads that version only; a
+//! later format change gets a new version, read beside this one, so what was recorded stays
+//! readable (`tests/released_format.rs` holds recorded streams as the guard).
 //!
 //! # Writing
 //!
@@ -90,7 +92,8 @@
 //! # Modules, in pipeline order
 //! `fit` (greedy segment fitting, Figure 4.6) → `encode` (choosing the cheapest segment per
 //! frame) → `segment` (quantisation, prediction, evaluation, shared by both directions) → `bits`
-//! (adaptive Rice codes) → `format` (versioned layout) → `decode` (`decode/v1`, `decode/v2`).
+//! (integer codes) and `arith` (the range coder and its context models) → `format` (the byte
+//! layout) → `decode` (`decode/object`: one object's payload).
 //! `lowres` builds the few-Hz path; `baseline` gives the raw size and a quantised-frames reference.
 
 mod arith;
@@ -115,7 +118,7 @@ pub use encode::{
     EncodeStats, EncodedWorld, SizeBreakdown, Track, encode_world, encode_world_with_dynamics,
 };
 pub use error::CodecError;
-pub use format::{FORMAT_VERSION, MAGIC};
+pub use format::FORMAT_VERSION;
 pub use lowres::LowResPath;
 pub use params::{
     DEFAULT_FRAME_DT, DEFAULT_LOWRES_HZ, EncodeParams, FIT_WINDOW, MAX_TRACK_FRAMES, MIN_THETA_MAX,

@@ -21,28 +21,20 @@ pub const MAX_TRACK_FRAMES: usize = u32::MAX as usize;
 
 /// Quantisation steps Δ = ratio · e_max and Δθ = ratio · θ_max. A step ≤ 2/√3 of the bound
 /// guarantees that a one-frame segment (which interpolates its end point exactly before
-/// quantisation) always meets the bound — a lattice point lies within `√3/2·Δ` of any point — so
-/// the greedy fitter always makes progress. Versions 1–3 used ratio 1; version 4 uses 1.1, closer
-/// to the limit 1.1547 (measured on the shipped scenes: 1–2 % smaller; 1.15 was no better).
-pub(crate) fn step_ratio(version: u16) -> f64 {
-    if version >= 4 { 1.1 } else { 1.0 }
-}
+/// quantisation) always meets the bound — a point of the cubic lattice lies within `√3/2·Δ` of
+/// any point, and the coefficient lattice has the same covering radius — so the greedy fitter
+/// always makes progress. 1.1 is close to the limit 1.1547 (measured on the shipped scenes: 1–2 %
+/// smaller than ratio 1; 1.15 was no better).
+pub(crate) const STEP_RATIO: f64 = 1.1;
 
 /// The first position and orientation of an object are quantised this much finer than Δ and Δθ
 /// (`[position, rotation]`), so that the first segment does not start with an error already
-/// close to the bound. Versions 1–3: 16; version 4: 8 (an object restates its start in every
-/// ~1 s segment: one bit less per coordinate, ~1 % smaller on the shipped scenes; divisor 2 then
-/// left too little of the bound for long curves: a 5 s parabola became two segments). Version 5:
-/// 8 for positions (4 splits that parabola again) and 4 for orientations (0.3–1 % smaller on the
-/// shipped scenes; its encoder searches lattice points near each fit where the nearest breaks the
-/// bound, which recovers most of the slack).
-pub(crate) fn start_step_divisors(version: u16) -> [f64; 2] {
-    match version {
-        ..=3 => [16.0, 16.0],
-        4 => [8.0, 8.0],
-        _ => [8.0, 4.0],
-    }
-}
+/// close to the bound. An object restates its start in every ~1 s segment, so a coarser start
+/// saves bits: measured on the shipped scenes, 8 for positions is ~1 % smaller than 16 (4 left
+/// too little of the bound for long curves: a 5 s parabola became two segments), and 4 for
+/// orientations 0.3–1 % smaller than 8 (the encoder searches lattice points near each fit where
+/// the nearest breaks the bound, which recovers most of the slack).
+pub(crate) const START_STEP_DIVISORS: [f64; 2] = [8.0, 4.0];
 
 /// Rotation errors involve `sin`/`cos`, whose last bit may differ between math libraries. The
 /// encoder therefore checks rotations against θ_max·(1 − margin), so a decoder on another platform
@@ -105,13 +97,6 @@ pub enum MotionModel {
 }
 
 impl MotionModel {
-    pub(crate) fn wire_id(self) -> u8 {
-        match self {
-            MotionModel::General => 0,
-            MotionModel::FreeFlightGravity { .. } => 1,
-        }
-    }
-
     pub(crate) fn gravity(self) -> [f64; 3] {
         match self {
             MotionModel::General => [0.0; 3],
@@ -130,7 +115,7 @@ fn invalid(name: &'static str, value: f64, expected: &'static str) -> Result<(),
 }
 
 /// How the simulator turns bodies in free flight, for the codec's free-flight rotation segments
-/// (format 4; [`crate::encode_world_with_dynamics`]). With it, a thrown body's whole flight is one
+/// ([`crate::encode_world_with_dynamics`]). With it, a thrown body's whole flight is one
 /// segment of three coefficients instead of a quadratic every few frames.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RotationDynamics {
@@ -220,11 +205,11 @@ impl EncodeParams {
     }
 
     pub(crate) fn pos_step(&self) -> f64 {
-        step_ratio(crate::format::FORMAT_VERSION) * self.e_max
+        STEP_RATIO * self.e_max
     }
 
     pub(crate) fn rot_step(&self) -> f64 {
-        step_ratio(crate::format::FORMAT_VERSION) * self.theta_max
+        STEP_RATIO * self.theta_max
     }
 }
 

@@ -41,7 +41,7 @@ pub(crate) fn step_quadratic(step: f64, k: u32) -> f64 {
     step * pow2(-2 * k as i32)
 }
 
-/// Format 2: angular accelerations are quantised like quadratic position terms, `Δθ·4⁻ᵏ`
+/// Angular accelerations are quantised like quadratic position terms, `Δθ·4⁻ᵏ`
 /// (measured on the shipped scenes: coarser or finer steps by 2× change the size by < 1 %).
 pub(crate) fn step_angular_acceleration(step: f64, k: u32) -> f64 {
     step_quadratic(step, k)
@@ -63,11 +63,6 @@ fn round_small(x: f64) -> i64 {
     }
 }
 
-/// `round(x / step)` if it is representable, else `None`.
-pub(crate) fn quantise(x: f64, step: f64) -> Option<i64> {
-    round_checked(x / step)
-}
-
 /// `round(q)` if it is representable, else `None`.
 fn round_checked(q: f64) -> Option<i64> {
     if q.abs() < QLIM {
@@ -77,15 +72,7 @@ fn round_checked(q: f64) -> Option<i64> {
     (q.is_finite() && q.abs() <= QLIM).then_some(q as i64)
 }
 
-pub(crate) fn quantise3(x: Vec3, step: f64) -> Option<[i64; 3]> {
-    Some([
-        quantise(x[0], step)?,
-        quantise(x[1], step)?,
-        quantise(x[2], step)?,
-    ])
-}
-
-/// Like [`quantise`], but total: a prediction only needs to be deterministic, not accurate.
+/// `round(x / step)`, total (unlike [`round_checked`]): a prediction only needs to be deterministic, not accurate.
 fn predict(x: f64, step: f64) -> i64 {
     let q = x / step;
     if q.abs() < QLIM {
@@ -121,22 +108,23 @@ pub(crate) struct PositionCoding {
     pub step: f64,
     /// `h²g/2` per axis when the model is free flight under gravity.
     pub gravity_term: Option<Vec3>,
-    /// The format version's start-step divisors ([`crate::params::start_step_divisors`]).
+    /// The start-step divisors ([`crate::params::START_STEP_DIVISORS`]).
     pub start_divisor: f64,
     pub rot_start_divisor: f64,
-    /// The format version's lattice for steps and coefficients.
+    /// The lattice of steps and coefficients.
     pub lattice: Lattice,
 }
 
 impl PositionCoding {
-    pub(crate) fn new(step: f64, gravity: Option<Vec3>, frame_dt: f64, version: u16) -> Self {
+    pub(crate) fn new(step: f64, gravity: Option<Vec3>, frame_dt: f64) -> Self {
         let h2 = frame_dt * frame_dt;
+        let [start_divisor, rot_start_divisor] = crate::params::START_STEP_DIVISORS;
         Self {
             step,
             gravity_term: gravity.map(|g| [g[0] * h2 * 0.5, g[1] * h2 * 0.5, g[2] * h2 * 0.5]),
-            start_divisor: crate::params::start_step_divisors(version)[0],
-            rot_start_divisor: crate::params::start_step_divisors(version)[1],
-            lattice: Lattice::of(version),
+            start_divisor,
+            rot_start_divisor,
+            lattice: Lattice,
         }
     }
 
@@ -145,7 +133,7 @@ impl PositionCoding {
     }
 }
 
-/// Format 2 position segment types, in code order (see `format`).
+/// Position segment types, in code order (see `format`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) enum PositionType {
     Gravity,
@@ -167,7 +155,7 @@ pub(crate) fn position_types(gravity: bool) -> &'static [PositionType] {
     }
 }
 
-/// Format 2 rotation segment types, in code order; the first is the initial "previous type".
+/// Rotation segment types, in code order; the first is the initial "previous type".
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) enum RotationType {
     Linear,
@@ -175,13 +163,13 @@ pub(crate) enum RotationType {
     Step,
     Rest,
     Key,
-    /// Format 4, worlds with rotation dynamics: torque-free flight ([`FreeDynamics`]).
+    /// Worlds with rotation dynamics only: torque-free flight ([`FreeDynamics`]).
     Free,
 }
 
 /// The rotation types in code order. Free flight is last: a world without rotation dynamics codes
-/// the five before it, and (the type code not depending on how many there are) a format-4 world
-/// that uses none is coded as one without.
+/// the five before it, and (the type code not depending on how many there are) a world with
+/// dynamics whose objects use none is coded as one without.
 const ROTATION_TYPES: [RotationType; 6] = [
     RotationType::Linear,
     RotationType::Quadratic,
@@ -191,7 +179,7 @@ const ROTATION_TYPES: [RotationType; 6] = [
     RotationType::Free,
 ];
 
-/// The rotation types a world codes: with rotation dynamics (format 4) the free-flight type too.
+/// The rotation types a world codes: with rotation dynamics the free-flight type too.
 pub(crate) fn rotation_types(dynamics: bool) -> &'static [RotationType] {
     if dynamics {
         &ROTATION_TYPES
@@ -200,7 +188,7 @@ pub(crate) fn rotation_types(dynamics: bool) -> &'static [RotationType] {
     }
 }
 
-/// Format 4: how a body turns in free flight, for [`RotationCurve::Free`] segments.
+/// How a body turns in free flight, for [`RotationCurve::Free`] segments.
 ///
 /// Between contacts a body's angular momentum is constant, but unless its inertia is isotropic its
 /// angular velocity is not: a box thrown with a spin about a non-principal axis wobbles
@@ -345,7 +333,7 @@ impl FreeDynamics {
     }
 }
 
-/// Format 2 step segments (one frame each, no length): where a body is in contact the motion
+/// Step segments (one frame each, no length): where a body is in contact the motion
 /// changes every frame, no curve spans more than a frame or two, and the derivative of such a
 /// short curve predicts the next one badly. A step instead predicts the next frame by constant
 /// velocity from the last two *decoded* frames (closed-loop DPCM, so quantisation errors do not
@@ -359,12 +347,11 @@ pub(crate) fn position_step_prediction(c: Vec3, before: Option<Vec3>, velocity: 
     }
 }
 
-/// How 3-vectors (steps and curve coefficients) are quantised: the cubic lattice of spacing `s`
-/// (versions 1–4), or (version 5) the body-centred cubic lattice with the same covering radius
-/// √3/2·s — every point of space within that distance of a lattice point, which is what the
-/// error bound needs — and cell volume 1.86× larger: the BCC lattice is the thinnest covering of
-/// 3-space, the cubic one is 1.86× thicker. At the same worst-case error a coefficient costs
-/// log₂ 1.86 ≈ 0.9 bit less.
+/// How 3-vectors (steps and curve coefficients) are quantised: the body-centred cubic (BCC)
+/// lattice with the covering radius √3/2·s of the cubic lattice of spacing `s` — every point of
+/// space within that distance of a lattice point, which is what the error bound needs — and a
+/// cell volume 1.86× larger: the BCC lattice is the thinnest covering of 3-space, the cubic one is
+/// 1.86× thicker. At the same worst-case error a coefficient costs log₂ 1.86 ≈ 0.9 bit less.
 ///
 /// A BCC point is two interleaved cubic lattices of spacing a = s·2√3/√5: `a·k` and
 /// `a·(k + ½·(1, 1, 1))`. Lattice coordinates are doubled, `K = 2k + c·(1, 1, 1)` (the point
@@ -372,48 +359,31 @@ pub(crate) fn position_step_prediction(c: Vec3, before: Option<Vec3>, velocity: 
 /// relative to the coset nearest the prediction, with a context, it measured 0.5 % larger), then
 /// k against the prediction `round(p/a − c/2)`, as three residuals on the vector's stream.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) enum Lattice {
-    Cubic,
-    Bcc,
-}
+pub(crate) struct Lattice;
 
 /// a / s for the BCC lattice: 2√3/√5.
 const BCC_SCALE: f64 = 1.549_193_338_482_966_8;
 
 impl Lattice {
-    pub(crate) fn of(version: u16) -> Self {
-        if version >= 5 {
-            Lattice::Bcc
-        } else {
-            Lattice::Cubic
-        }
-    }
-
     /// Lattice coordinates of the point nearest `x`, for the lattice with the covering radius of
     /// the cubic lattice of spacing `step`; `None` if not representable.
     pub(crate) fn quantise(self, x: Vec3, step: f64) -> Option<[i64; 3]> {
-        match self {
-            Lattice::Cubic => quantise3(x, step),
-            Lattice::Bcc => {
-                // In units of a: the nearest point of each coset, then the nearer of the two.
-                let inv = 1.0 / (step * BCC_SCALE);
-                let u: Vec3 = x.map(|v| v * inv);
-                let (mut even, mut odd) = ([0i64; 3], [0i64; 3]);
-                let (mut d_even, mut d_odd) = (0.0, 0.0);
-                for i in 0..3 {
-                    // The nearest odd point is o + ½ with o = e or e − 1, whichever side of e
-                    // u lies on.
-                    let e = round_checked(u[i])?;
-                    let de = u[i] - e as f64;
-                    let o = if de >= 0.0 { e } else { e - 1 };
-                    let d_o = u[i] - 0.5 - o as f64;
-                    d_even += de * de;
-                    d_odd += d_o * d_o;
-                    (even[i], odd[i]) = (2 * e, 2 * o + 1);
-                }
-                Some(if d_odd < d_even { odd } else { even })
-            }
+        // In units of a: the nearest point of each coset, then the nearer of the two.
+        let inv = 1.0 / (step * BCC_SCALE);
+        let u: Vec3 = x.map(|v| v * inv);
+        let (mut even, mut odd) = ([0i64; 3], [0i64; 3]);
+        let (mut d_even, mut d_odd) = (0.0, 0.0);
+        for i in 0..3 {
+            // The nearest odd point is o + ½ with o = e or e − 1, whichever side of e u lies on.
+            let e = round_checked(u[i])?;
+            let de = u[i] - e as f64;
+            let o = if de >= 0.0 { e } else { e - 1 };
+            let d_o = u[i] - 0.5 - o as f64;
+            d_even += de * de;
+            d_odd += d_o * d_o;
+            (even[i], odd[i]) = (2 * e, 2 * o + 1);
         }
+        Some(if d_odd < d_even { odd } else { even })
     }
 
     /// Up to `n` lattice points near `x` other than `q` (its nearest), nearest first: the
@@ -421,12 +391,9 @@ impl Lattice {
     /// coefficients nearest the least-squares fit are not always those that stay within the
     /// bound longest). BCC: among the 14 neighbours of `q` (8 in the other coset at a·√3/2, 6 in
     /// its own at a), from the 10 that can be among the 4 nearest (for n ≤ 4 these are the n
-    /// nearest of all 14). Empty on the cubic lattice.
+    /// nearest of all 14).
     pub(crate) fn alternatives(self, q: [i64; 3], x: Vec3, step: f64, n: usize) -> Near {
         let mut out = Near::EMPTY;
-        if self == Lattice::Cubic {
-            return out;
-        }
         // In half-spacing units x is q + u; a neighbour q + d is at |u − d|², which ranks as
         // |d|² − 2 u·d. The best diagonal neighbour is d = sign(u) and each flipped component adds
         // 4|uᵢ|; the best axial ones go along u's components. The diagonal with all three flipped
@@ -475,25 +442,17 @@ impl Lattice {
 
     /// The point with lattice coordinates `q`.
     pub(crate) fn point(self, q: [i64; 3], step: f64) -> Vec3 {
-        match self {
-            Lattice::Cubic => dequantise3(q, step),
-            Lattice::Bcc => dequantise3(q, step * BCC_SCALE * 0.5),
-        }
+        dequantise3(q, step * BCC_SCALE * 0.5)
     }
 
-    /// `q` as written: its coset bit (BCC only) and the integers `k` (`K = 2k + c`).
-    pub(crate) fn coset_and_integers(self, q: [i64; 3]) -> (Option<u64>, [i64; 3]) {
-        match self {
-            Lattice::Cubic => (None, q),
-            Lattice::Bcc => {
-                let c = q[0].rem_euclid(2);
-                (Some(c as u64), q.map(|v| (v - c) / 2))
-            }
-        }
+    /// `q` as written: its coset bit and the integers `k` (`K = 2k + c`).
+    pub(crate) fn coset_and_integers(self, q: [i64; 3]) -> (u64, [i64; 3]) {
+        let c = q[0].rem_euclid(2);
+        (c as u64, q.map(|v| (v - c) / 2))
     }
 
-    /// How `q` is written against the prediction `pred` (a point of space): the coset bit (BCC
-    /// only), then the integers and their integer prediction (the stream codes the difference).
+    /// How `q` is written against the prediction `pred` (a point of space): the coset bit, then
+    /// the integers and their integer prediction (the stream codes the difference).
     pub(crate) fn split(self, q: [i64; 3], pred: Vec3, step: f64) -> Coded {
         let (coset, k) = self.coset_and_integers(q);
         Coded {
@@ -503,31 +462,21 @@ impl Lattice {
         }
     }
 
-    /// The integer prediction of a vector's integers given its coset bit (BCC) — what the reader
-    /// needs before reading them.
-    pub(crate) fn prediction(self, coset: Option<u64>, pred: Vec3, step: f64) -> [i64; 3] {
-        match (self, coset) {
-            (Lattice::Bcc, Some(c)) => {
-                let a = step * BCC_SCALE;
-                let off = if c == 1 { 0.5 * a } else { 0.0 };
-                pred.map(|p| predict(p - off, a))
-            }
-            _ => pred.map(|p| predict(p, step)),
-        }
+    /// The integer prediction of a vector's integers given its coset bit — what the reader needs
+    /// before reading them.
+    pub(crate) fn prediction(self, coset: u64, pred: Vec3, step: f64) -> [i64; 3] {
+        let a = step * BCC_SCALE;
+        let off = if coset == 1 { 0.5 * a } else { 0.0 };
+        pred.map(|p| predict(p - off, a))
     }
 
     /// Lattice coordinates from what was read; `None` if they overflow.
-    pub(crate) fn join(self, coset: Option<u64>, k: [i64; 3]) -> Option<[i64; 3]> {
-        match (self, coset) {
-            (Lattice::Bcc, Some(c)) => {
-                let mut out = [0i64; 3];
-                for (o, v) in out.iter_mut().zip(k) {
-                    *o = v.checked_mul(2)?.checked_add(c as i64)?;
-                }
-                Some(out)
-            }
-            _ => Some(k),
+    pub(crate) fn join(self, coset: u64, k: [i64; 3]) -> Option<[i64; 3]> {
+        let mut out = [0i64; 3];
+        for (o, v) in out.iter_mut().zip(k) {
+            *o = v.checked_mul(2)?.checked_add(coset as i64)?;
         }
+        Some(out)
     }
 }
 
@@ -549,10 +498,10 @@ impl Near {
     }
 }
 
-/// A lattice vector as written: optional coset bit, integers, their prediction.
+/// A lattice vector as written: coset bit, integers, their prediction.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) struct Coded {
-    pub coset: Option<u64>,
+    pub coset: u64,
     pub k: [i64; 3],
     pub pred: [i64; 3],
 }
@@ -583,7 +532,7 @@ pub(crate) enum PositionCurve {
     /// A one-frame jump to an exactly stored point: the fallback when no quantised curve can meet
     /// the bound (teleports, coordinates so large that `f64` spacing exceeds e_max).
     Key { end: Vec3 },
-    /// Format 2: the start point, held (a body at rest costs a type code and a length).
+    /// The start point, held (a body at rest costs a type code and a length).
     Rest,
 }
 
@@ -612,9 +561,9 @@ impl PositionCurve {
 /// The quadratic term of a position segment.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) enum QuadraticTerm {
-    /// The model's `h²g/2` (one flag bit in format 1, a type code in format 2).
+    /// The model's `h²g/2` (a segment type of its own in gravity worlds).
     Gravity,
-    /// None: the segment is linear (format 2).
+    /// None: the segment is linear.
     Zero,
     /// Quantised with the bucket's quadratic step.
     Fitted([i64; 3]),
@@ -687,15 +636,15 @@ pub(crate) enum RotationCurve {
     /// §4.3: constant angular velocity in the log map, `q(u) = exp(u·ω) ⊗ q₀` (ω per frame,
     /// world frame).
     Linear { w: Vec3 },
-    /// Format 2: constant angular acceleration in the log map, `q(u) = exp(u·ω + u²·α) ⊗ q₀` —
+    /// Constant angular acceleration in the log map, `q(u) = exp(u·ω + u²·α) ⊗ q₀` —
     /// a box tipping over an edge, a ball spun up by friction (§4.3 found linear "sufficient"
     /// at its bounds; at 1 mrad contact phases need the second term).
     Quadratic { w: Vec3, a: Vec3 },
     /// A one-frame jump to an exactly stored orientation (fallback, as for positions).
     Key { end: Quat },
-    /// Format 2: the start orientation, held.
+    /// The start orientation, held.
     Rest,
-    /// Format 4: torque-free flight from angular velocity `w` (world frame, rad per frame).
+    /// Torque-free flight from angular velocity `w` (world frame, rad per frame).
     Free { w: Vec3, dynamics: FreeDynamics },
 }
 
@@ -762,7 +711,7 @@ impl RotationPredictor {
         self.w
     }
 
-    /// Format 2, quadratic segments: the predicted angular acceleration.
+    /// Quadratic segments: the predicted angular acceleration.
     pub(crate) fn angular_acceleration(&self) -> Vec3 {
         self.a
     }
@@ -908,9 +857,10 @@ mod tests {
 
     #[test]
     fn quantisation_refuses_unrepresentable_values() {
-        assert_eq!(quantise(1.26, 0.5), Some(3));
-        assert_eq!(quantise(f64::NAN, 1.0), None);
-        assert_eq!(quantise(1e300, 1e-300), None);
+        assert_eq!(round_checked(1.26 / 0.5), Some(3));
+        assert_eq!(round_checked(f64::NAN), None);
+        assert_eq!(round_checked(1e300 / 1e-300), None);
+        assert_eq!(Lattice.quantise([1e300, 0.0, 0.0], 1e-300), None);
         assert_eq!(unresidual(residual(-7, 12), 12), Some(-7));
         assert_eq!(unresidual(crate::bits::zigzag(1), QLIM as i64), None);
         assert_eq!(unresidual(crate::bits::zigzag(-1), i64::MIN), None);
@@ -933,7 +883,7 @@ mod tests {
     /// writer splits a reader joins back.
     #[test]
     fn the_bcc_lattice_covers_like_the_cubic_one_with_fewer_points() {
-        let lattice = Lattice::Bcc;
+        let lattice = Lattice;
         let step = 0.37;
         let radius = 3f64.sqrt() / 2.0 * step;
         let mut seed = 11u64;
@@ -979,15 +929,6 @@ mod tests {
         // Cell volume: a³/2 with a = step·2√3/√5, against step³ — 1.86 times larger.
         let a = step * BCC_SCALE;
         assert!((a.powi(3) / 2.0 / step.powi(3) - 1.859).abs() < 1e-3);
-        // The cubic lattice is the version-4 quantiser, unchanged.
-        let x = [1.234, -5.678, 0.5];
-        assert_eq!(Lattice::Cubic.quantise(x, step), quantise3(x, step));
-        assert!(
-            Lattice::Cubic
-                .alternatives([3, -15, 1], x, step, 4)
-                .as_slice()
-                .is_empty()
-        );
     }
 
     /// The 14 neighbours of a BCC point: 8 diagonal (other coset), 6 axial (same coset).
@@ -1008,12 +949,12 @@ mod tests {
     fn lattice_alternatives_are_the_next_nearest_points() {
         let step = 1.0;
         let x = [0.3, -0.2, 0.45];
-        let q = Lattice::Bcc.quantise(x, step).unwrap();
-        let near = Lattice::Bcc.alternatives(q, x, step, 4);
+        let q = Lattice.quantise(x, step).unwrap();
+        let near = Lattice.alternatives(q, x, step, 4);
         let alts = near.as_slice();
         assert_eq!(alts.len(), 4);
         let dist = |k: [i64; 3]| {
-            let p = Lattice::Bcc.point(k, step);
+            let p = Lattice.point(k, step);
             rotation::norm3(std::array::from_fn(|i| p[i] - x[i]))
         };
         for w in alts.windows(2) {

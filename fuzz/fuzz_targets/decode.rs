@@ -1,6 +1,12 @@
 //! Feeds arbitrary bytes to every decode entry point of the motion codec. The contract under
 //! test: an error or a value, never a panic, never unbounded memory.
 //!
+//! The reader opens one format, version 1 (the first byte; any other is refused before anything
+//! else is read), so inputs that reach the payload decoder start with byte 1. Good seeds for the
+//! corpus: the released-format fixtures (`cp ../codec/tests/fixtures/*.mwbm corpus/decode/`) and
+//! streams with free flights from the scenes measurement (`MWB_SCENE_STREAMS_OUT`, see
+//! `codec/tests/scenes.rs`).
+//!
 //! Run: `cargo +nightly fuzz run decode -- -max_total_time=120`
 #![no_main]
 

@@ -151,7 +151,7 @@ pub fn motion_model(scene: &Scene) -> MotionModel {
 }
 
 /// How the simulator turns the world's bodies in free flight, for the codec's free-flight
-/// rotation segments (format 4): its substeps per frame, the scene's angular damping, and each
+/// rotation segments: its substeps per frame, the scene's angular damping, and each
 /// body's principal moments where its inertia tensor is diagonal in its body axes with the centre
 /// of mass at its origin (boxes, spheres, capsules, cylinders — every shape built around its
 /// centre). `None` for scenes with joints (their constraint torques break the torque-free model,

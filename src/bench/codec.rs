@@ -200,7 +200,7 @@ pub struct SceneMotion {
     pub frame_dt: f64,
     pub model: MotionModel,
     pub worlds: Vec<Vec<Vec<Track>>>,
-    /// Per world, the rotation dynamics the sampler gives its encoder (format 4).
+    /// Per world, the rotation dynamics the sampler gives its encoder (free-flight segments).
     pub dynamics: Vec<Option<RotationDynamics>>,
 }
 
@@ -282,7 +282,7 @@ impl SceneMotion {
                 }
             }
         }
-        // Trailer (format 4's rotation dynamics), per world: u8 present, then u32 substeps,
+        // Trailer (the rotation dynamics), per world: u8 present, then u32 substeps,
         // f64 angular damping, u32 bodies, per body u8 present + 3 × f64 principal moments.
         for d in &self.dynamics {
             out.push(u8::from(d.is_some()));

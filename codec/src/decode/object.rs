@@ -1,16 +1,12 @@
-//! Version-2 and version-3 object payloads: one stream per object, positions then rotations
-//! (layout in `format`). The two versions code the same symbols in the same order; version 2
-//! writes every integer adaptively Rice-coded ([`RiceSymbols`]), version 3 range-codes them with
-//! context models ([`RangeSymbols`], see `arith`).
+//! One object's payload: a range-coded stream, positions then rotations (layout in `format`).
 
-use super::{PositionSegment, RotationSegment, finite_position, read_f64, start_orientation};
-use crate::arith::{RangeDecoder, TypeModel, ValueModel};
-use crate::bits::{AdaptiveRice, BitReader};
+use super::{PositionSegment, RotationSegment, finite_position, start_orientation};
+use crate::arith::{Bit, RangeDecoder, TypeModel, ValueModel, decode_rice_direct};
 use crate::error::CodecError;
 use crate::format::{
-    Header, S_POS_LEN, S_POS_LINEAR, S_POS_QUADRATIC, S_POS_REST_LEN, S_POS_STEP, S_ROT_ACC,
-    S_ROT_FREE, S_ROT_LEN, S_ROT_REST_LEN, S_ROT_STEP, S_ROT_W, STREAMS_V2, STREAMS_V3_ALL,
-    adaptive_streams, axis_stream, v2_stream, value_models,
+    FLAG_POS_RAW, FLAG_POS_REST, FLAG_ROT_RAW, FLAG_ROT_REST, Header, S_POS_LEN, S_POS_LINEAR,
+    S_POS_QUADRATIC, S_POS_REST_LEN, S_POS_STEP, S_ROT_ACC, S_ROT_FREE, S_ROT_LEN, S_ROT_REST_LEN,
+    S_ROT_STEP, S_ROT_W, STREAMS, value_models,
 };
 use crate::params::MotionModel;
 use crate::rotation::{Quat, Vec3};
@@ -21,77 +17,16 @@ use crate::segment::{
     rotation_types, step_angular_acceleration, step_end, step_linear, step_quadratic, unresidual,
 };
 
-/// Where a payload's symbols come from: what differs between versions 2 and 3.
-pub(crate) trait Symbols {
-    /// A flag bit; `which`: the `FLAG_*` constants (each its own context in version 3).
-    fn flag(&mut self, which: usize) -> Result<bool, CodecError>;
-    /// A segment type among `n` after `prev` (positions or rotations).
-    fn kind(&mut self, rotation: bool, n: usize, prev: usize) -> Result<usize, CodecError>;
-    /// The next value of integer stream `stream`.
-    fn value(&mut self, stream: usize) -> Result<u64, CodecError>;
-    /// A start value, Rice-coded with the header's parameter `k`.
-    fn start_value(&mut self, k: u32) -> Result<u64, CodecError>;
-    /// A raw `f64`.
-    fn float(&mut self) -> Result<f64, CodecError>;
-    /// `n` equiprobable bits (version 4; version 5 also the coset bits of lattice vectors).
-    fn bits(&mut self, n: u32) -> Result<u64, CodecError>;
-}
-
-pub(crate) const FLAG_POS_RAW: usize = 0;
-pub(crate) const FLAG_POS_REST: usize = 1;
-pub(crate) const FLAG_ROT_RAW: usize = 2;
-pub(crate) const FLAG_ROT_REST: usize = 3;
-
-/// Version 2: a bit stream of adaptive Rice codes.
-pub(crate) struct RiceSymbols<'a> {
-    r: BitReader<'a>,
-    streams: [AdaptiveRice; STREAMS_V2],
-}
-
-impl<'a> RiceSymbols<'a> {
-    pub(crate) fn new(bytes: &'a [u8]) -> Self {
-        Self {
-            r: BitReader::new(bytes),
-            streams: adaptive_streams(),
-        }
-    }
-}
-
-impl Symbols for RiceSymbols<'_> {
-    fn flag(&mut self, _which: usize) -> Result<bool, CodecError> {
-        self.r.read_bit()
-    }
-
-    fn kind(&mut self, _rotation: bool, n: usize, prev: usize) -> Result<usize, CodecError> {
-        self.r.read_type(n, prev)
-    }
-
-    fn value(&mut self, stream: usize) -> Result<u64, CodecError> {
-        self.r.read_adaptive(&mut self.streams[v2_stream(stream)])
-    }
-
-    fn start_value(&mut self, k: u32) -> Result<u64, CodecError> {
-        self.r.read_rice2(k)
-    }
-
-    fn float(&mut self) -> Result<f64, CodecError> {
-        read_f64(&mut self.r)
-    }
-
-    fn bits(&mut self, n: u32) -> Result<u64, CodecError> {
-        (0..n).try_fold(0u64, |v, _| Ok((v << 1) | u64::from(self.r.read_bit()?)))
-    }
-}
-
-/// Version 3: a range-coded stream with context models.
-pub(crate) struct RangeSymbols<'a> {
+/// The symbols of a payload: the range decoder and the context models (the encoder's
+/// `ObjectWriter` mirrors them).
+pub(crate) struct Symbols<'a> {
     d: RangeDecoder<'a>,
-    values: Box<[ValueModel; STREAMS_V3_ALL]>,
+    values: Box<[ValueModel; STREAMS]>,
     types: [TypeModel; 2],
-    flags: [crate::arith::Bit; 4],
+    flags: [Bit; 4],
 }
 
-impl<'a> RangeSymbols<'a> {
+impl<'a> Symbols<'a> {
     pub(crate) fn new(bytes: &'a [u8]) -> Result<Self, CodecError> {
         Ok(Self {
             d: RangeDecoder::new(bytes)?,
@@ -100,42 +35,46 @@ impl<'a> RangeSymbols<'a> {
             flags: Default::default(),
         })
     }
-}
 
-impl Symbols for RangeSymbols<'_> {
+    /// A flag bit; `which`: the `FLAG_*` constants (each its own context).
     fn flag(&mut self, which: usize) -> Result<bool, CodecError> {
         self.d.bit(&mut self.flags[which])
     }
 
+    /// A segment type among `n` after `prev` (positions or rotations).
     fn kind(&mut self, rotation: bool, n: usize, prev: usize) -> Result<usize, CodecError> {
         self.types[usize::from(rotation)].decode(&mut self.d, n, prev)
     }
 
+    /// The next value of integer stream `stream`.
     fn value(&mut self, stream: usize) -> Result<u64, CodecError> {
         self.values[stream].decode(&mut self.d)
     }
 
+    /// A start value, Rice-coded with the header's parameter `k`.
     fn start_value(&mut self, k: u32) -> Result<u64, CodecError> {
-        crate::arith::decode_rice2_direct(&mut self.d, k)
+        decode_rice_direct(&mut self.d, k)
     }
 
+    /// A raw `f64`.
     fn float(&mut self) -> Result<f64, CodecError> {
         Ok(f64::from_bits(self.d.direct(64)?))
     }
 
+    /// `n` equiprobable bits (coset bits, principal moments).
     fn bits(&mut self, n: u32) -> Result<u64, CodecError> {
         self.d.direct(n)
     }
 }
 
-/// The decoding state of one version-2 or version-3 object.
-pub(crate) struct ObjectStream<S> {
-    r: S,
+/// The decoding state of one object.
+pub(crate) struct ObjectStream<'a> {
+    r: Symbols<'a>,
     coding: PositionCoding,
     rot_step: f64,
     /// Rice parameter of the start orientation (from the header).
     start_k: u32,
-    /// Version 4: the world's rotation dynamics, and the frame time they need.
+    /// The world's rotation dynamics, and the frame time they need.
     dynamics: Option<crate::format::HeaderDynamics>,
     frame_dt: f64,
     /// Free-flight frames this object may still simulate.
@@ -160,7 +99,7 @@ struct PositionState {
 
 struct RotationState {
     predictor: RotationPredictor,
-    /// Version 4: the object's free-flight dynamics, once its first free segment has stored them.
+    /// The object's free-flight dynamics, once its first free segment has stored them.
     free: Option<FreeDynamics>,
     at_rest: bool,
     q: Quat,
@@ -171,51 +110,42 @@ struct RotationState {
 
 /// Reads three residuals of `stream` against `pred`.
 fn residuals(
-    r: &mut impl Symbols,
+    r: &mut Symbols<'_>,
     stream: usize,
     pred: [i64; 3],
     what: &'static str,
 ) -> Result<[i64; 3], CodecError> {
     let mut q = [0i64; 3];
-    for (axis, (v, p)) in q.iter_mut().zip(pred).enumerate() {
-        *v = unresidual(r.value(axis_stream(stream, axis))?, p)
-            .ok_or(CodecError::Corrupt { what })?;
+    for (v, p) in q.iter_mut().zip(pred) {
+        *v = unresidual(r.value(stream)?, p).ok_or(CodecError::Corrupt { what })?;
     }
     Ok(q)
 }
 
-/// A BCC lattice vector's coset bit (equiprobable); the cubic lattice has none.
-fn coset_bit(r: &mut impl Symbols, lattice: Lattice) -> Result<Option<u64>, CodecError> {
-    Ok(match lattice {
-        Lattice::Bcc => Some(r.bits(1)?),
-        Lattice::Cubic => None,
-    })
-}
-
-/// A lattice vector of `stream` (version 5: its coset bit first, see [`Lattice`]) against the
-/// prediction `pred`, a point of space, for the lattice of `step`; returns lattice coordinates.
+/// A lattice vector of `stream` (its coset bit first, see [`Lattice`]) against the prediction
+/// `pred`, a point of space, for the lattice of `step`; returns lattice coordinates.
 fn lattice_vector(
-    r: &mut impl Symbols,
+    r: &mut Symbols<'_>,
     lattice: Lattice,
     stream: usize,
     pred: Vec3,
     step: f64,
     what: &'static str,
 ) -> Result<[i64; 3], CodecError> {
-    let coset = coset_bit(r, lattice)?;
+    let coset = r.bits(1)?;
     let k = residuals(r, stream, lattice.prediction(coset, pred, step), what)?;
     lattice.join(coset, k).ok_or(CodecError::Corrupt { what })
 }
 
-/// A start vector's lattice coordinates: (version 5) its coset bit, then three zig-zagged start
-/// values, Rice-coded with the header's parameter `k`.
+/// A start vector's lattice coordinates: its coset bit, then three zig-zagged start values,
+/// Rice-coded with the header's parameter `k`.
 fn start_values(
-    r: &mut impl Symbols,
+    r: &mut Symbols<'_>,
     lattice: Lattice,
     k: u32,
     what: &'static str,
 ) -> Result<[i64; 3], CodecError> {
-    let coset = coset_bit(r, lattice)?;
+    let coset = r.bits(1)?;
     let mut q = [0i64; 3];
     for v in &mut q {
         *v = unresidual(r.start_value(k)?, 0).ok_or(CodecError::Corrupt { what })?;
@@ -224,11 +154,11 @@ fn start_values(
 }
 
 /// Three raw f64s.
-fn floats(r: &mut impl Symbols) -> Result<Vec3, CodecError> {
+fn floats(r: &mut Symbols<'_>) -> Result<Vec3, CodecError> {
     Ok([r.float()?, r.float()?, r.float()?])
 }
 
-fn quat(r: &mut impl Symbols) -> Result<Quat, CodecError> {
+fn quat(r: &mut Symbols<'_>) -> Result<Quat, CodecError> {
     let q = [r.float()?, r.float()?, r.float()?, r.float()?];
     crate::rotation::normalise(q).ok_or(CodecError::Corrupt {
         what: "stored quaternion cannot be normalised",
@@ -236,7 +166,7 @@ fn quat(r: &mut impl Symbols) -> Result<Quat, CodecError> {
 }
 
 /// Segment length: 0 = the rest of the track, else `L ≤ remaining`.
-fn length(r: &mut impl Symbols, stream: usize, remaining: u32) -> Result<u32, CodecError> {
+fn length(r: &mut Symbols<'_>, stream: usize, remaining: u32) -> Result<u32, CodecError> {
     match r.value(stream)? {
         0 => Ok(remaining),
         l if l <= u64::from(remaining) => Ok(l as u32),
@@ -246,19 +176,20 @@ fn length(r: &mut impl Symbols, stream: usize, remaining: u32) -> Result<u32, Co
     }
 }
 
-impl<S: Symbols> ObjectStream<S> {
+impl<'a> ObjectStream<'a> {
     /// `free_budget`: most free-flight frames this object's segments may simulate.
     pub(crate) fn open(
-        mut r: S,
+        bytes: &'a [u8],
         frames: u32,
         header: &Header,
         free_budget: u64,
     ) -> Result<Self, CodecError> {
+        let mut r = Symbols::new(bytes)?;
         let gravity = match header.model {
             MotionModel::General => None,
             MotionModel::FreeFlightGravity { g } => Some(g),
         };
-        let coding = PositionCoding::new(header.pos_step, gravity, header.frame_dt, header.version);
+        let coding = PositionCoding::new(header.pos_step, gravity, header.frame_dt);
         let start = if r.flag(FLAG_POS_RAW)? {
             floats(&mut r)?
         } else {
