@@ -2,7 +2,7 @@
 //!
 //! For the first `k = 10` points of a segment (start included) the curve is re-fitted by least
 //! squares each time a point is added and *every* point is checked; after that the fit is frozen
-//! and only extended, checking each new point — the thesis' O(n) compromise between refitting
+//! and only extended, checking each new point — the authors' O(n) compromise between refitting
 //! everything (O(n²), Fig. 4.5 centre) and a poor fit (Fig. 4.5 left, i–j). All checks are made on
 //! the *quantised* curve. Because the quantisation step depends on the length bucket (see
 //! `segment`), the coefficients are re-quantised and all points re-checked whenever the length
@@ -71,7 +71,7 @@ fn dist(a: Vec3, b: Vec3) -> f64 {
 /// frames towards the data and makes the curve diverge soon after the fit window; fitting the
 /// data's own trend and correcting the inherited offset over a horizon of `H` frames keeps the
 /// error flat instead. The encoder tries both and keeps the longer segment (greedy, like the
-/// thesis).
+/// authors').
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(crate) enum StartCorrection {
     /// Least squares with the start point fixed (Figure 4.6).
@@ -224,7 +224,7 @@ impl BasisQr {
 }
 
 /// Least squares `y_u ≈ Σ_j coef_j·u^{p_j}` for three right-hand sides at once, by Householder QR
-/// (the thesis fits with QR, citing Golub & Van Loan). `powers` lists the exponents (0, 1, 2) of
+/// (the authors fit with QR, citing Golub & Van Loan). `powers` lists the exponents (0, 1, 2) of
 /// the basis; returns one coefficient vector per power, zero where the system is rank-deficient.
 /// At most [`LS_ROWS`] rows are used.
 #[cfg(test)]

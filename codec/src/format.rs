@@ -52,7 +52,7 @@
 //! A reader refuses a header whose frame time, bounds or steps are not finite numbers in
 //! (10⁻²⁸⁰, 10²⁸⁰), a gravity that is not finite, or a damping c that is negative, not finite or
 //! has `c·frame_dt ≥ 10¹²`. The magic bytes and checksums other containers carry live one layer
-//! up: a bus `MotionSegment` names its encoding and carries a CRC32 of these bytes (DESIGN.md),
+//! up: a bus `MotionSegment` names its encoding and carries a CRC32 of these bytes,
 //! and a recording keeps that envelope.
 //!
 //! # Object payload

@@ -1,5 +1,6 @@
 //! Error-bounded compression of rigid-body motion (the "compressed in-core representation" of
-//! §4.3 of the reference thesis).
+//! §4.3 of Twigg and James's account of
+//! Many-Worlds Browsing, SIGGRAPH 2007).
 //!
 //! Each object's track — positions and unit quaternions sampled at a fixed frame rate — becomes
 //! a handful of segments: C⁰ piecewise quadratics for the centre of mass (in free flight the

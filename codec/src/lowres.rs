@@ -1,4 +1,4 @@
-//! The low-resolution path that travels beside each compressed world (DESIGN.md, §4.3–4.4): a
+//! The low-resolution path that travels beside each compressed world (§4.3–4.4): a
 //! few-Hz polyline of positions, uncompressed, for instant display and for the query index (the
 //! store's OBB tree is built over it), while full decompression happens on demand.
 

@@ -46,7 +46,7 @@ pub(crate) const ROT_BOUND_MARGIN: f64 = 1e-9;
 /// (≈1e-16) would dominate the bound.
 pub const MIN_THETA_MAX: f64 = 1e-9;
 
-/// Named speed/accuracy presets (DESIGN.md "Speed versus accuracy"). The only place the preset
+/// Named speed/accuracy presets. The only place the preset
 /// bounds are written down.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
 pub enum Quality {

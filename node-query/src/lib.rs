@@ -1,4 +1,4 @@
-//! node-query: the browsing coordinator (§4.4, DESIGN.md "Store and queries").
+//! node-query: the browsing coordinator (§4.4).
 //!
 //! It serves `mwb/<space>/browse/<session>` (JSON [`Request`] → merged JSON [`Reply`]) to the
 //! viewer and to `mwb query`, and keeps no worlds of its own: every request fans out to all

@@ -19,7 +19,7 @@
 //! * `v_N ≥ δ` and `v_N > α ε`: an elastic collision happened (§5.2.2). LCP (5.3): the incoming
 //!   speed is at least `v_N / α`, with equality when the contact pushes.
 //! * `v_N ≥ δ` but `v_N ≤ α ε` (or `α = 0`): no elastic response can explain it, because a
-//!   forward step only bounces above the cutoff. This is the thesis' case 2 (Figure 5.1): the
+//!   forward step only bounces above the cutoff. This is the authors' case 2 (Figure 5.1): the
 //!   contact did not push, and its rows are left out (zero impulse).
 //! * `v_N < δ`: resting or inelastic (§5.2.3). LCP (5.5): incoming speed at least the chosen
 //!   lift-off goal (`0` by default, below `ε` so the forward step treats it as inelastic).

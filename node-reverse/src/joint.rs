@@ -16,7 +16,7 @@
 //! `J v⁺ = −β e / Δt` (Baumgarte stabilisation): the semi-implicit position update then shrinks
 //! the error by the factor `1 − β` per step. Stepping backward, the next poses are
 //! `x − Δt v⁻`, so the same correction needs the opposite sign, `J v⁻ = +β e / Δt`: the
-//! thesis' one change to the formulation for backward simulation of jointed bodies — joint
+//! authors' one change to the formulation for backward simulation of jointed bodies — joint
 //! error must decrease as time runs backward, not grow (§5.3.4).
 
 use nalgebra::{UnitQuaternion, Vector3};

@@ -10,12 +10,12 @@
 //! * `x_i = hi_i` ⇒ `w_i ≤ 0`,
 //! * `lo_i < x_i < hi_i` ⇒ `w_i = 0`,
 //!
-//! which is the thesis' (3.31)–(3.32) with its bounds `f⁻`, `f⁺`. The bounds depend on the row's
+//! which is the authors' (3.31)–(3.32) with its bounds `f⁻`, `f⁺`. The bounds depend on the row's
 //! [`RowKind`]: a normal row is `[0, ∞)` (3.19); an equality row (a joint) is unbounded; a
 //! friction row is `[−μ x_n, μ x_n]` where `x_n` is the impulse of *its own normal row in the same
-//! LCP* — the coupled model the thesis needed for backward simulation (§3.6.1), not ODE's
+//! LCP* — the coupled model the authors needed for backward simulation (§3.6.1), not ODE's
 //! two-phase approximation that freezes `μ x_n` from a frictionless solve. (Each friction
-//! direction is bounded separately, the box of Figure 3.4 c; the thesis reduces its drawbacks by
+//! direction is bounded separately, the box of Figure 3.4 c; the authors reduce its drawbacks by
 //! aligning one direction with the slip, which is the stepper's job, not this solver's.)
 //!
 //! Restitution and the backward stepper's goals (3.20), (3.36), (5.5) are velocity targets; they
@@ -23,8 +23,8 @@
 //!
 //! # The method
 //!
-//! A principal pivoting method in the style of Baraff/Dantzig and ODE's `dLCP`, which the thesis
-//! (§3.7) follows: rows are taken one at a time; the row being *driven* moves its impulse
+//! A principal pivoting method in the style of Baraff/Dantzig and ODE's `dLCP`, which the authors
+//! (§3.7) follow: rows are taken one at a time; the row being *driven* moves its impulse
 //! monotonically toward its valid region while every row already handled stays valid. Handled rows
 //! live in one of three sets (Figure 3.6): *clamped* (`C`, `w = 0`, impulse free inside its
 //! bounds), *lower* and *upper* (`S⁻`, `S⁺`, impulse at a bound). Keeping `w_C = 0` while the

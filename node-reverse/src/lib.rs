@@ -1,4 +1,4 @@
-//! `mwb-reverse`: the velocity-level LCP time-stepper of node-reverse (thesis ch. 3 and ch. 5),
+//! `mwb-reverse`: the velocity-level LCP time-stepper of node-reverse (Twigg and James, SIGGRAPH 2008; ch. 3 and ch. 5),
 //! stepping rigid bodies forward *and* backward in time.
 //!
 //! Everything but [`node`] is pure computation, with no I/O and no async:
@@ -51,7 +51,7 @@
 //! contact rows are redundant with them (several boxes, four coplanar corners each, settling
 //! while chained) can still come back `Degenerate` (flagged in the report, never a panic).
 //!
-//! Not in this round: any position correction of penetration (as in the thesis, contact
+//! Not in this round: any position correction of penetration (as in the papers, contact
 //! conditions are on velocities; only joints have a Baumgarte term), joint limits and motors,
 //! and the §5.3.4 heuristics for articulated bodies (restitution 1 along a jointed chain).
 //!

@@ -3,15 +3,15 @@
 //! The LCP solver of [`crate::lcp`] solves one linear system per pivot, and from one pivot to the
 //! next its matrix changes by a single row and column (a constraint enters or leaves the clamped
 //! set) or by a single column (a friction row starts or stops following its normal force). The
-//! thesis keeps a QR factorisation of that matrix and patches it with Givens rotations instead of
+//! authors keep a QR factorisation of that matrix and patches it with Givens rotations instead of
 //! refactoring, because the matrix is not symmetric once friction bounds are coupled to normal
 //! forces (so ODE's LDLᵀ trick does not apply) and LU updates need pivoting to stay stable.
 //!
 //! [`Qr`] stores the *full* factorisation of an `m × n` matrix: `Q` is `m × m` orthogonal and `R`
-//! is `m × n` upper trapezoidal. Both are kept explicitly (the thesis does the same; the compact
+//! is `m × n` upper trapezoidal. Both are kept explicitly (the authors does the same; the compact
 //! Householder form is much harder to update). Every update costs O((m + n)·max(m, n)):
 //!
-//! | update | rotations | thesis |
+//! | update | rotations | authors |
 //! |---|---|---|
 //! | [`Qr::insert_column`] | ≤ m − 1 on adjacent rows | (3.42), column half |
 //! | [`Qr::insert_row`] | ≤ n on (row j, new row) pairs | (3.51), Figure 3.8 |
@@ -28,7 +28,7 @@ use crate::QrError;
 
 /// A plane rotation acting on the pair of indices `(p, q)`: `R_p ← c R_p + s R_q`,
 /// `R_q ← −s R_p + c R_q` on rows of `R`, and the same on columns of `Q` so that `Q R` is unchanged
-/// (the thesis' `QR = (QG)(GᵀR)`, (3.49)).
+/// (the authors' `QR = (QG)(GᵀR)`, (3.49)).
 #[derive(Debug, Clone, Copy)]
 struct Givens {
     c: f64,
@@ -246,7 +246,7 @@ impl Qr {
     ///
     /// Dropping a row of `Q` would break orthogonality, so first rotations between columns of `Q`
     /// (and the matching rows of `R`) fold row `i` of `Q` into a single ±1 (Figure 3.9 f–k). The
-    /// thesis moves that 1 to the first column; we move it to the *last* one, which keeps the
+    /// authors move that 1 to the first column; we move it to the *last* one, which keeps the
     /// rows of `R` above it upper triangular when the rotations run from the bottom up, and makes
     /// the final drop a cheap truncation. Orthogonality then forces the last column of `Q` to be
     /// ±e_i, so row `i` and the last column of `Q` and the last row of `R` can go.

@@ -17,7 +17,7 @@
 //! `x⁺ = x⁻ + Δt v⁺`, `Θ⁺ = exp(Δt ω⁺) Θ⁻` (3.17)–(3.18). No gyroscopic term: angular velocity
 //! only changes through impulses, which keeps the step exactly invertible given its contacts.
 //! Contacts are not projected out of penetration (no Baumgarte term on contacts): as in the
-//! thesis, their conditions are on velocities only; only joints get one.
+//! papers, their conditions are on velocities only; only joints get one.
 
 use nalgebra::{DVector, Vector3};
 
