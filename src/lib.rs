@@ -10,4 +10,5 @@ pub mod check;
 pub mod client;
 pub mod demo;
 pub mod query;
+pub mod record_cmd;
 pub mod reverse_cmd;
