@@ -81,7 +81,8 @@ impl<T> BoundedQueue<T> {
     }
 
     pub fn push(&self, item: T, bytes: usize, overflow: Overflow) -> Pushed {
-        let start = Instant::now();
+        // Only time spent waiting for room counts, not taking the lock.
+        let mut waited_since = None;
         let mut s = self.lock();
         if s.closed {
             return Pushed::Closed;
@@ -92,6 +93,7 @@ impl<T> BoundedQueue<T> {
                 Overflow::Block => {
                     // A message already waiting when the queue closes is still taken: it
                     // arrived before the end, and the consumer drains until nobody waits.
+                    waited_since.get_or_insert_with(Instant::now);
                     s.waiting += 1;
                     s = self.not_full.wait(s).unwrap_or_else(|p| p.into_inner());
                     s.waiting -= 1;
@@ -108,7 +110,7 @@ impl<T> BoundedQueue<T> {
         drop(s);
         self.not_empty.notify_one();
         Pushed::Queued {
-            waited: start.elapsed(),
+            waited: waited_since.map_or(Duration::ZERO, |t| t.elapsed()),
         }
     }
 
@@ -178,7 +180,11 @@ mod tests {
     #[test]
     fn both_bounds_hold_and_drop_says_so() {
         let q = BoundedQueue::new(3, 100);
-        let queued = |p| matches!(p, Pushed::Queued { .. });
+        let queued = |p| {
+            p == Pushed::Queued {
+                waited: Duration::ZERO,
+            }
+        };
         assert!(queued(q.push(1, 40, Overflow::Drop)));
         assert!(queued(q.push(2, 40, Overflow::Drop)));
         // 40 + 40 + 40 > 100 bytes.

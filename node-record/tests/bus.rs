@@ -388,7 +388,12 @@ fn tumble_job(id: &str, worlds: u32) -> Job {
 async fn a_replayed_session_gives_a_fresh_store_the_same_worlds_byte_for_byte() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("demo.mcap");
-    let worlds = 3u32;
+    // MWB_RECORD_E2E_WORLDS / MWB_RECORD_E2E_OUT: a larger session, kept for other tools
+    // (the Python `mcap` cross-check in the report was made from such a copy).
+    let worlds: u32 = std::env::var("MWB_RECORD_E2E_WORLDS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(3);
 
     // The recorded session: a store, a sampler and the recorder on one peer session.
     let a = session(Some(free_port()), None).await;
@@ -511,6 +516,9 @@ async fn a_replayed_session_gives_a_fresh_store_the_same_worlds_byte_for_byte() 
         store_bytes as f64 / stored as f64,
         r.seconds
     );
+    if let Ok(keep) = std::env::var("MWB_RECORD_E2E_OUT") {
+        std::fs::copy(&out, keep).unwrap();
+    }
     fresh.stop();
     store.stop();
     close(d).await;

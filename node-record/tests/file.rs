@@ -563,3 +563,30 @@ fn garbage_and_foreign_channels() {
     assert_eq!(r.stats.skipped_unknown.get("seg"), Some(&1));
     assert!(r.info.is_none());
 }
+
+#[test]
+fn a_recorder_killed_after_a_flush_leaves_everything_flushed_readable() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("killed.mcap");
+    let msgs = session();
+    let mut w = RecordingWriter::create(&path, &info(), &WriterOptions::default()).unwrap();
+    let (flushed, rest) = msgs.split_at(7);
+    for m in flushed {
+        w.write(m).unwrap();
+    }
+    w.flush().unwrap();
+    for m in rest {
+        w.write(m).unwrap();
+    }
+    // As SIGKILL would: no finish, no drop, the open chunk never reaches the file.
+    std::mem::forget(w);
+    let r = read_recording(&path).unwrap();
+    let e = r.error.unwrap();
+    assert!(
+        matches!(e.damage, Damage::NoFooter | Damage::Truncated { .. }),
+        "{e}"
+    );
+    assert_eq!(r.messages.len(), flushed.len());
+    assert_eq!(r.info.unwrap().space, "demo");
+    assert!(r.end.is_none());
+}
