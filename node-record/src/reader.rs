@@ -10,6 +10,12 @@
 //! yielded and [`RecordingReader::stats`] says how many. Nothing past the damage is read: a
 //! replay or a load must not jump over a hole in the middle of a world.
 //!
+//! To find damage where it is rather than at the next CRC, every record is checked against
+//! what its contents imply: its length, a chunk's time bounds, the message index records after
+//! a chunk against the messages in it, the opcodes that may appear in each section. A flipped
+//! bit that changes no message (in metadata text, in a redundant bit of zstd's tables, in the
+//! summary) is found by the data or summary section's CRC at the section's end.
+//!
 //! Channels the reader does not know (another topic, or a known topic with another schema)
 //! are skipped and counted by topic.
 
@@ -40,6 +46,10 @@ pub struct RecordedMessage {
     pub publish_time_ns: u64,
     pub sequence: u32,
 }
+
+/// Per channel, the (log time, offset in the chunk's records) of each message, sorted: what
+/// the message index records after a chunk must say.
+type MessagePlaces = HashMap<u16, Vec<(u64, u64)>>;
 
 /// What is wrong at [`ReadError::offset`].
 #[derive(Debug, thiserror::Error)]
@@ -72,6 +82,18 @@ pub enum Damage {
     ChunkCrc { saved: u32, computed: u32 },
     #[error("record {at} bytes into the chunk's contents: {detail}")]
     ChunkContents { at: u64, detail: String },
+    #[error("record (opcode {opcode:#04x}) has no place here")]
+    Unexpected { opcode: u8 },
+    #[error("record (opcode {opcode:#04x}) is {len} bytes long, its contents make {expected}")]
+    Length { opcode: u8, len: u64, expected: u64 },
+    #[error("chunk header: {field} is {saved}, the chunk's contents say {computed}")]
+    ChunkHeader {
+        field: &'static str,
+        saved: u64,
+        computed: u64,
+    },
+    #[error("message index of channel {channel} does not match the chunk before it")]
+    MessageIndex { channel: u16 },
     #[error("data section CRC mismatch: saved {saved:08x}, computed {computed:08x}")]
     DataCrc { saved: u32, computed: u32 },
     #[error("summary section CRC mismatch: saved {saved:08x}, computed {computed:08x}")]
@@ -130,6 +152,15 @@ pub struct RecordingReader {
     /// `Err(topic)`: a channel this reader skips (its topic, for the count).
     channels: HashMap<u16, Result<Family, String>>,
     pending: VecDeque<RecordedMessage>,
+    /// Per channel, the (log time, offset) of every message in the chunk just read: the
+    /// message index records that follow it must say exactly this.
+    chunk_index: Option<MessagePlaces>,
+    /// Records read in the data section (the first must be the header).
+    data_records: u64,
+    /// Written by `mwb-record` (the header's library): then every schema, channel and message
+    /// is inside a chunk, and one outside is damage (a message index's opcode with one bit
+    /// flipped reads as a message).
+    ours: bool,
     stats: ReadStats,
     info: Option<RecordingInfo>,
     end: Option<BTreeMap<String, String>>,
@@ -156,6 +187,9 @@ impl RecordingReader {
             schemas: HashMap::new(),
             channels: HashMap::new(),
             pending: VecDeque::new(),
+            chunk_index: None,
+            data_records: 0,
+            ours: false,
             stats: ReadStats::default(),
             info: None,
             end: None,
@@ -245,6 +279,7 @@ impl RecordingReader {
                 let computed = self.data_crc.clone().finalize();
                 let rec =
                     mcap::parse_record(opcode, &body).map_err(|e| self.error(at, parse_err(e)))?;
+                self.check_len(at, opcode, &rec, body.len())?;
                 if let Record::DataEnd(end) = rec
                     && end.data_section_crc != 0
                     && end.data_section_crc != computed
@@ -267,6 +302,7 @@ impl RecordingReader {
             State::Summary if opcode == op::FOOTER => {
                 let rec =
                     mcap::parse_record(opcode, &body).map_err(|e| self.error(at, parse_err(e)))?;
+                self.check_len(at, opcode, &rec, body.len())?;
                 self.summary_crc.update(&head);
                 self.summary_crc.update(&body[..body.len().min(16)]);
                 let computed = self.summary_crc.clone().finalize();
@@ -293,41 +329,137 @@ impl RecordingReader {
             }
             State::Summary => {
                 // Summary records repeat what the data section held (schemas, channels) or
-                // index it; reading in order needs none of them, but their CRC is checked.
+                // index it; reading in order needs none of them, but their CRC is checked, and
+                // their lengths as in the data section, so that damage is named where it is.
                 self.summary_crc.update(&head);
                 self.summary_crc.update(&body);
-                mcap::parse_record(opcode, &body).map_err(|e| self.error(at, parse_err(e)))?;
+                let rec =
+                    mcap::parse_record(opcode, &body).map_err(|e| self.error(at, parse_err(e)))?;
+                let allowed = matches!(
+                    rec,
+                    Record::Schema { .. }
+                        | Record::Channel(_)
+                        | Record::ChunkIndex(_)
+                        | Record::AttachmentIndex(_)
+                        | Record::MetadataIndex(_)
+                        | Record::Statistics(_)
+                        | Record::SummaryOffset(_)
+                );
+                if !allowed {
+                    return Err(self.error(at, Damage::Unexpected { opcode }));
+                }
+                self.check_len(at, opcode, &rec, body.len())?;
             }
             State::Finished => {}
         }
         Ok(())
     }
 
+    /// One record of the data section. Every record our writer puts there has a length its
+    /// contents determine, and each is checked against it: a flipped length or opcode is found
+    /// at the record it hits, instead of shifting every later record boundary (which could
+    /// skip a whole chunk and find the damage only at the data section's CRC, after later
+    /// messages had been handed out with a hole before them).
     fn data_record(&mut self, at: u64, opcode: u8, body: &[u8]) -> Result<(), ReadError> {
+        let first = self.data_records == 0;
+        self.data_records += 1;
         let rec = mcap::parse_record(opcode, body)
             .map_err(|source| self.error(at, Damage::BadRecord { opcode, source }))?;
+        if first != matches!(rec, Record::Header(_)) {
+            return Err(self.error(at, Damage::Unexpected { opcode }));
+        }
+        self.check_len(at, opcode, &rec, body.len())?;
+        let chunk_index = self.chunk_index.take();
         match rec {
+            Record::Header(h) => self.ours = h.library.starts_with(crate::writer::LIBRARY),
             Record::Chunk { header, data } => {
                 let contents = self.decompress(at, &header, &data)?;
                 let mut out = VecDeque::new();
-                self.chunk_records(&contents, &mut out)
-                    .map_err(|(inner, detail)| {
-                        self.error(at, Damage::ChunkContents { at: inner, detail })
-                    })?;
+                let index =
+                    self.chunk_records(&contents, &mut out)
+                        .map_err(|(inner, detail)| {
+                            self.error(at, Damage::ChunkContents { at: inner, detail })
+                        })?;
+                let bounds = index
+                    .values()
+                    .flatten()
+                    .fold(None, |b: Option<(u64, u64)>, &(t, _)| {
+                        Some(b.map_or((t, t), |(lo, hi)| (lo.min(t), hi.max(t))))
+                    })
+                    .unwrap_or((0, 0));
+                for (field, saved, computed) in [
+                    ("message_start_time", header.message_start_time, bounds.0),
+                    ("message_end_time", header.message_end_time, bounds.1),
+                ] {
+                    if saved != computed {
+                        return Err(self.error(
+                            at,
+                            Damage::ChunkHeader {
+                                field,
+                                saved,
+                                computed,
+                            },
+                        ));
+                    }
+                }
                 self.stats.chunks += 1;
                 self.pending.append(&mut out);
+                self.chunk_index = Some(index);
+            }
+            Record::MessageIndex(mi) => {
+                // Only right after a chunk, once per channel, saying what the chunk holds.
+                let mut index =
+                    chunk_index.ok_or_else(|| self.error(at, Damage::Unexpected { opcode }))?;
+                let mut saved: Vec<(u64, u64)> =
+                    mi.records.iter().map(|e| (e.log_time, e.offset)).collect();
+                saved.sort_unstable();
+                if index.remove(&mi.channel_id) != Some(saved) {
+                    return Err(self.error(
+                        at,
+                        Damage::MessageIndex {
+                            channel: mi.channel_id,
+                        },
+                    ));
+                }
+                self.chunk_index = Some(index);
             }
             Record::Metadata(m) if m.name == INFO_METADATA => {
                 self.info = Some(RecordingInfo::from_metadata(&m.metadata));
             }
             Record::Metadata(m) if m.name == END_METADATA => self.end = Some(m.metadata),
-            other => {
+            Record::Metadata(_) | Record::Attachment { .. } => {}
+            // Valid MCAP from other writers; never outside a chunk in our files.
+            rec @ (Record::Schema { .. } | Record::Channel(_) | Record::Message { .. })
+                if !self.ours =>
+            {
                 let mut out = VecDeque::new();
-                self.record(other, &mut out);
+                self.record(rec, &mut out);
                 self.pending.append(&mut out);
             }
+            // Summary records, a footer, or an opcode nobody defined: not in a data section.
+            _ => return Err(self.error(at, Damage::Unexpected { opcode })),
         }
         Ok(())
+    }
+
+    fn check_len(
+        &self,
+        at: u64,
+        opcode: u8,
+        rec: &Record<'_>,
+        len: usize,
+    ) -> Result<(), ReadError> {
+        match sized_len(rec) {
+            Some(expected) if expected != len as u64 => Err(self.error(
+                at,
+                Damage::Length {
+                    opcode,
+                    len: len as u64,
+                    expected,
+                },
+            )),
+            _ => Ok(()),
+        }
     }
 
     fn decompress(
@@ -394,13 +526,14 @@ impl RecordingReader {
         Ok(contents)
     }
 
-    /// The records inside a chunk's (verified) contents; `Err((offset, what))` if they do not
-    /// parse.
+    /// The records inside a chunk's (verified) contents, and per channel the (log time,
+    /// offset) of its messages; `Err((offset, what))` if they do not parse.
     fn chunk_records(
         &mut self,
         contents: &[u8],
         out: &mut VecDeque<RecordedMessage>,
-    ) -> Result<(), (u64, String)> {
+    ) -> Result<MessagePlaces, (u64, String)> {
+        let mut index: MessagePlaces = HashMap::new();
         let mut pos = 0usize;
         while pos < contents.len() {
             let rest = &contents[pos..];
@@ -423,10 +556,19 @@ impl RecordingReader {
                 })?;
             let rec = mcap::parse_record(opcode, &rest[RECORD_HEADER as usize..body_end])
                 .map_err(|e| (pos as u64, format!("opcode {opcode:#04x}: {e}")))?;
+            if let Record::Message { header, .. } = &rec {
+                index
+                    .entry(header.channel_id)
+                    .or_default()
+                    .push((header.log_time, pos as u64));
+            }
             self.record(rec, out);
             pos += body_end;
         }
-        Ok(())
+        for entries in index.values_mut() {
+            entries.sort_unstable();
+        }
+        Ok(index)
     }
 
     /// Schemas, channels and messages (in a chunk or not).
@@ -480,6 +622,40 @@ impl RecordingReader {
             _ => {}
         }
     }
+}
+
+/// The body length a record's contents determine, for the records whose length does not
+/// simply run to the end of the body (a message's data does).
+fn sized_len(rec: &Record<'_>) -> Option<u64> {
+    let s = |x: &str| 4 + x.len() as u64;
+    let map = |m: &BTreeMap<String, String>| 4 + m.iter().map(|(k, v)| s(k) + s(v)).sum::<u64>();
+    Some(match rec {
+        Record::Header(h) => s(&h.profile) + s(&h.library),
+        Record::Metadata(m) => s(&m.name) + map(&m.metadata),
+        Record::MessageIndex(mi) => 2 + 4 + 16 * mi.records.len() as u64,
+        Record::Chunk { header, .. } => {
+            8 + 8 + 8 + 4 + s(&header.compression) + 8 + header.compressed_size
+        }
+        Record::Schema { header, data } => {
+            2 + s(&header.name) + s(&header.encoding) + 4 + data.len() as u64
+        }
+        Record::Channel(c) => 2 + 2 + s(&c.topic) + s(&c.message_encoding) + map(&c.metadata),
+        Record::Attachment { header, data, .. } => {
+            8 + 8 + s(&header.name) + s(&header.media_type) + 8 + data.len() as u64 + 4
+        }
+        Record::ChunkIndex(c) => {
+            8 * 4 + 4 + 10 * c.message_index_offsets.len() as u64 + 8 + s(&c.compression) + 8 + 8
+        }
+        Record::AttachmentIndex(a) => 8 * 5 + s(&a.name) + s(&a.media_type),
+        Record::Statistics(st) => {
+            8 + 2 + 4 * 4 + 8 + 8 + 4 + 10 * st.channel_message_counts.len() as u64
+        }
+        Record::MetadataIndex(m) => 8 + 8 + s(&m.name),
+        Record::SummaryOffset(_) => 1 + 8 + 8,
+        Record::Footer(_) => 8 + 8 + 4,
+        Record::DataEnd(_) => 4,
+        _ => return None,
+    })
 }
 
 impl Iterator for RecordingReader {

@@ -13,6 +13,10 @@ use std::path::{Path, PathBuf};
 /// session has one or two; a flood of distinct ones must not grow the record without bound).
 const MAX_DISTINCT: usize = 32;
 
+/// The MCAP header's `library` of our files starts with this (the reader relies on what this
+/// writer does: everything but metadata inside chunks).
+pub const LIBRARY: &str = "mwb-record";
+
 /// How the MCAP file is written.
 #[derive(Debug, Clone)]
 pub struct WriterOptions {
@@ -105,7 +109,7 @@ impl<W: Write + Seek> RecordingWriter<W> {
             .compression_threads(opts.compression_threads)
             .chunk_size(Some(opts.chunk_size.max(1)))
             .profile("")
-            .library(format!("mwb-record {}", env!("CARGO_PKG_VERSION")))
+            .library(format!("{LIBRARY} {}", env!("CARGO_PKG_VERSION")))
             .create(w)
             .map_err(mcap_err("header"))?;
         mcap.write_metadata(&info.to_metadata())
