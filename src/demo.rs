@@ -6,7 +6,7 @@ use crate::bus::{BusArgs, Mode};
 use crate::check::verify_world;
 use crate::client;
 use crate::output::Summary;
-use anyhow::{Result, bail};
+use anyhow::{Context, Result, bail};
 use mwb_core::browse::api::{Reply, Request};
 use mwb_core::browse::{Aggregate, Metric, Order, RankKey};
 use mwb_core::keys::Keys;
@@ -48,6 +48,10 @@ pub struct DemoArgs {
     /// Keep serving after the summary (store + node-query) so `mwb query` can browse.
     #[arg(long)]
     pub stay: bool,
+    /// Record the demo's bus into this MCAP file (as `mwb record` would, losing nothing: the
+    /// demo waits for the disk). The recording ends with the summary.
+    #[arg(long, value_name = "FILE")]
+    pub record: Option<std::path::PathBuf>,
     #[command(flatten)]
     pub motion: client::MotionArgs,
 }
@@ -60,6 +64,7 @@ pub async fn run(args: DemoArgs) -> Result<()> {
         worlds: args.worlds,
         samplers: args.samplers,
         memory_cap_bytes: args.memory_cap_mib << 20,
+        record: args.record,
         motion: args.motion,
         show_progress: !args.json && std::io::IsTerminal::is_terminal(&std::io::stderr()),
     };
@@ -84,6 +89,9 @@ pub struct DemoOptions {
     /// After the summary, keep the bus, store and node-query running until Ctrl-C so that
     /// `mwb query --connect <endpoint>` can browse the worlds.
     pub stay: bool,
+    /// Record every put on the demo's bus into this MCAP file, from before the job is
+    /// submitted until every world has been read back.
+    pub record: Option<std::path::PathBuf>,
 }
 
 #[derive(Debug, Clone, serde::Serialize)]
@@ -109,6 +117,11 @@ pub struct DemoSummary {
     /// The world that comes to rest soonest (node-query ranking over the bus) and its time.
     pub soonest_rest_world: Option<u32>,
     pub soonest_rest_s: Option<f64>,
+    /// With `--record`: the recording and how many messages it holds.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub recording: Option<String>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub recorded_messages: Option<u64>,
 }
 
 impl Summary for DemoSummary {
@@ -142,6 +155,9 @@ impl Summary for DemoSummary {
         );
         if let (Some(w), Some(s)) = (self.soonest_rest_world, self.soonest_rest_s) {
             t += &format!("rests soonest    world {w} ({s:.2} s; `mwb query show {w}`)\n");
+        }
+        if let (Some(f), Some(n)) = (&self.recording, self.recorded_messages) {
+            t += &format!("recorded         {n} messages in {f} (`mwb replay {f}`)\n");
         }
         t
     }
@@ -203,6 +219,29 @@ pub async fn run_demo_with(
             .await?,
         );
     }
+    let recorder = match &opts.record {
+        Some(out) => Some(
+            mwb_record::run_recorder(
+                &session,
+                mwb_record::RecorderConfig {
+                    space: bus.space.clone(),
+                    out: out.clone(),
+                    overflow: mwb_record::Overflow::Block,
+                    mwb_version: env!("CARGO_PKG_VERSION").into(),
+                    extra_metadata: [(
+                        "recorder_build".to_owned(),
+                        mwb_sampler::world::provenance(),
+                    )]
+                    .into(),
+                    node_id: Some(format!("{zid}-record")),
+                    ..Default::default()
+                },
+            )
+            .await
+            .with_context(|| format!("starting to record into {}", out.display()))?,
+        ),
+        None => None,
+    };
     let start = Instant::now();
     client::submit_job(&session, &keys, &job).await?;
     let bar = opts
@@ -241,6 +280,8 @@ pub async fn run_demo_with(
         browsable_worlds: store.indexed_count(),
         soonest_rest_world: None,
         soonest_rest_s: None,
+        recording: None,
+        recorded_messages: None,
     };
     for i in 0..state.worlds_done {
         let Some(w) = client::fetch_world(&session, &keys, i).await? else {
@@ -293,6 +334,20 @@ pub async fn run_demo_with(
         }
         Reply::Error { message } => bail!("browsing the demo worlds: {message}"),
         other => bail!("browsing the demo worlds: unexpected reply {other:?}"),
+    }
+    if let Some(recorder) = recorder {
+        let rec = recorder
+            .finish()
+            .await
+            .context("finishing the demo's recording")?;
+        if let Some(e) = rec.write_error {
+            return Err(anyhow::Error::new(e).context(format!(
+                "recording into {} stopped early; the file ends at its last whole chunk",
+                rec.path.display()
+            )));
+        }
+        summary.recording = Some(rec.path.display().to_string());
+        summary.recorded_messages = Some(rec.received - rec.dropped);
     }
     report(&summary)?;
     if opts.stay {

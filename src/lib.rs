@@ -10,6 +10,7 @@ pub mod demo;
 pub mod job;
 pub mod output;
 pub mod query;
+pub mod record_cmd;
 pub mod reverse_cmd;
 pub mod sampler;
 pub mod scene;

@@ -41,6 +41,10 @@ enum Command {
     Status(mwb::status::StatusArgs),
     /// Check a scene file: parse, validate, instantiate one world.
     Scene(mwb::scene::SceneArgs),
+    /// Record every put on the bus (mwb/<space>/**) into an MCAP file until Ctrl-C or --duration.
+    Record(mwb::record_cmd::RecordArgs),
+    /// Put a recording back on the bus in order (--speed 1|4|max) into --space.
+    Replay(mwb::record_cmd::ReplayArgs),
     /// Benchmarks: a table each, or with --json one JSON line per result.
     Bench {
         #[command(subcommand)]
@@ -55,6 +59,7 @@ fn main() -> Result<()> {
     let default_filter = match cli.command {
         Command::Store(_)
         | Command::Sampler(_)
+        | Command::Record(_)
         | Command::Query {
             command: QueryCommand::Serve { .. },
         } => "warn,mwb=info",
@@ -84,6 +89,8 @@ async fn run(command: Command) -> Result<()> {
         Command::Job { command } => mwb::job::run(command).await,
         Command::Status(args) => mwb::status::run(args).await,
         Command::Scene(args) => mwb::scene::run(args),
+        Command::Record(args) => mwb::record_cmd::record(args).await,
+        Command::Replay(args) => mwb::record_cmd::replay(args).await,
         Command::Bench { command } => mwb::bench::run(command).await,
     }
 }
