@@ -347,7 +347,7 @@ pub async fn run_demo_with(
             )));
         }
         summary.recording = Some(rec.path.display().to_string());
-        summary.recorded_messages = Some(rec.received - rec.dropped);
+        summary.recorded_messages = Some(rec.received.saturating_sub(rec.dropped));
     }
     report(&summary)?;
     if opts.stay {
