@@ -22,10 +22,21 @@ impl Mode {
     }
 }
 
+/// Where `mwb store` and `mwb demo --stay` listen, and so where every client command connects,
+/// unless told otherwise (zenoh's usual port, loopback only).
+pub const DEFAULT_ENDPOINT: &str = "tcp/127.0.0.1:7447";
+
+/// The environment variable client commands take their endpoints from when `--connect` is not
+/// given (comma-separated). `mwb demo` and `mwb store` do not read it: a demo must not join
+/// another bus by accident, and a store is where the others connect.
+pub const CONNECT_ENV: &str = "MWB_CONNECT";
+
 /// Bus options shared by every subcommand.
 #[derive(Debug, Clone, Args)]
 pub struct BusArgs {
-    /// Endpoint to connect to (repeatable), e.g. tcp/10.0.0.5:7447.
+    /// Endpoint to connect to (repeatable), e.g. tcp/10.0.0.5:7447. Client commands (job,
+    /// status, query, sampler, reverse, record, replay, world) take $MWB_CONNECT
+    /// (comma-separated) when it is not given, else tcp/127.0.0.1:7447.
     #[arg(short = 'e', long, value_name = "ENDPOINT")]
     pub connect: Vec<String>,
     /// Endpoint to listen on (repeatable), e.g. tcp/0.0.0.0:7447.
@@ -45,7 +56,37 @@ pub struct BusArgs {
     pub multicast: bool,
 }
 
+/// Where a client command's endpoints came from, for the error that says nothing answered.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum EndpointSource {
+    Flag,
+    Env,
+    Default,
+}
+
 impl BusArgs {
+    /// The endpoints a session in `mode` connects to, and where they came from: `--connect`;
+    /// for a client, else $MWB_CONNECT, else (without a config file, which has its own)
+    /// [`DEFAULT_ENDPOINT`]. Peers and routers connect only where `--connect` says.
+    pub fn endpoints(&self, mode: Mode) -> (Vec<String>, EndpointSource) {
+        if !self.connect.is_empty() || mode != Mode::Client {
+            return (self.connect.clone(), EndpointSource::Flag);
+        }
+        let from_env: Vec<String> = std::env::var(CONNECT_ENV)
+            .unwrap_or_default()
+            .split([',', ' '])
+            .filter(|e| !e.is_empty())
+            .map(str::to_owned)
+            .collect();
+        if !from_env.is_empty() {
+            (from_env, EndpointSource::Env)
+        } else if self.config.is_none() {
+            (vec![DEFAULT_ENDPOINT.to_owned()], EndpointSource::Default)
+        } else {
+            (Vec::new(), EndpointSource::Flag)
+        }
+    }
+
     /// Builds the zenoh configuration. `default_mode` applies when neither --mode nor the
     /// config file chose one.
     pub fn config(&self, default_mode: Mode) -> Result<zenoh::Config> {
@@ -64,11 +105,12 @@ impl BusArgs {
         if self.mode.is_some() || self.config.is_none() {
             set(&mut c, "mode", format!("{:?}", mode.as_str()))?;
         }
-        if !self.connect.is_empty() {
+        let (connect, _) = self.endpoints(mode);
+        if !connect.is_empty() {
             set(
                 &mut c,
                 "connect/endpoints",
-                serde_json::to_string(&self.connect)?,
+                serde_json::to_string(&connect)?,
             )?;
         }
         // Never listen on every interface by accident: without --listen a router listens on
@@ -79,7 +121,7 @@ impl BusArgs {
             Vec::new()
         } else {
             match mode {
-                Mode::Router => vec!["tcp/127.0.0.1:7447".into()],
+                Mode::Router => vec![DEFAULT_ENDPOINT.into()],
                 Mode::Peer => vec!["tcp/127.0.0.1:0".into()],
                 Mode::Client => Vec::new(),
             }
@@ -93,23 +135,46 @@ impl BusArgs {
         Ok(c)
     }
 
-    /// Opens the session.
+    /// Opens the session. A client that reaches none of its endpoints fails here, naming them,
+    /// where they came from and what to pass instead.
     pub async fn open(&self, default_mode: Mode) -> Result<zenoh::Session> {
         let config = self.config(default_mode)?;
-        let session = zenoh::open(config)
-            .await
-            .map_err(|e| anyhow::anyhow!("opening zenoh session: {e}"))?;
-        Ok(session)
+        let mode = self.mode.unwrap_or(default_mode);
+        zenoh::open(config).await.map_err(|e| {
+            let (endpoints, source) = self.endpoints(mode);
+            if mode == Mode::Client && !endpoints.is_empty() {
+                anyhow::anyhow!("{}", unreachable(&endpoints, source, &e.to_string()))
+            } else {
+                anyhow::anyhow!("opening zenoh session: {e}")
+            }
+        })
     }
 
-    /// The mode a client-like command (job, status, sampler) uses by default.
+    /// The mode a client-like command (job, status, query, sampler, …) uses by default: a
+    /// client of the endpoints [`BusArgs::endpoints`] names; a peer only when it is to find the
+    /// others by multicast scouting.
     pub fn client_default(&self) -> Mode {
-        if self.connect.is_empty() {
-            Mode::Peer
-        } else {
-            Mode::Client
-        }
+        let scouting =
+            self.multicast && self.connect.is_empty() && std::env::var(CONNECT_ENV).is_err();
+        if scouting { Mode::Peer } else { Mode::Client }
     }
+}
+
+/// What a client says when none of its endpoints answered.
+fn unreachable(endpoints: &[String], source: EndpointSource, cause: &str) -> String {
+    let from = match source {
+        EndpointSource::Flag => "given with --connect".to_owned(),
+        EndpointSource::Env => format!("from ${CONNECT_ENV}"),
+        EndpointSource::Default => {
+            format!("the default: neither --connect nor ${CONNECT_ENV} was given")
+        }
+    };
+    format!(
+        "nothing answered at {} ({from}). Start `mwb store` or `mwb demo --stay` there, or \
+         pass --connect ENDPOINT (or set {CONNECT_ENV}=ENDPOINT) to reach the bus elsewhere \
+         (zenoh: {cause})",
+        endpoints.join(", ")
+    )
 }
 
 /// Closes a session without ever hanging the process.

@@ -1,6 +1,7 @@
 //! Client-side bus operations shared by the CLI, the demo and the benchmarks: submitting and
 //! following jobs, fetching worlds, reading node status. Every wait is bounded.
 
+use crate::stall::Watch;
 use anyhow::{Context, Result, anyhow, bail};
 use mwb_core::keys::{Keys, role};
 use mwb_core::scene::SceneTemplate;
@@ -143,7 +144,10 @@ pub async fn submit_job(session: &Session, keys: &Keys, job: &Job) -> Result<Job
     }
 }
 
-/// Follows a job until it closes (or `timeout`), calling `progress` on every new state.
+/// Follows a job until it closes (or `timeout`), calling `progress` on every new state. A job
+/// that cannot complete — its store refuses worlds for memory, no node of its kind is alive,
+/// every such node gave it up — ends the wait with an error saying why
+/// ([`crate::stall::Stall`]), once the stall has lasted [`crate::stall::STALL_GRACE`].
 pub async fn wait_job(
     session: &Session,
     keys: &Keys,
@@ -155,6 +159,9 @@ pub async fn wait_job(
         .declare_subscriber(keys.job_state(job))
         .await
         .map_err(|e| anyhow!("subscribing to job state: {e}"))?;
+    let mut nodes = NodeWatch::start(session, keys).await?;
+    let role = job_role(session, keys, job).await?;
+    let mut watch = Watch::new(unix_ms());
     let start = Instant::now();
     let mut last: Option<JobState> = job_state(session, keys, job).await?;
     if let Some(st) = &last {
@@ -182,7 +189,125 @@ pub async fn wait_job(
             progress(&st);
             last = Some(st);
         }
+        if let Some(st) = &last
+            && !st.closed
+            && nodes.due()
+        {
+            let (workers, stores) = nodes.look(session, keys, role).await?;
+            let space = keys.prefix().trim_start_matches("mwb/");
+            if let Some(stall) = watch.observe(unix_ms(), space, st, role, &workers, &stores) {
+                return Err(anyhow::Error::new(stall).context(format!(
+                    "job {job} cannot complete ({}/{} worlds)",
+                    st.worlds_done, st.target_worlds
+                )));
+            }
+        }
     }
+}
+
+/// The role of the nodes that take `job` (from its announcement; a sampler's if no store
+/// serves it any more).
+async fn job_role(session: &Session, keys: &Keys, job: &str) -> Result<&'static str> {
+    let replies = session
+        .get(keys.job(job))
+        .timeout(Duration::from_secs(2))
+        .await
+        .map_err(|e| anyhow!("job query: {e}"))?;
+    let mut kind = JobKind::Sample;
+    while let Ok(reply) = replies.recv_async().await {
+        if let Ok(s) = reply.result()
+            && let Ok(j) = Job::decode(s.payload().to_bytes().as_ref())
+        {
+            kind = j.kind();
+        }
+    }
+    Ok(crate::stall::worker_role(kind))
+}
+
+/// The live nodes and their latest statistics, for telling a stuck job from a slow one.
+struct NodeWatch {
+    /// A ring: a waiter that looks once a second must never hold up the bus (a full FIFO
+    /// would); only each node's latest statistics matter.
+    stats: zenoh::pubsub::Subscriber<zenoh::handlers::RingChannelHandler<zenoh::sample::Sample>>,
+    latest: BTreeMap<(String, String), NodeStats>,
+    next: Instant,
+}
+
+impl NodeWatch {
+    /// How often [`NodeWatch::look`] is worth asking (nodes publish statistics every second).
+    const EVERY: Duration = Duration::from_secs(1);
+
+    async fn start(session: &Session, keys: &Keys) -> Result<Self> {
+        let stats = session
+            .declare_subscriber(keys.stats_all())
+            .with(zenoh::handlers::RingChannel::new(1024))
+            .await
+            .map_err(|e| anyhow!("subscribing to stats: {e}"))?;
+        Ok(Self {
+            stats,
+            latest: BTreeMap::new(),
+            next: Instant::now(),
+        })
+    }
+
+    fn due(&self) -> bool {
+        Instant::now() >= self.next
+    }
+
+    /// The live nodes of `role` and the live stores, each with its latest statistics (a node
+    /// that has not published yet: defaults with its id).
+    async fn look(
+        &mut self,
+        session: &Session,
+        keys: &Keys,
+        role: &str,
+    ) -> Result<(Vec<NodeStats>, Vec<NodeStats>)> {
+        self.next = Instant::now() + Self::EVERY;
+        while let Ok(Some(s)) = self.stats.try_recv() {
+            if let Ok(st) = NodeStats::decode(s.payload().to_bytes().as_ref()) {
+                self.latest
+                    .insert((st.role.clone(), st.node_id.clone()), st);
+            }
+        }
+        let alive = alive_nodes(session, keys).await?;
+        let of = |wanted: &str| -> Vec<NodeStats> {
+            alive
+                .iter()
+                .filter(|(r, _)| r == wanted)
+                .map(|(r, n)| {
+                    self.latest
+                        .get(&(r.clone(), n.clone()))
+                        .cloned()
+                        .unwrap_or_else(|| NodeStats {
+                            node_id: n.clone(),
+                            role: r.clone(),
+                            ..Default::default()
+                        })
+                })
+                .collect()
+        };
+        Ok((of(role), of(role::STORE)))
+    }
+}
+
+/// Every live node's `(role, node)`, by liveliness token.
+pub async fn alive_nodes(session: &Session, keys: &Keys) -> Result<Vec<(String, String)>> {
+    let replies = session
+        .liveliness()
+        .get(keys.alive_all())
+        .timeout(Duration::from_millis(500))
+        .await
+        .map_err(|e| anyhow!("liveliness query: {e}"))?;
+    let mut alive = Vec::new();
+    while let Ok(reply) = replies.recv_async().await {
+        if let Ok(s) = reply.result()
+            && let Some(parts) = keys.split(s.key_expr().as_str())
+            && let [_, role, node] = parts.as_slice()
+        {
+            alive.push(((*role).to_owned(), (*node).to_owned()));
+        }
+    }
+    Ok(alive)
 }
 
 /// Fetches a complete world by store index.
@@ -284,6 +409,9 @@ pub struct JobStatus {
     pub cancelled: bool,
     pub rejected: u32,
     pub worlds_per_s: f64,
+    /// Why an open job cannot complete, if the bus shows it (`crate::stall`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub stalled: Option<String>,
 }
 
 /// Gathers status: liveliness, then stats publications for `listen` (nodes publish every 1 s).
@@ -320,6 +448,17 @@ pub async fn status(session: &Session, keys: &Keys, listen: Duration) -> Result<
             _ => break,
         }
     }
+    let live: Vec<NodeStats> = alive
+        .iter()
+        .map(|((role, node), st)| {
+            st.clone().unwrap_or_else(|| NodeStats {
+                role: role.clone(),
+                node_id: node.clone(),
+                ..Default::default()
+            })
+        })
+        .collect();
+    let kinds = open_job_kinds(session, keys).await?;
     let nodes = alive
         .into_iter()
         .map(|((role, node), st)| {
@@ -343,6 +482,7 @@ pub async fn status(session: &Session, keys: &Keys, listen: Duration) -> Result<
         .await?
         .into_iter()
         .map(|st| JobStatus {
+            stalled: snapshot_stall(keys, &st, &kinds, &live).map(|s| s.to_string()),
             worlds_per_s: job_rate(&st),
             job: st.job_id,
             done: st.worlds_done,
@@ -353,6 +493,50 @@ pub async fn status(session: &Session, keys: &Keys, listen: Duration) -> Result<
         })
         .collect();
     Ok(Status { nodes, jobs })
+}
+
+/// The kind of every open job (the stores serve open jobs only).
+async fn open_job_kinds(session: &Session, keys: &Keys) -> Result<BTreeMap<String, JobKind>> {
+    let replies = session
+        .get(keys.jobs())
+        .timeout(Duration::from_secs(2))
+        .await
+        .map_err(|e| anyhow!("open jobs query: {e}"))?;
+    let mut kinds = BTreeMap::new();
+    while let Ok(reply) = replies.recv_async().await {
+        if let Ok(s) = reply.result()
+            && let Ok(j) = Job::decode(s.payload().to_bytes().as_ref())
+        {
+            kinds.insert(j.id.clone(), j.kind());
+        }
+    }
+    Ok(kinds)
+}
+
+/// What one look at the bus says about an open job (`mwb status`; a waiting command watches
+/// over time instead).
+fn snapshot_stall(
+    keys: &Keys,
+    st: &JobState,
+    kinds: &BTreeMap<String, JobKind>,
+    live: &[NodeStats],
+) -> Option<crate::stall::Stall> {
+    let kind = kinds.get(&st.job_id).copied().unwrap_or(JobKind::Sample);
+    let role = crate::stall::worker_role(kind);
+    let workers: Vec<NodeStats> = live.iter().filter(|n| n.role == role).cloned().collect();
+    let stores: Vec<NodeStats> = live
+        .iter()
+        .filter(|n| n.role == role::STORE)
+        .cloned()
+        .collect();
+    crate::stall::diagnose(&crate::stall::Evidence {
+        space: keys.prefix().trim_start_matches("mwb/"),
+        state: st,
+        role,
+        workers: &workers,
+        refused_since_progress: stores.iter().any(|s| crate::stall::store_looks_full(s, st)),
+        stores: &stores,
+    })
 }
 
 /// A job's state in one word, as tables print it.

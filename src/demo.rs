@@ -8,21 +8,28 @@ use crate::client;
 use crate::output::Summary;
 use anyhow::{Context, Result, bail};
 use mwb_core::browse::api::{Reply, Request};
-use mwb_core::browse::{Aggregate, Metric, Order, RankKey};
+use mwb_core::browse::{Metric, Order, RankKey};
 use mwb_core::keys::Keys;
 use mwb_sampler::{SamplerConfig, run_sampler};
 use mwb_store::{StoreConfig, run_store};
 use std::time::{Duration, Instant};
 
-/// Where `mwb demo --stay` listens unless --listen says otherwise (zenoh's usual port).
-pub const STAY_ENDPOINT: &str = "tcp/127.0.0.1:7447";
+/// Where `mwb demo --stay` listens unless --listen says otherwise: where client commands
+/// connect by default.
+pub const STAY_ENDPOINT: &str = crate::bus::DEFAULT_ENDPOINT;
 
-/// Keeps the demo's nodes serving; prints where to connect.
+/// Keeps the demo's nodes (store, node-query and samplers) serving; prints where to connect.
 async fn stay_until_ctrl_c(endpoints: &[String]) {
+    let first = endpoints.first().map_or(STAY_ENDPOINT, String::as_str);
+    let connect = if first == STAY_ENDPOINT {
+        String::new()
+    } else {
+        format!(" --connect {first}")
+    };
     eprintln!(
-        "mwb demo: serving on {} — browse with `mwb query list --connect {}` (Ctrl-C stops)",
+        "mwb demo: serving on {} — browse with `mwb query list{connect}`, sample more with \
+         `mwb job submit <scene> --wait{connect}` (Ctrl-C stops)",
         endpoints.join(", "),
-        endpoints.first().map_or(STAY_ENDPOINT, String::as_str)
     );
     crate::bus::until_ctrl_c().await;
 }
@@ -154,7 +161,10 @@ impl Summary for DemoSummary {
             self.browsable_worlds,
         );
         if let (Some(w), Some(s)) = (self.soonest_rest_world, self.soonest_rest_s) {
-            t += &format!("rests soonest    world {w} ({s:.2} s; `mwb query show {w}`)\n");
+            t += &format!(
+                "rests soonest    world {w} (all bodies at rest after {s:.2} s; `mwb query show {w}`, \
+                 `mwb query rank --by time-to-rest`)\n"
+            );
         }
         if let (Some(f), Some(n)) = (&self.recording, self.recorded_messages) {
             t += &format!("recorded         {n} messages in {f} (`mwb replay {f}`)\n");
@@ -252,14 +262,32 @@ pub async fn run_demo_with(
             b.set_position(u64::from(st.worlds_done));
         }
     })
-    .await?;
+    .await;
     let seconds = start.elapsed().as_secs_f64();
     if let Some(b) = &bar {
         b.finish_and_clear();
     }
-    for s in samplers {
-        s.stop().await;
-    }
+    let state = match state {
+        Ok(state) => state,
+        Err(e) => {
+            if let Some(recorder) = recorder
+                && let Err(re) = recorder.finish().await
+            {
+                tracing::warn!(error = %re, "finishing the demo's recording");
+            }
+            stop_all(samplers, query, store, session).await;
+            return Err(e);
+        }
+    };
+    // Staying, the samplers serve on: `mwb job submit --wait` against the demo gets worlds.
+    let samplers = if opts.stay {
+        samplers
+    } else {
+        for s in samplers {
+            s.stop().await;
+        }
+        Vec::new()
+    };
 
     // Read every world back over the bus and verify it.
     let mut summary = DemoSummary {
@@ -316,7 +344,9 @@ pub async fn run_demo_with(
             key: RankKey::Metric {
                 metric: Metric::TimeToRest,
                 objects,
-                aggregate: Aggregate::Max,
+                // The definition `mwb query rank --by time-to-rest` uses: the last body's rest
+                // time; worlds with a body still moving at the end have none and rank last.
+                aggregate: Metric::TimeToRest.default_aggregate(),
             },
             order: Order::Ascending,
             k: 1,
@@ -353,8 +383,21 @@ pub async fn run_demo_with(
     if opts.stay {
         stay_until_ctrl_c(&bus.listen).await;
     }
+    stop_all(samplers, query, store, session).await;
+    Ok(summary)
+}
+
+/// Stops the demo's nodes and closes its session.
+async fn stop_all(
+    samplers: Vec<mwb_sampler::SamplerHandle>,
+    query: mwb_query::QueryHandle,
+    store: mwb_store::StoreHandle,
+    session: zenoh::Session,
+) {
+    for s in samplers {
+        s.stop().await;
+    }
     query.stop();
     store.stop();
     crate::bus::close(session).await;
-    Ok(summary)
 }

@@ -113,10 +113,28 @@ async fn submit(args: SubmitArgs) -> Result<()> {
             job.id, args.worlds, file
         );
     }
+    // Said at once, not after a timeout: a job nobody takes waits for ever.
+    let role = crate::stall::worker_role(job.kind());
+    let alive = client::alive_nodes(&session, &keys).await?;
+    if !alive.iter().any(|(r, _)| r == role) {
+        eprintln!(
+            "warning: no {role} node is alive in space {:?}: the job waits until one joins \
+             (`mwb {role} --connect <store endpoint>`){}",
+            args.bus.space,
+            if args.wait {
+                format!(
+                    "; --wait gives up in {} s",
+                    crate::stall::STALL_GRACE.as_secs()
+                )
+            } else {
+                String::new()
+            }
+        );
+    }
     if args.wait {
         let bar = (!args.json && std::io::IsTerminal::is_terminal(&std::io::stderr()))
             .then(|| client::progress_bar(args.worlds));
-        state = client::wait_job(
+        let waited = client::wait_job(
             &session,
             &keys,
             &job.id,
@@ -127,10 +145,17 @@ async fn submit(args: SubmitArgs) -> Result<()> {
                 }
             },
         )
-        .await?;
+        .await;
         if let Some(b) = bar {
             b.finish_and_clear();
         }
+        state = match waited {
+            Ok(st) => st,
+            Err(e) => {
+                crate::bus::close(session).await;
+                return Err(e);
+            }
+        };
     }
     crate::bus::close(session).await;
     let submitted = Submitted::new(&job.id, &state);
@@ -138,8 +163,7 @@ async fn submit(args: SubmitArgs) -> Result<()> {
         crate::output::print(&submitted, args.json)
     } else {
         // Without --wait the id is the result, for scripts to follow the job by.
-        println!("{}", job.id);
-        Ok(())
+        crate::output::out(&format!("{}\n", job.id))
     }
 }
 
@@ -204,9 +228,8 @@ async fn cancel(bus: &BusArgs, id: &str) -> Result<()> {
     if !st.cancelled {
         bail!("job {id} closed before the cancel arrived");
     }
-    println!(
-        "cancelled {id} at {}/{} worlds",
+    crate::output::out(&format!(
+        "cancelled {id} at {}/{} worlds\n",
         st.worlds_done, st.target_worlds
-    );
-    Ok(())
+    ))
 }

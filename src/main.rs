@@ -5,6 +5,7 @@
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
 use mwb::query::QueryCommand;
+use std::process::ExitCode;
 
 #[derive(Parser)]
 #[command(
@@ -41,6 +42,15 @@ enum Command {
     Status(mwb::status::StatusArgs),
     /// Check a scene file: parse, validate, instantiate one world.
     Scene(mwb::scene::SceneArgs),
+    /// The workstation viewer: sample --worlds of --scene here, draw their paths, box them, play
+    /// one back; --screenshot renders the UI to a PNG without a display.
+    Viewer(mwb::viewer_cmd::ViewerArgs),
+    /// Regenerate one world from its scene and seed alone: its summary and digest (--check N:
+    /// compare with stored world N).
+    World(mwb::world_cmd::WorldArgs),
+    /// Export worlds (from a store, a recording, or a seed) as glTF 2.0 .glb, Foxglove MCAP, CSV
+    /// or JSON.
+    Export(mwb::export_cmd::ExportArgs),
     /// Record every put on the bus (mwb/<space>/**) into an MCAP file until Ctrl-C or --duration.
     Record(mwb::record_cmd::RecordArgs),
     /// Put a recording back on the bus in order (--speed 1|4|max) into --space.
@@ -52,7 +62,41 @@ enum Command {
     },
 }
 
-fn main() -> Result<()> {
+/// Every error exits non-zero; a reader that closed the pipe (`mwb … | head`) ends the command
+/// quietly and successfully, as Unix tools do.
+fn main() -> ExitCode {
+    quiet_on_closed_stdout();
+    match start() {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) if mwb::output::is_broken_pipe(&e) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("Error: {e:?}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// Our output goes through `mwb::output::out`, which returns a closed pipe as an error; a
+/// `println!` left anywhere would panic instead ("failed printing to stdout: Broken pipe").
+/// This hook turns exactly that panic into the same quiet, successful exit; every other panic
+/// is reported as before.
+fn quiet_on_closed_stdout() {
+    let report = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
+        let message = info
+            .payload()
+            .downcast_ref::<String>()
+            .map(String::as_str)
+            .or_else(|| info.payload().downcast_ref::<&str>().copied())
+            .unwrap_or("");
+        if message.starts_with("failed printing to stdout") && message.contains("Broken pipe") {
+            std::process::exit(0);
+        }
+        report(info);
+    }));
+}
+
+fn start() -> Result<()> {
     let cli = Cli::parse();
     // Long-running nodes log what they do; one-shot commands (demo, bench, job, …) print their
     // result and only warnings. RUST_LOG overrides both.
@@ -89,6 +133,9 @@ async fn run(command: Command) -> Result<()> {
         Command::Job { command } => mwb::job::run(command).await,
         Command::Status(args) => mwb::status::run(args).await,
         Command::Scene(args) => mwb::scene::run(args),
+        Command::Viewer(args) => mwb::viewer_cmd::run(args),
+        Command::World(args) => mwb::world_cmd::run(args).await,
+        Command::Export(args) => mwb::export_cmd::run(args).await,
         Command::Record(args) => mwb::record_cmd::record(args).await,
         Command::Replay(args) => mwb::record_cmd::replay(args).await,
         Command::Bench { command } => mwb::bench::run(command).await,

@@ -1,10 +1,34 @@
 //! How a command prints its result: a table for people, or with `--json` one JSON line per
 //! result for scripts. Summaries are structs deriving `Serialize`, so the JSON line and the
 //! table name the same fields.
+//!
+//! Everything a command prints on stdout goes through [`out`], which returns the write's error
+//! instead of panicking as `println!` does: piped into `head`, a command ends quietly when the
+//! reader goes away ([`is_broken_pipe`]; `main` exits 0 then, as Unix tools do).
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use serde::Serialize;
 use std::fmt::Write as _;
+use std::io::Write as _;
+
+/// Writes `text` to stdout and flushes it. A reader that went away is an error like any other
+/// ([`is_broken_pipe`] tells it apart).
+pub fn out(text: &str) -> Result<()> {
+    let mut stdout = std::io::stdout().lock();
+    stdout
+        .write_all(text.as_bytes())
+        .and_then(|()| stdout.flush())
+        .context("writing to stdout")
+}
+
+/// Whether `e` is, at bottom, a write to a pipe whose reader has gone (`mwb … | head`).
+pub fn is_broken_pipe(e: &anyhow::Error) -> bool {
+    e.chain().any(|cause| {
+        cause
+            .downcast_ref::<std::io::Error>()
+            .is_some_and(|io| io.kind() == std::io::ErrorKind::BrokenPipe)
+    })
+}
 
 /// A result a command prints.
 pub trait Summary: Serialize {
@@ -14,18 +38,12 @@ pub trait Summary: Serialize {
 
 /// Prints `v` as one JSON line.
 pub fn json_line<T: Serialize + ?Sized>(v: &T) -> Result<()> {
-    println!("{}", serde_json::to_string(v)?);
-    Ok(())
+    out(&format!("{}\n", serde_json::to_string(v)?))
 }
 
 /// Prints `v` as one JSON line (`json`) or as its table.
 pub fn print<T: Summary>(v: &T, json: bool) -> Result<()> {
-    if json {
-        json_line(v)
-    } else {
-        print!("{}", v.table());
-        Ok(())
-    }
+    if json { json_line(v) } else { out(&v.table()) }
 }
 
 /// A flat summary as a table: one field per line, named as in its JSON line and in the order
@@ -120,6 +138,16 @@ mod tests {
             "scene    scenes/tumble.toml\nworlds   50\nratio    0.4461\ntiny     0.0009991\n\
              missing  -\nnan      -\n"
         );
+    }
+
+    #[test]
+    fn a_broken_pipe_is_told_apart_from_other_errors() {
+        let pipe = anyhow::Error::new(std::io::Error::from(std::io::ErrorKind::BrokenPipe))
+            .context("writing to stdout");
+        assert!(is_broken_pipe(&pipe));
+        let other = anyhow::Error::new(std::io::Error::from(std::io::ErrorKind::NotFound));
+        assert!(!is_broken_pipe(&other));
+        assert!(!is_broken_pipe(&anyhow::anyhow!("no store holds world 9")));
     }
 
     #[test]

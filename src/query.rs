@@ -8,8 +8,8 @@ use anyhow::{Context, Result, anyhow, bail};
 use clap::{Args, Subcommand, ValueEnum};
 use mwb_core::browse::api::{Reply, Request};
 use mwb_core::browse::{
-    Aggregate, Camera, Constraint, ConstraintId, Frustum, Metric, Order, Polarity, RankKey,
-    ScreenRect, TimeWindow, WorldMetric,
+    Aggregate, Camera, Constraint, ConstraintId, Frustum, Metric, Order, Polarity, Quantifier,
+    RankKey, Scope, ScreenRect, TimeWindow, WorldMetric, object_label, resolve_objects,
 };
 use mwb_core::keys::Keys;
 use serde::Deserialize;
@@ -36,7 +36,8 @@ pub struct SessionArgs {
 pub enum RankBy {
     /// Integrated angular speed (radians turned).
     AngularTravel,
-    /// Seconds until the objects rest.
+    /// Seconds until the chosen objects rest (by default the last of them: `--aggregate max`);
+    /// worlds with a chosen body still moving at the end have no value and rank last.
     TimeToRest,
     /// Impact count.
     Impacts,
@@ -98,11 +99,14 @@ pub enum QueryCommand {
         s: SessionArgs,
         #[arg(long, value_enum, default_value = "time-to-rest")]
         by: RankBy,
-        /// Object indices, comma-separated, or `all`.
+        /// Objects: indices, body names (`S`, `block[17]`, `block` for all its instances),
+        /// comma-separated, or `all`.
         #[arg(long, default_value = "all")]
         objects: String,
-        #[arg(long, value_enum, default_value = "sum")]
-        aggregate: AggregateArg,
+        /// How the chosen objects' values combine [default: max for time-to-rest (the world
+        /// rests when its last chosen body does), sum for the others].
+        #[arg(long, value_enum)]
+        aggregate: Option<AggregateArg>,
         /// [default: ascending, except descending for `constraints`]
         #[arg(long, value_enum)]
         order: Option<OrderArg>,
@@ -115,6 +119,11 @@ pub enum QueryCommand {
         /// `x,y,z,w` (e.g. `0,0,0,1`: upright as modelled) instead of each object's start.
         #[arg(long, allow_hyphen_values = true)]
         goal: Option<String>,
+    },
+    /// The bodies of the worlds held: object indices and names, per scene.
+    Bodies {
+        #[command(flatten)]
+        s: SessionArgs,
     },
     /// One world's metrics and standing in the session.
     Show {
@@ -151,7 +160,9 @@ struct ConstraintFile {
     frustum: Option<Frustum>,
     polarity: Option<Polarity>,
     objects: Option<Vec<u32>>,
+    quantifier: Option<Quantifier>,
     window: Option<TimeWindow>,
+    scope: Option<Scope>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -209,45 +220,33 @@ impl Client {
         Ok(reply)
     }
 
-    /// Object indices from `all` or a comma list; `all` asks a stored world how many it has.
-    async fn objects(&self, text: &str) -> Result<Vec<u32>> {
-        if text.trim() != "all" {
-            return text
-                .split(',')
-                .map(|t| {
-                    t.trim()
-                        .parse::<u32>()
-                        .with_context(|| format!("--objects: {t:?} is not an object index"))
-                })
-                .collect();
+    /// The distinct body lists of the worlds held.
+    async fn bodies(&self) -> Result<Vec<mwb_core::browse::api::SceneBodies>> {
+        match self.send(&Request::Bodies).await? {
+            Reply::Bodies { scenes } => Ok(scenes),
+            other => bail!("unexpected reply to a bodies request: {other:?}"),
         }
-        let Reply::Worlds { worlds, .. } = self.send(&Request::Result { limit: Some(1) }).await?
-        else {
-            bail!("unexpected reply to a result request");
-        };
-        // Any world will do: all worlds of a scene have the same bodies. Without survivors, ask
-        // a ranking over all worlds for one.
-        let world = match worlds.first() {
-            Some(&w) => w,
-            None => match self
-                .send(&Request::Rank {
-                    key: RankKey::ConstraintsSatisfied,
-                    order: Order::Descending,
-                    k: 1,
-                    all_worlds: true,
-                })
-                .await?
-            {
-                Reply::Ranking { rows, .. } => rows
-                    .first()
-                    .map(|r| r.world)
-                    .ok_or_else(|| anyhow!("--objects all: the stores hold no worlds yet"))?,
-                _ => bail!("unexpected reply to a rank request"),
-            },
-        };
-        match self.send(&Request::Summary { world }).await? {
-            Reply::Summary(s) => Ok((0..s.objects.len() as u32).collect()),
-            _ => bail!("--objects all: world {world} has no summary"),
+    }
+
+    /// Object indices from indices, body names, generator instances or `all`, checked against
+    /// the bodies of the worlds held (out-of-range indices are refused with the body count).
+    async fn objects(&self, text: &str) -> Result<Vec<u32>> {
+        let scenes = self.bodies().await?;
+        if text.trim() == "all" && scenes.is_empty() {
+            bail!("--objects all: the stores hold no worlds yet");
+        }
+        Ok(resolve_objects(text, &scenes)?)
+    }
+
+    /// Body names for printing: those of the one scene held (none if several or unnamed).
+    async fn names(&self) -> Vec<String> {
+        match self.bodies().await {
+            Ok(scenes) if scenes.len() == 1 => scenes
+                .into_iter()
+                .next()
+                .map(|s| s.names)
+                .unwrap_or_default(),
+            _ => Vec::new(),
         }
     }
 
@@ -276,9 +275,10 @@ pub async fn run(command: QueryCommand) -> Result<()> {
                     constraint: Box::new(constraint),
                 })
                 .await;
+            let names = client.names().await;
             client.close().await;
             let reply = reply?;
-            print_reply(&s, &reply, Some(&format!("added constraint {id}")))?;
+            print_reply(&s, &reply, &names, Some(&format!("added constraint {id}")))?;
             return Ok(());
         }
         QueryCommand::Remove { s, id } => (
@@ -309,9 +309,17 @@ pub async fn run(command: QueryCommand) -> Result<()> {
                 }
                 (Some(_), _) => bail!("--goal applies to --by orientation-error only"),
             };
+            let metric = match by {
+                RankBy::AngularTravel => Some(Metric::AngularTravel),
+                RankBy::TimeToRest => Some(Metric::TimeToRest),
+                RankBy::Impacts => Some(Metric::Impacts),
+                RankBy::OrientationError => Some(Metric::OrientationError),
+                RankBy::Constraints | RankBy::EnergyGrowth | RankBy::AngularSpeedGrowth => None,
+            };
             let aggregate = match aggregate {
-                AggregateArg::Sum => Aggregate::Sum,
-                AggregateArg::Max => Aggregate::Max,
+                Some(AggregateArg::Sum) => Aggregate::Sum,
+                Some(AggregateArg::Max) => Aggregate::Max,
+                None => metric.map_or(Aggregate::Sum, Metric::default_aggregate),
             };
             let client = Client::open(&s).await?;
             let key = match by {
@@ -349,30 +357,90 @@ pub async fn run(command: QueryCommand) -> Result<()> {
                 (Some(OrderArg::Descending), _) | (None, RankBy::Constraints) => Order::Descending,
                 (None, _) => Order::Ascending,
             };
-            let reply = match key {
+            let names = client.names().await;
+            let reply = match &key {
                 Ok(key) => {
                     client
                         .send(&Request::Rank {
-                            key,
+                            key: key.clone(),
                             order,
                             k,
                             all_worlds: all || matches!(by, RankBy::Constraints),
                         })
                         .await
                 }
-                Err(e) => Err(e),
+                Err(e) => Err(anyhow!("{e:#}")),
             };
             client.close().await;
-            print_reply(&s, &reply?, None)?;
+            let headline = rank_headline(&key?, order, &names);
+            print_reply(&s, &reply?, &names, Some(&headline))?;
             return Ok(());
         }
         QueryCommand::Show { s, world } => (s, Request::Summary { world }),
+        QueryCommand::Bodies { s } => (s, Request::Bodies),
         QueryCommand::Close { s } => (s, Request::Close),
     };
     let client = Client::open(&s).await?;
     let reply = client.send(&request).await;
+    let names = match (&reply, s.json) {
+        (Ok(Reply::Status(_)), false) => client.names().await,
+        _ => Vec::new(),
+    };
     client.close().await;
-    print_reply(&s, &reply?, None)
+    print_reply(&s, &reply?, &names, None)
+}
+
+/// What a ranking is by, over which objects, combined how, in which unit and order.
+fn rank_headline(key: &RankKey, order: Order, names: &[String]) -> String {
+    let objects = |list: &[u32]| {
+        list.iter()
+            .map(|&o| object_label(names, o))
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    let order = match order {
+        Order::Ascending => "least first",
+        Order::Descending => "most first",
+    };
+    match key {
+        RankKey::Metric {
+            metric,
+            objects: list,
+            aggregate,
+        } => {
+            let what = match metric {
+                Metric::AngularTravel => "angular travel",
+                Metric::TimeToRest => "time to rest",
+                Metric::Impacts => "impacts",
+                Metric::OrientationError => "orientation error from the start",
+            };
+            format!(
+                "ranked by {what} [{}], {} over {}; {order}",
+                metric.unit(),
+                aggregate.name(),
+                objects(list)
+            )
+        }
+        RankKey::OrientationTo {
+            goal,
+            objects: list,
+            aggregate,
+        } => format!(
+            "ranked by orientation error from {goal:?} [rad], {} over {}; {order}",
+            aggregate.name(),
+            objects(list)
+        ),
+        RankKey::ConstraintsSatisfied => {
+            format!("ranked by live constraints satisfied [constraints]; {order}")
+        }
+        RankKey::World { metric } => {
+            let what = match metric {
+                WorldMetric::EnergyGrowth => "energy growth going back",
+                WorldMetric::AngularSpeedGrowth => "angular-speed growth going back",
+            };
+            format!("ranked by {what} [{}] (per world); {order}", metric.unit())
+        }
+    }
 }
 
 /// What `mwb query add` takes.
@@ -384,12 +452,22 @@ pub struct ConstraintFlags {
     /// "Never passes through" instead of "passes through".
     #[arg(long)]
     negative: bool,
-    /// Object indices (scene body order), comma-separated, or `all`.
+    /// Objects: indices (scene body order), body names (`S`, `block[17]`, or `block` for all
+    /// of its instances), comma-separated, or `all`. The constraint holds when any of them
+    /// passes (§4.4.1), or every one with `--all`.
     #[arg(long)]
     objects: Option<String>,
-    /// Only during this time window, seconds: START:END.
+    /// Every chosen object must pass, not just one of them (with `--negative`: worlds where
+    /// not all of them pass through are kept).
     #[arg(long)]
+    all: bool,
+    /// Only during this time window, seconds: START:END. A body whose world ended before END
+    /// stays at its final pose for the rest of the window.
+    #[arg(long, conflicts_with = "final_pose")]
     window: Option<String>,
+    /// Only the final (resting) pose counts: "ends in this box".
+    #[arg(long = "final", id = "final_pose")]
+    final_pose: bool,
     /// World-space box: MINX,MINY,MINZ,MAXX,MAXY,MAXZ (metres).
     #[arg(long, allow_hyphen_values = true)]
     aabb: Option<String>,
@@ -400,7 +478,7 @@ pub struct ConstraintFlags {
     #[arg(long)]
     camera: Option<PathBuf>,
     /// JSON file with any of: camera, rect, aabb {min,max}, frustum, polarity, objects,
-    /// window; flags override it.
+    /// quantifier ("any"/"all"), window, scope ("motion"/"final_pose"); flags override it.
     #[arg(long)]
     file: Option<PathBuf>,
 }
@@ -466,8 +544,32 @@ async fn build_constraint(client: &Client, f: ConstraintFlags) -> Result<Constra
     }
     let objects = match (&f.objects, file.objects) {
         (Some(text), _) => client.objects(text).await?,
-        (None, Some(list)) => list,
-        (None, None) => bail!("which objects? give --objects 0,2 (scene body order) or all"),
+        (None, Some(list)) => {
+            let text = list
+                .iter()
+                .map(u32::to_string)
+                .collect::<Vec<_>>()
+                .join(",");
+            client
+                .objects(&text)
+                .await
+                .context("constraint file: objects")?
+        }
+        (None, None) => {
+            bail!(
+                "which objects? give --objects 0,2 (scene body order), names (S, block[3]) or all"
+            )
+        }
+    };
+    let quantifier = if f.all {
+        Quantifier::All
+    } else {
+        file.quantifier.unwrap_or_default()
+    };
+    let scope = if f.final_pose {
+        Scope::FinalPose
+    } else {
+        file.scope.unwrap_or_default()
     };
     let polarity = if f.negative {
         Polarity::Negative
@@ -483,13 +585,17 @@ async fn build_constraint(client: &Client, f: ConstraintFlags) -> Result<Constra
             _ => bail!("unexpected reply to a status request"),
         },
     };
-    Ok(Constraint {
+    let constraint = Constraint {
         id,
         polarity,
         frustum,
         objects,
+        quantifier,
         window: file.window,
-    })
+        scope,
+    };
+    constraint.validate()?;
+    Ok(constraint)
 }
 
 async fn serve(bus: BusArgs) -> Result<()> {
@@ -509,7 +615,17 @@ async fn serve(bus: BusArgs) -> Result<()> {
     Ok(())
 }
 
-fn print_reply(s: &SessionArgs, reply: &Reply, headline: Option<&str>) -> Result<()> {
+/// Prints a reply; `names` are the body names used to label objects (may be empty). A reply
+/// that says the request failed (no such world) is an error, so the command exits non-zero.
+fn print_reply(
+    s: &SessionArgs,
+    reply: &Reply,
+    names: &[String],
+    headline: Option<&str>,
+) -> Result<()> {
+    if let Reply::NoSuchWorld { world } = reply {
+        bail!("no store holds world {world} (`mwb query result` lists the surviving worlds)");
+    }
     if s.json {
         println!("{}", serde_json::to_string(reply)?);
         return Ok(());
@@ -529,18 +645,31 @@ fn print_reply(s: &SessionArgs, reply: &Reply, headline: Option<&str>) -> Result
                 if st.can_redo { "; redo possible" } else { "" },
             );
             for c in &st.constraints {
-                let window = c
-                    .window
-                    .map(|w| format!(" during {:.3}–{:.3} s", w.start(), w.end()))
-                    .unwrap_or_default();
+                let when = match (c.scope, c.window) {
+                    (Scope::FinalPose, _) => " in the final pose".to_owned(),
+                    (Scope::Motion, Some(w)) => {
+                        format!(" during {:.3}–{:.3} s", w.start(), w.end())
+                    }
+                    (Scope::Motion, None) => String::new(),
+                };
+                let objects = c
+                    .objects
+                    .iter()
+                    .map(|&o| object_label(names, o))
+                    .collect::<Vec<_>>()
+                    .join(", ");
+                let quantifier = match (c.quantifier, c.objects.len()) {
+                    (_, 0 | 1) => "",
+                    (Quantifier::Any, _) => "any of ",
+                    (Quantifier::All, _) => "all of ",
+                };
                 println!(
-                    "  #{:<4} {:<8} objects {:?}{window}: {} worlds",
+                    "  #{:<4} {:<8} {quantifier}{objects}{when}: {} worlds",
                     c.id.0,
                     match c.polarity {
                         Polarity::Positive => "through",
                         Polarity::Negative => "never",
                     },
-                    c.objects,
                     c.satisfied
                 );
             }
@@ -552,8 +681,20 @@ fn print_reply(s: &SessionArgs, reply: &Reply, headline: Option<&str>) -> Result
                 println!("{}", list.join(" "));
             }
         }
-        Reply::Ranking { candidates, rows } => {
-            println!("top {} of {candidates}", rows.len());
+        Reply::Ranking {
+            candidates,
+            unscored,
+            rows,
+        } => {
+            println!(
+                "top {} of {candidates}; {unscored} without a value (sorted last{})",
+                rows.len(),
+                if headline.is_some_and(|h| h.contains("time to rest")) {
+                    ": a chosen body was still moving at the end"
+                } else {
+                    ""
+                }
+            );
             for (i, r) in rows.iter().enumerate() {
                 match r.score {
                     Some(v) => println!("{:>4}. world {:<8} {v:.4}", i + 1, r.world),
@@ -577,6 +718,10 @@ fn print_reply(s: &SessionArgs, reply: &Reply, headline: Option<&str>) -> Result
                 }
             );
             println!(
+                "regenerate: {}",
+                crate::world_cmd::regenerate_command(w.world, w.seed)
+            );
+            println!(
                 "satisfies {} constraint(s); {}",
                 w.constraints_satisfied,
                 if w.in_result {
@@ -591,10 +736,15 @@ fn print_reply(s: &SessionArgs, reply: &Reply, headline: Option<&str>) -> Result
             if let Some(a) = w.world_metrics.angular_speed_growth {
                 println!("angular-speed growth going back: {a:.3} rad/s");
             }
-            println!("object  turned[rad]  rest[s]  impacts  orient.err[rad]  path±[mm]");
+            let width = w.bodies.iter().map(String::len).max().unwrap_or(0).max(6);
+            println!(
+                "{:>width$}  {:<width$}  turned[rad]  rest[s]  impacts  orient.err[rad]  path±[mm]",
+                "object", "name"
+            );
             for (i, (m, r)) in w.objects.iter().zip(&w.path_radius).enumerate() {
+                let name = w.bodies.get(i).map_or("", String::as_str);
                 println!(
-                    "{i:>6}  {:>11.3}  {:>7.3}{} {:>7}  {:>15.4}  {:>9.2}",
+                    "{i:>width$}  {name:<width$}  {:>11.3}  {:>7.3}{} {:>7}  {:>15.4}  {:>9.2}",
                     m.angular_travel_rad,
                     m.time_to_rest_s,
                     if m.came_to_rest { " " } else { "+" },
@@ -603,8 +753,25 @@ fn print_reply(s: &SessionArgs, reply: &Reply, headline: Option<&str>) -> Result
                     r * 1000.0
                 );
             }
+            if w.objects.iter().any(|m| !m.came_to_rest) {
+                println!("+ still moving at the end: no time to rest (ranked last by it)");
+            }
         }
-        Reply::NoSuchWorld { world } => println!("no store holds world {world}"),
+        Reply::NoSuchWorld { .. } => {}
+        Reply::Bodies { scenes } => {
+            for sc in scenes {
+                println!(
+                    "{} worlds with {} bodies: {}",
+                    sc.worlds,
+                    sc.objects,
+                    if sc.names.is_empty() {
+                        "(names unknown)".to_owned()
+                    } else {
+                        sc.names.join(", ")
+                    }
+                );
+            }
+        }
         Reply::Closed => println!("session {} closed", s.session),
         Reply::Error { message } => bail!("{message}"),
     }

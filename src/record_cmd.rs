@@ -242,7 +242,6 @@ pub async fn replay(args: ReplayArgs) -> Result<()> {
         speed: args.speed,
         space: args.bus.space.clone(),
         wait_for_subscribers: args.wait,
-        ..Default::default()
     };
     let stop = async {
         if let Err(e) = tokio::signal::ctrl_c().await {

@@ -11,6 +11,11 @@ pub struct SamplerArgs {
     /// Worker threads [default: all cores].
     #[arg(long)]
     pub workers: Option<usize>,
+    /// This node's id, unique in the space [default: the session's random zenoh id]. World
+    /// seeds are derived from (job id, node id, the node's world counter): a named sampler
+    /// gives the same seeds to the same job id every time.
+    #[arg(long)]
+    pub node_id: Option<String>,
 }
 
 /// Runs the sampler until Ctrl-C.
@@ -23,6 +28,10 @@ pub async fn run(args: SamplerArgs) -> Result<()> {
     };
     if let Some(w) = args.workers {
         cfg.workers = w.max(1);
+    }
+    if let Some(id) = args.node_id {
+        mwb_core::keys::check_identifier("--node-id", &id)?;
+        cfg.node_id = Some(id);
     }
     let sampler = mwb_sampler::run_sampler(session.clone(), cfg).await?;
     crate::bus::until_ctrl_c().await;

@@ -60,6 +60,9 @@ impl Summary for Status {
                 client::state_name(j.closed, j.cancelled),
                 j.worlds_per_s
             );
+            if let Some(why) = &j.stalled {
+                let _ = writeln!(t, "  cannot complete: {why}");
+            }
         }
         t
     }

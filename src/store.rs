@@ -2,7 +2,7 @@
 //! shard that answers job states, the browsing coordinator.
 
 use crate::bus::{BusArgs, Mode};
-use anyhow::Result;
+use anyhow::{Context, Result};
 
 /// Arguments of `mwb store`.
 #[derive(Debug, Clone, clap::Args)]
@@ -20,6 +20,15 @@ pub struct StoreArgs {
     /// runs it; with `mwb query serve` elsewhere, pass this.
     #[arg(long)]
     pub no_query: bool,
+    /// Make the store durable: every world is written to an MCAP journal in DIR (fsync'ed
+    /// before the store acknowledges it) and read back when the store starts again. Damaged
+    /// journal files are read up to the damage; the log says what was skipped.
+    #[arg(long, value_name = "DIR")]
+    pub journal: Option<std::path::PathBuf>,
+    /// Start with the worlds of a recording (`mwb record`, `mwb demo --record`, or a journal
+    /// file); repeatable. A damaged recording is loaded up to the damage.
+    #[arg(long, value_name = "FILE")]
+    pub load: Vec<std::path::PathBuf>,
 }
 
 /// Runs the store (and node-query) until Ctrl-C.
@@ -29,8 +38,14 @@ pub async fn run(args: StoreArgs) -> Result<()> {
         memory_cap_mib,
         shard,
         no_query,
+        journal,
+        load,
     } = args;
     let shard = mwb_store::ShardSpec::parse(&shard)?;
+    for f in &load {
+        // A missing file is a typo, not damage: refuse to start.
+        std::fs::metadata(f).with_context(|| format!("--load {}", f.display()))?;
+    }
     let session = bus.open(Mode::Router).await?;
     let store = mwb_store::run_store(
         session.clone(),
@@ -38,10 +53,13 @@ pub async fn run(args: StoreArgs) -> Result<()> {
             space: bus.space.clone(),
             memory_cap_bytes: memory_cap_mib << 20,
             shard,
+            journal,
+            load,
             ..Default::default()
         },
     )
     .await?;
+    report_start(store.start_report());
     let query = if shard.is_authority() && !no_query {
         Some(
             mwb_query::run_query(
@@ -70,4 +88,36 @@ pub async fn run(args: StoreArgs) -> Result<()> {
     store.stop();
     crate::bus::close(session).await;
     Ok(())
+}
+
+/// What the journal and the recordings gave back, on stderr (the log has it per file too).
+fn report_start(r: &mwb_store::StartReport) {
+    for f in r.journal.iter().chain(&r.recordings) {
+        if f.damage.is_some() && !f.cut_short {
+            eprintln!("damaged: {}", f.describe());
+        }
+    }
+    if !r.journal.is_empty() || !r.recordings.is_empty() {
+        let unknown: u64 = r
+            .journal
+            .iter()
+            .chain(&r.recordings)
+            .flat_map(|f| f.unknown_channels.values())
+            .sum();
+        eprintln!(
+            "loaded {} worlds from the journal ({} files) and {} from {} recordings in {:.2} s; \
+             refused {}, partial discarded {}, damaged files {}, bytes skipped {}, messages on \
+             unknown channels {}",
+            r.worlds_from_journal,
+            r.journal.len(),
+            r.worlds_from_recordings,
+            r.recordings.len(),
+            r.seconds,
+            r.worlds_refused,
+            r.partial_discarded,
+            r.damaged_files(),
+            r.skipped_bytes(),
+            unknown
+        );
+    }
 }

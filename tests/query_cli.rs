@@ -28,6 +28,23 @@ fn mwb(endpoint: &str, space: &str, args: &[&str]) -> String {
     String::from_utf8_lossy(&out.stdout).into_owned()
 }
 
+/// Runs `mwb <args> --connect <endpoint> --space <space>` expecting failure; returns stderr.
+fn mwb_fails(endpoint: &str, space: &str, args: &[&str]) -> String {
+    let out = Command::new(env!("CARGO_BIN_EXE_mwb"))
+        .args(args)
+        .args(["--connect", endpoint, "--space", space, "--timeout", "30"])
+        .env("RUST_LOG", "warn")
+        .output()
+        .unwrap_or_else(|e| panic!("running mwb {args:?}: {e}"));
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(
+        !out.status.success(),
+        "mwb {args:?} should have failed; stdout {}",
+        String::from_utf8_lossy(&out.stdout)
+    );
+    stderr
+}
+
 fn json(endpoint: &str, space: &str, args: &[&str]) -> Value {
     let mut all = args.to_vec();
     all.push("--json");
@@ -198,6 +215,211 @@ async fn scripted_browsing_against_a_running_cluster() {
         .unwrap_or_else(|e| panic!("{e}"));
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("--aabb"));
+
+    issue_24_names_rest_poses_rankings_and_exit_codes(e, s, &cam);
     let _ = std::fs::remove_dir_all(&dir);
     drop(procs);
+}
+
+/// Issue 24 against the same cluster (tumble: bodies crate, plank, brick, die, slab; worlds
+/// end by 6 s), each part in its own browsing session.
+fn issue_24_names_rest_poses_rankings_and_exit_codes(e: &str, s: &str, cam: &str) {
+    let names = ["crate", "plank", "brick", "die", "slab"];
+    let bodies = json(e, s, &["query", "bodies"]);
+    let scenes = bodies["scenes"].as_array().cloned().unwrap_or_default();
+    assert_eq!(scenes.len(), 1, "{bodies}");
+    assert_eq!(scenes[0]["names"], serde_json::json!(names));
+    assert_eq!(u(&scenes[0], "worlds"), WORLDS);
+
+    // Objects by name; an out-of-range index is refused naming the body count.
+    let st = json(
+        e,
+        s,
+        &[
+            "query",
+            "add",
+            "--session",
+            "names",
+            "--aabb=-9,-9,-9,9,9,9",
+            "--objects",
+            "die, crate",
+        ],
+    );
+    assert_eq!(st["constraints"][0]["objects"], serde_json::json!([3, 0]));
+    let err = mwb_fails(
+        e,
+        s,
+        &[
+            "query",
+            "add",
+            "--session",
+            "names",
+            "--aabb=0,0,0,1,1,1",
+            "--objects",
+            "9",
+        ],
+    );
+    assert!(err.contains("the scene has 5 bodies"), "{err}");
+    let err = mwb_fails(
+        e,
+        s,
+        &[
+            "query",
+            "add",
+            "--session",
+            "names",
+            "--aabb=0,0,0,1,1,1",
+            "--objects",
+            "S",
+        ],
+    );
+    assert!(
+        err.contains("no body of that name") && err.contains("crate, plank"),
+        "{err}"
+    );
+    let list = mwb(e, s, &["query", "list", "--session", "names"]);
+    assert!(list.contains("any of die (#3), crate (#0)"), "{list}");
+
+    // A box around the whole scene during a window long after every world ended: every world's
+    // bodies rest in it (before issue 24 no world matched). The final pose says the same; a
+    // far-away box holds no final pose; `--all` over two bodies needs both.
+    for (args, want) in [
+        (vec!["--window", "50:60", "--objects", "all"], WORLDS),
+        (vec!["--final", "--objects", "all", "--all"], WORLDS),
+        (
+            vec!["--window", "50:60", "--objects", "crate,slab", "--all"],
+            WORLDS,
+        ),
+    ] {
+        let mut all = vec![
+            "query",
+            "add",
+            "--session",
+            "rest",
+            "--aabb=-50,-50,-50,50,50,50",
+        ];
+        all.extend(args.iter().copied());
+        let st = json(e, s, &all);
+        let last = st["constraints"].as_array().and_then(|c| c.last().cloned());
+        let last = last.unwrap_or_default();
+        assert_eq!(u(&last, "satisfied"), want, "{args:?}: {st}");
+        json(e, s, &["query", "undo", "--session", "rest"]);
+    }
+    let st = json(
+        e,
+        s,
+        &[
+            "query",
+            "add",
+            "--session",
+            "rest",
+            "--aabb=40,40,40,50,50,50",
+            "--final",
+            "--objects",
+            "all",
+        ],
+    );
+    assert_eq!(u(&st["constraints"][0], "satisfied"), 0, "{st}");
+    assert_eq!(st["constraints"][0]["scope"].as_str(), Some("final_pose"));
+    let err = mwb_fails(
+        e,
+        s,
+        &[
+            "query",
+            "add",
+            "--session",
+            "rest",
+            "--aabb=0,0,0,1,1,1",
+            "--final",
+            "--window",
+            "1:2",
+            "--objects",
+            "0",
+        ],
+    );
+    assert!(err.contains("--window") || err.contains("window"), "{err}");
+
+    // Rankings: worlds with a body still moving at the end have no time to rest and come last;
+    // a ranked world's score is the last of its bodies to rest; the text names the aggregate,
+    // the unit and the count without a value.
+    let rank = json(
+        e,
+        s,
+        &[
+            "query",
+            "rank",
+            "--session",
+            "rank",
+            "--by",
+            "time-to-rest",
+            "-k",
+            "100",
+        ],
+    );
+    let rows = rank["rows"].as_array().cloned().unwrap_or_default();
+    assert_eq!(rows.len() as u64, WORLDS);
+    let unscored = u(&rank, "unscored");
+    let first_none = rows
+        .iter()
+        .position(|r| r["score"].is_null())
+        .unwrap_or(rows.len());
+    assert_eq!((rows.len() - first_none) as u64, unscored);
+    assert!(rows[first_none..].iter().all(|r| r["score"].is_null()));
+    for r in rows.iter().take(3).chain(rows.get(first_none)) {
+        let w = r["world"].as_u64().unwrap_or(u64::MAX).to_string();
+        let show = json(e, s, &["query", "show", "--session", "rank", &w]);
+        let objs = show["objects"].as_array().cloned().unwrap_or_default();
+        let rested = objs
+            .iter()
+            .all(|o| o["came_to_rest"].as_bool() == Some(true));
+        match r["score"].as_f64() {
+            Some(score) => {
+                assert!(rested, "world {w} ranked with a moving body: {show}");
+                let max = objs
+                    .iter()
+                    .filter_map(|o| o["time_to_rest_s"].as_f64())
+                    .fold(0.0, f64::max);
+                assert_eq!(score, max, "world {w}");
+            }
+            None => assert!(!rested, "world {w} rested but has no value: {show}"),
+        }
+        assert_eq!(show["bodies"], serde_json::json!(names));
+    }
+    let text = mwb(e, s, &["query", "rank", "--session", "rank", "-k", "3"]);
+    assert!(
+        text.contains("time to rest [s], max over crate (#0), plank (#1)")
+            && text.contains(&format!("{unscored} without a value")),
+        "{text}"
+    );
+    let text = mwb(e, s, &["query", "show", "--session", "rank", "0"]);
+    assert!(text.contains("crate") && text.contains("slab"), "{text}");
+
+    // Errors exit non-zero: a world no store holds, redo/undo with nothing to do, a screen
+    // rectangle wholly outside the 1280 × 720 viewport (naming the field).
+    let err = mwb_fails(e, s, &["query", "show", "--session", "exit", "999"]);
+    assert!(err.contains("no store holds world 999"), "{err}");
+    let err = mwb_fails(e, s, &["query", "redo", "--session", "exit"]);
+    assert!(err.contains("nothing to redo"), "{err}");
+    let err = mwb_fails(e, s, &["query", "undo", "--session", "exit"]);
+    assert!(err.contains("nothing to undo"), "{err}");
+    let err = mwb_fails(
+        e,
+        s,
+        &[
+            "query",
+            "add",
+            "--session",
+            "exit",
+            "--camera",
+            cam,
+            "--rect",
+            "1300,100,1400,200",
+            "--objects",
+            "0",
+        ],
+    );
+    assert!(
+        err.contains("rect.x0") && err.contains("1280 × 720"),
+        "{err}"
+    );
 }

@@ -295,7 +295,10 @@ async fn a_reverse_job_is_sampled_stored_and_plays_forward_into_the_final_state(
     let reply = within("rank", T, query.request("t", request))
         .await
         .unwrap_or_else(|e| panic!("{e}"));
-    let Reply::Ranking { candidates, rows } = reply else {
+    let Reply::Ranking {
+        candidates, rows, ..
+    } = reply
+    else {
         panic!("{reply:?}")
     };
     assert_eq!(candidates, u64::from(WORLDS));

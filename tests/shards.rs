@@ -111,7 +111,9 @@ fn aabb(id: u64, polarity: Polarity, min: [f64; 3], max: [f64; 3], window: bool)
         polarity,
         frustum: Frustum::aabb(min, max).unwrap_or_else(|e| panic!("{e}")),
         objects: vec![0],
+        quantifier: Default::default(),
         window: window.then(|| TimeWindow::new(1.0, 3.0).unwrap_or_else(|e| panic!("{e}"))),
+        scope: Default::default(),
     }
 }
 

@@ -7,10 +7,9 @@
 //! put with blocking congestion control — they must arrive, as in the live system; node stats
 //! with zenoh's default (drop under congestion), as their publishers do.
 //!
-//! A store takes jobs and segments on separate subscribers, so a world whose job it has not
-//! applied yet is refused; live, a sampler cannot start a world before it has the job, but a
-//! fast replay could put both within microseconds. After each job announcement the replay
-//! therefore leaves [`ReplayConfig::job_settle`] before the next message.
+//! A store takes jobs and segments on separate subscribers, so at `max` speed a world can be
+//! complete in the store before its job is applied; the store holds such a world (for a
+//! bounded time and memory) and stores it when the job arrives, so the replay does not pause.
 
 use crate::family::Family;
 use crate::reader::{ReadError, ReadStats, RecordedMessage, RecordingReader};
@@ -103,8 +102,6 @@ pub struct ReplayConfig {
     /// it already knows, so a replay started beside a store that is still starting would be
     /// lost on it. Zero: do not wait.
     pub wait_for_subscribers: Duration,
-    /// Pause after each job announcement (module docs).
-    pub job_settle: Duration,
 }
 
 impl Default for ReplayConfig {
@@ -114,7 +111,6 @@ impl Default for ReplayConfig {
             speed: Speed::Factor(1.0),
             space: mwb_core::keys::DEFAULT_SPACE.into(),
             wait_for_subscribers: Duration::from_secs(10),
-            job_settle: Duration::from_millis(50),
         }
     }
 }
@@ -206,7 +202,6 @@ pub async fn replay(
     let start = Instant::now();
     let mut first_ns: Option<u64> = None;
     let mut last_ns = 0u64;
-    let mut not_before: Option<Instant> = None;
     tokio::pin!(stop);
     loop {
         let item = tokio::select! {
@@ -229,11 +224,7 @@ pub async fn replay(
         };
         let first = *first_ns.get_or_insert(m.log_time_ns);
         last_ns = last_ns.max(m.log_time_ns);
-        let mut due = cfg.speed.due(first, m.log_time_ns).map(|d| start + d);
-        if let Some(nb) = not_before {
-            due = Some(due.map_or(nb, |d| d.max(nb)));
-        }
-        if let Some(at) = due
+        if let Some(at) = cfg.speed.due(first, m.log_time_ns).map(|d| start + d)
             && at > Instant::now()
         {
             tokio::select! {
@@ -259,7 +250,6 @@ pub async fn replay(
                 warn!(%key, error = %e, "replay: put failed");
             }
         }
-        not_before = (m.family == Family::Job).then(|| Instant::now() + cfg.job_settle);
     }
     drop(rx);
     // The reader ends on its own once the channel is closed.

@@ -235,7 +235,6 @@ async fn puts_are_recorded_and_replayed_in_order_at_the_recorded_pace_into_anoth
             speed,
             space: "r2".into(),
             wait_for_subscribers: Duration::from_secs(10),
-            ..Default::default()
         };
         let start = Instant::now();
         let s = tokio::time::timeout(Duration::from_secs(30), replay(&b, &cfg, pending()))

@@ -77,6 +77,8 @@ struct Partial {
     last_ms: u64,
     /// Set when the sampler's liveliness token went away.
     orphaned_ms: Option<u64>,
+    /// Complete, but its job is not known yet: since when (see [`Assembler::on_done`]).
+    held_ms: Option<u64>,
 }
 
 #[derive(Debug)]
@@ -98,8 +100,14 @@ pub struct Assembler {
     partial_bytes: u64,
     cap_bytes: u64,
     shard: ShardSpec,
+    /// Bytes of complete worlds held for a job not known yet.
+    held_bytes: u64,
+    unknown_job_hold_ms: u64,
     pub counters: Counters,
 }
+
+/// How long a complete world of a job the store has not seen is held for that job, ms.
+pub const UNKNOWN_JOB_HOLD_MS: u64 = 10_000;
 
 impl Assembler {
     /// `cap_bytes`: complete worlds past this total are refused.
@@ -119,12 +127,28 @@ impl Assembler {
             partial_bytes: 0,
             cap_bytes,
             shard,
+            held_bytes: 0,
+            unknown_job_hold_ms: UNKNOWN_JOB_HOLD_MS,
             counters: Counters::default(),
         }
     }
 
     pub fn shard(&self) -> ShardSpec {
         self.shard
+    }
+
+    /// How long a complete world whose job is unknown is held (default
+    /// [`UNKNOWN_JOB_HOLD_MS`]).
+    pub fn set_unknown_job_hold_ms(&mut self, ms: u64) {
+        self.unknown_job_hold_ms = ms;
+    }
+
+    /// Complete worlds held for a job not known yet.
+    pub fn held_count(&self) -> usize {
+        self.partial
+            .values()
+            .filter(|p| p.held_ms.is_some())
+            .count()
     }
 
     pub fn world_count(&self) -> usize {
@@ -234,6 +258,28 @@ impl Assembler {
         }
     }
 
+    /// A job state read back from the store's own journal ([`crate::journal`]): counts,
+    /// closure and revision are taken where they are ahead of the table's (worlds of other
+    /// shards are counted there, not journaled; and the revision must not go back, or those
+    /// who follow the job would ignore the next states).
+    pub fn restore_state(&mut self, saved: &JobState) {
+        let Some(rec) = self.jobs.get_mut(&saved.job_id) else {
+            return;
+        };
+        let st = &mut rec.state;
+        st.worlds_done = st.worlds_done.max(saved.worlds_done);
+        st.worlds_rejected = st.worlds_rejected.max(saved.worlds_rejected);
+        st.worlds_late = st.worlds_late.max(saved.worlds_late);
+        st.bytes_stored = st.bytes_stored.max(saved.bytes_stored);
+        st.closed |= saved.closed;
+        st.cancelled |= saved.cancelled;
+        st.revision = st.revision.max(saved.revision);
+        if st.first_world_unix_ms == 0 {
+            st.first_world_unix_ms = saved.first_world_unix_ms;
+        }
+        st.last_world_unix_ms = st.last_world_unix_ms.max(saved.last_world_unix_ms);
+    }
+
     pub fn on_segment(&mut self, seg: MotionSegment, now_ms: u64) -> Outcome {
         let key = (seg.job_id.clone(), seg.node_id.clone(), seg.world_counter);
         let crc_ok = crc32fast::hash(&seg.payload) == seg.crc32;
@@ -278,7 +324,24 @@ impl Assembler {
     fn drop_partial(&mut self, key: &WorldKey) -> Option<Partial> {
         let p = self.partial.remove(key)?;
         self.partial_bytes -= p.bytes;
+        if p.held_ms.is_some() {
+            self.held_bytes -= p.bytes;
+        }
         Some(p)
+    }
+
+    /// The worlds held for `job` (complete, but they arrived before the job did), tried again:
+    /// call after [`submit_job`](Self::submit_job) announced a new job.
+    pub fn release_held(&mut self, job: &str, now_ms: u64) -> Vec<Outcome> {
+        let keys: Vec<WorldKey> = self
+            .partial
+            .iter()
+            .filter(|((j, _, _), p)| j == job && p.held_ms.is_some())
+            .map(|(k, _)| k.clone())
+            .collect();
+        keys.into_iter()
+            .map(|k| self.try_complete(k, now_ms))
+            .collect()
     }
 
     fn count_rejection(&mut self, job: &str) -> Option<JobState> {
@@ -342,7 +405,10 @@ impl Assembler {
         }
         let job_id = key.0.clone();
         let Some(rec) = self.jobs.get(&job_id) else {
-            return self.reject(&key, Rejection::UnknownJob);
+            // The job and its worlds come on separate subscriptions (and a replay puts them
+            // microseconds apart), so a world can be complete before its job is applied: held,
+            // within a time and byte bound, and completed when the job arrives.
+            return self.hold(key, now_ms);
         };
         if rec.state.closed {
             return self.reject(&key, Rejection::Late);
@@ -398,6 +464,21 @@ impl Assembler {
         Outcome::Stored { index, state }
     }
 
+    fn hold(&mut self, key: WorldKey, now_ms: u64) -> Outcome {
+        let Some(p) = self.partial.get_mut(&key) else {
+            return Outcome::Pending;
+        };
+        if p.held_ms.is_some() {
+            return Outcome::Pending;
+        }
+        if self.held_bytes + p.bytes > self.cap_bytes / 8 {
+            return self.reject(&key, Rejection::UnknownJob);
+        }
+        p.held_ms = Some(now_ms);
+        self.held_bytes += p.bytes;
+        Outcome::Pending
+    }
+
     /// A sampler's liveliness token went away: its partial worlds will not complete. They are
     /// discarded after `grace` (the last messages it sent may still be in our queues).
     pub fn node_left(&mut self, node: &str, now_ms: u64) {
@@ -408,9 +489,20 @@ impl Assembler {
         }
     }
 
-    /// Discards partial worlds orphaned for longer than `grace_ms` or idle for `idle_ms`.
-    /// Returns how many were discarded.
+    /// Discards partial worlds orphaned for longer than `grace_ms` or idle for `idle_ms`, and
+    /// refuses ([`Rejection::UnknownJob`]) complete worlds held longer than the hold for a
+    /// job that never came. Returns how many partial worlds were discarded.
     pub fn expire(&mut self, now_ms: u64, grace_ms: u64, idle_ms: u64) -> usize {
+        let hold = self.unknown_job_hold_ms;
+        let unclaimed: Vec<WorldKey> = self
+            .partial
+            .iter()
+            .filter(|(_, p)| p.held_ms.is_some_and(|t| now_ms.saturating_sub(t) >= hold))
+            .map(|(k, _)| k.clone())
+            .collect();
+        for k in &unclaimed {
+            self.reject(k, Rejection::UnknownJob);
+        }
         let stale: Vec<WorldKey> = self
             .partial
             .iter()
@@ -721,17 +813,53 @@ mod tests {
         assert_eq!(a.memory_bytes(), 0);
     }
 
+    /// A world that completes before its job arrives is stored when the job comes.
     #[test]
-    fn unknown_job_and_cancel() {
+    fn a_world_ahead_of_its_job_is_held_and_stored_when_the_job_comes() {
         let mut a = Assembler::new(1 << 20);
-        let (s, d) = world("nope", "n", 0, 1, 1);
+        let (s, d) = world("j", "n", 0, 1, 2);
+        assert_eq!(feed(&mut a, s, d), Outcome::Pending);
+        let (s, d) = world("other", "n", 1, 2, 2);
+        assert_eq!(feed(&mut a, s, d), Outcome::Pending);
+        assert_eq!(a.held_count(), 2);
+        assert_eq!(
+            a.release_held("j", 3),
+            [Outcome::Pending],
+            "job j not known yet: still held"
+        );
+        a.submit_job(job("j", 5));
+        let out = a.release_held("j", 3);
+        assert!(
+            matches!(out.as_slice(), [Outcome::Stored { index: 0, state }] if state.worlds_done == 1),
+            "{out:?}"
+        );
+        assert_eq!(a.held_count(), 1, "the other job's world is still held");
+        assert_eq!(a.world_count(), 1);
+        // The byte bound: held worlds may take an eighth of the cap at most.
+        let mut small = Assembler::new(200);
+        let (s, d) = world("x", "n", 0, 1, 2);
         assert!(matches!(
-            feed(&mut a, s, d),
+            feed(&mut small, s, d),
             Outcome::Rejected {
                 reason: Rejection::UnknownJob,
                 ..
             }
         ));
+    }
+
+    #[test]
+    fn unknown_job_and_cancel() {
+        let mut a = Assembler::new(1 << 20);
+        let (s, d) = world("nope", "n", 0, 1, 1);
+        // Complete before its job: held, then refused once the hold is over.
+        assert_eq!(feed(&mut a, s, d), Outcome::Pending);
+        assert_eq!(a.held_count(), 1);
+        assert_eq!(a.expire(UNKNOWN_JOB_HOLD_MS, 1000, u64::MAX), 0);
+        assert_eq!(a.held_count(), 1, "hold not over yet");
+        a.expire(UNKNOWN_JOB_HOLD_MS + 2, 1000, u64::MAX);
+        assert_eq!(a.held_count(), 0);
+        assert_eq!(a.counters.unknown_job, 1);
+        assert_eq!(a.memory_bytes(), 0);
         a.submit_job(job("j", 5));
         let mut cancel = job("j", 5);
         cancel.revision = 2;

@@ -5,10 +5,12 @@
 use crate::index::IndexedWorld;
 use crate::spatial::{Aabb, Part, PathBvh, region_box};
 use mwb_core::browse::api::{
-    ConstraintStatus, Reply, Request, SessionStatus, ShardReply, ShardRequest, WorldSummary,
+    ConstraintStatus, Reply, Request, SceneBodies, SessionStatus, ShardReply, ShardRequest,
+    WorldSummary, merge_bodies,
 };
 use mwb_core::browse::{
-    BrowseError, Constraint, ConstraintId, ConstraintSet, RankKey, RegionCache, WorldSet, top_k,
+    BrowseError, Constraint, ConstraintId, ConstraintSet, Quantifier, RankKey, RegionCache, Scope,
+    WorldSet, top_k_counted,
 };
 use std::cell::RefCell;
 use std::collections::HashMap;
@@ -122,6 +124,10 @@ enum EditError {
     AlreadyLive { id: ConstraintId },
     #[error(transparent)]
     Browse(#[from] BrowseError),
+    #[error("nothing to undo")]
+    NothingToUndo,
+    #[error("nothing to redo")]
+    NothingToRedo,
     #[error("not an edit")]
     NotAnEdit,
 }
@@ -312,6 +318,7 @@ impl Shard {
         };
         match request {
             Request::Add { constraint } => {
+                constraint.validate()?;
                 if set.get(constraint.id).is_some() {
                     Err(EditError::AlreadyLive { id: constraint.id })
                 } else {
@@ -320,28 +327,60 @@ impl Shard {
                 }
             }
             Request::Remove { id } => Ok(set.remove(*id)?),
-            Request::Undo => {
-                set.undo(|c, w| evaluate(c, lookup(w)));
-                Ok(())
-            }
-            Request::Redo => {
-                set.redo(|c, w| evaluate(c, lookup(w)));
-                Ok(())
-            }
+            // Every shard holds the same stacks (the same numbered edits), so all refuse alike.
+            Request::Undo => set
+                .undo(|c, w| evaluate(c, lookup(w)))
+                .then_some(())
+                .ok_or(EditError::NothingToUndo),
+            Request::Redo => set
+                .redo(|c, w| evaluate(c, lookup(w)))
+                .then_some(())
+                .ok_or(EditError::NothingToRedo),
             _ => Err(EditError::NotAnEdit),
         }
     }
 
     /// The worlds satisfying `constraint`. The chosen objects' hierarchies are cut into shares
     /// that `threads` threads take one at a time; each walks its share down to the path pieces
-    /// that may meet the frustum and runs the exact segment test on those, skipping the worlds
-    /// it has already found touched. A world none of whose chosen paths is touched satisfies a
-    /// negative constraint and fails a positive one.
+    /// that may meet the frustum and runs the exact test on those (the segments in the window
+    /// and, for a path's last piece, the final pose held after the end; or the final pose
+    /// only), skipping the worlds it has already found touched. With [`Quantifier::Any`] a
+    /// world is touched when one chosen object is, with [`Quantifier::All`] when each is
+    /// (one pass per object, intersected). Positive constraints keep the touched worlds,
+    /// negative ones the others.
     pub fn evaluate_all(&self, constraint: &Constraint) -> WorldSet {
+        let touched = match constraint.quantifier {
+            Quantifier::Any => self.touched_by(constraint, &constraint.objects),
+            Quantifier::All => {
+                let mut objects = constraint.objects.iter();
+                match objects.next() {
+                    None => WorldSet::new(),
+                    Some(&first) => {
+                        let mut acc = self.touched_by(constraint, &[first]);
+                        for &o in objects {
+                            if acc.is_empty() {
+                                break;
+                            }
+                            acc.and_assign(&self.touched_by(constraint, &[o]));
+                        }
+                        acc
+                    }
+                }
+            }
+        };
+        match constraint.polarity {
+            mwb_core::browse::Polarity::Positive => touched,
+            mwb_core::browse::Polarity::Negative => self.all.and_not(&touched),
+        }
+    }
+
+    /// The worlds in which some object of `objects` enters `constraint`'s frustum (its window
+    /// and scope apply; its objects and quantifier do not).
+    fn touched_by(&self, constraint: &Constraint, objects: &[u32]) -> WorldSet {
         let threads = self.threads.max(1);
         let mut work: Vec<(&PathBvh, Option<Aabb>, Part)> = Vec::new();
         let mut pieces = 0;
-        for &o in &constraint.objects {
+        for &o in objects {
             let Some(b) = self.bvh.get(o as usize).filter(|b| !b.is_empty()) else {
                 continue;
             };
@@ -350,6 +389,11 @@ impl Shard {
             let region = region_box(&constraint.frustum.inflated_bounded(b.max_radius()));
             work.extend(b.parts(4 * threads).into_iter().map(|p| (b, region, p)));
         }
+        // A final-pose constraint has no window: every path's last piece reaches to +∞ anyway.
+        let window = match constraint.scope {
+            Scope::Motion => constraint.window,
+            Scope::FinalPose => None,
+        };
         let next = AtomicUsize::new(0);
         let run = || -> WorldSet {
             // The frustum inflated by each path radius met: radii are rounded at ingest, so
@@ -362,12 +406,15 @@ impl Shard {
                     *part,
                     &constraint.frustum,
                     region.as_ref(),
-                    constraint.window,
+                    window,
                     |w| found.borrow().contains(w),
                     |p| {
-                        if p.first_entry(regions.region(p.radius()), constraint.window)
-                            .is_some()
-                        {
+                        let region = regions.region(p.radius());
+                        let hit = match constraint.scope {
+                            Scope::Motion => p.first_entry(region, window).is_some(),
+                            Scope::FinalPose => p.final_pose_inside(region),
+                        };
+                        if hit {
                             found.borrow_mut().insert(p.world());
                         }
                     },
@@ -376,18 +423,14 @@ impl Shard {
             found.into_inner()
         };
         let threads = threads.min(pieces / 4096).max(1);
-        let touched = std::thread::scope(|s| {
+        std::thread::scope(|s| {
             let handles: Vec<_> = (1..threads).map(|_| s.spawn(run)).collect();
             let mut touched = run();
             for h in handles {
                 touched.or_assign(&h.join().unwrap_or_else(|e| std::panic::resume_unwind(e)));
             }
             touched
-        });
-        match constraint.polarity {
-            mwb_core::browse::Polarity::Positive => touched,
-            mwb_core::browse::Polarity::Negative => self.all.and_not(&touched),
-        }
+        })
     }
 
     /// [`evaluate_all`](Self::evaluate_all) without the hierarchies: every world's OBB trees,
@@ -453,12 +496,13 @@ impl Shard {
                 } else {
                     set.result()
                 };
-                let rows = top_k(candidates.iter(), *k, *order, |w| {
+                let (rows, unscored) = top_k_counted(candidates.iter(), *k, *order, |w| {
                     let world = self.world(w)?;
                     score(key, world, set.satisfied_count(w))
                 });
                 Reply::Ranking {
                     candidates: candidates.len() as u64,
+                    unscored,
                     rows,
                 }
             }
@@ -471,6 +515,7 @@ impl Shard {
                     frames: w.frames,
                     frame_dt: w.frame_dt,
                     rested: w.rested,
+                    bodies: w.bodies.to_vec(),
                     objects: w.metrics.clone(),
                     path_radius: w.objects.iter().map(|o| o.radius).collect(),
                     world_metrics: w.world_metrics,
@@ -479,10 +524,38 @@ impl Shard {
                     shard: self.name.clone(),
                 })),
             },
+            Request::Bodies => Reply::Bodies {
+                scenes: self.bodies(),
+            },
             _ => Reply::Error {
                 message: "not a read".to_owned(),
             },
         }
+    }
+
+    /// One entry per distinct body list among the worlds held (worlds of one job share theirs).
+    fn bodies(&self) -> Vec<SceneBodies> {
+        let mut runs: Vec<(&IndexedWorld, u64)> = Vec::new();
+        for w in self.worlds.iter().flatten() {
+            match runs.last_mut() {
+                Some((first, n))
+                    if std::sync::Arc::ptr_eq(&first.bodies, &w.bodies)
+                        && first.objects.len() == w.objects.len() =>
+                {
+                    *n += 1;
+                }
+                _ => runs.push((w, 1)),
+            }
+        }
+        merge_bodies(
+            runs.into_iter()
+                .map(|(w, worlds)| SceneBodies {
+                    objects: w.objects.len() as u32,
+                    names: w.bodies.to_vec(),
+                    worlds,
+                })
+                .collect(),
+        )
     }
 }
 
@@ -512,7 +585,9 @@ fn status_of(set: &ConstraintSet, edits: u64) -> SessionStatus {
                 id: c.id,
                 polarity: c.polarity,
                 objects: c.objects.clone(),
+                quantifier: c.quantifier,
                 window: c.window,
+                scope: c.scope,
                 satisfied: set.satisfied(c.id).map_or(0, |s| s.len() as u64),
             })
             .collect(),
@@ -526,6 +601,7 @@ fn status_of(set: &ConstraintSet, edits: u64) -> SessionStatus {
 mod tests {
     use super::*;
     use crate::index::IndexedObject;
+    use mwb_core::browse::api::SceneBodies;
     use mwb_core::browse::api::merge;
     use mwb_core::browse::{
         Aggregate, ConstraintId, Frustum, Metric, ObjectMetrics, Order, PathTree, Polarity,
@@ -543,6 +619,7 @@ mod tests {
             frames: 121,
             frame_dt: 1.0 / 120.0,
             rested: true,
+            bodies: std::sync::Arc::from(vec!["box".to_owned()]),
             objects: vec![IndexedObject {
                 tree: PathTree::build(path),
                 radius: 0.001,
@@ -567,6 +644,8 @@ mod tests {
                 .unwrap_or_else(|e| panic!("{e}")),
             objects: vec![0],
             window: None,
+            quantifier: Quantifier::Any,
+            scope: Scope::Motion,
         }
     }
 
@@ -762,7 +841,9 @@ mod tests {
                 all_worlds: false,
             },
         ) {
-            Reply::Ranking { candidates, rows } => {
+            Reply::Ranking {
+                candidates, rows, ..
+            } => {
                 assert_eq!(candidates, 3);
                 assert_eq!(rows.iter().map(|r| r.world).collect::<Vec<_>>(), vec![4, 2]);
             }
@@ -811,6 +892,8 @@ mod tests {
                     .unwrap_or_else(|e| panic!("{e}")),
                 objects: vec![0],
                 window: None,
+                quantifier: Quantifier::Any,
+                scope: Scope::Motion,
             };
             let fast = shard.evaluate_all(&c);
             assert_eq!(fast, shard.evaluate_each(&c), "constraint {k}");
@@ -919,6 +1002,8 @@ mod tests {
                 frustum,
                 objects: vec![0],
                 window,
+                quantifier: Quantifier::Any,
+                scope: Scope::Motion,
             };
             let brute: WorldSet = paths
                 .iter()
@@ -932,6 +1017,195 @@ mod tests {
         }
         // The frusta are aimed at the paths: most keep some worlds (the test is not vacuous).
         assert!(kept_some > 100, "{kept_some}");
+    }
+
+    /// Issue 24 on the shard: "every one of the objects" (`All`), final-pose constraints and
+    /// windows past the worlds' ends (bodies held at their final poses) keep exactly the worlds
+    /// brute force on the polylines keeps, through the hierarchy and the per-world trees alike.
+    #[test]
+    fn all_objects_final_poses_and_late_windows_equal_brute_force() {
+        use mwb_core::rng::{Stream, WorldRng};
+        let mut rng = WorldRng::new(24, Stream::Scene);
+        let mut shard = Shard::new(ShardSpec::default(), "a");
+        let mut paths: Vec<[(Polyline, f64); 2]> = Vec::new();
+        let walk = |rng: &mut WorldRng, n: u32| {
+            let mut p = [rng.uniform(-1.0, 1.0), rng.uniform(0.0, 1.0), 0.0];
+            let (mut times, mut points) = (Vec::new(), Vec::new());
+            for k in 0..n {
+                times.push(f64::from(k) * 0.1);
+                points.push(p);
+                for v in &mut p[..2] {
+                    *v += rng.uniform(-0.2, 0.2);
+                }
+            }
+            Polyline::new(times, points).unwrap_or_else(|e| panic!("{e}"))
+        };
+        for i in 0..800u32 {
+            // Worlds end between 0 and 4 s (1 to 41 vertices).
+            let a = walk(&mut rng, 1 + i % 41);
+            let b = walk(&mut rng, 1 + (i * 7) % 41);
+            let r = (rng.uniform(0.0, 0.02) / 0.0005).ceil() * 0.0005;
+            let mut w = world(i, 0.0, 0.0);
+            w.objects = vec![
+                IndexedObject {
+                    tree: PathTree::build(a.clone()),
+                    radius: r,
+                },
+                IndexedObject {
+                    tree: PathTree::build(b.clone()),
+                    radius: r,
+                },
+            ];
+            paths.push([(a, r), (b, r)]);
+            shard.insert(w);
+        }
+        let (mut kept, mut late) = (0, 0);
+        for k in 0..240u64 {
+            let c = [rng.uniform(-1.0, 1.0), rng.uniform(0.0, 1.0)];
+            let h = rng.uniform(0.05, 0.6);
+            let window = match k % 4 {
+                0 => None,
+                1 => {
+                    late += 1;
+                    let a = rng.uniform(2.0, 6.0);
+                    TimeWindow::new(a, a + rng.uniform(0.0, 3.0)).ok()
+                }
+                _ => {
+                    let a = rng.uniform(0.0, 4.0);
+                    TimeWindow::new(a, a + rng.uniform(0.0, 1.0)).ok()
+                }
+            };
+            let scope = if k % 5 == 0 {
+                Scope::FinalPose
+            } else {
+                Scope::Motion
+            };
+            let constraint = Constraint {
+                id: ConstraintId(k + 1),
+                polarity: if k % 3 == 0 {
+                    Polarity::Negative
+                } else {
+                    Polarity::Positive
+                },
+                frustum: Frustum::aabb([c[0] - h, c[1] - h, -0.1], [c[0] + h, c[1] + h, 0.1])
+                    .unwrap_or_else(|e| panic!("{e}")),
+                objects: if k % 7 == 0 { vec![1] } else { vec![0, 1] },
+                quantifier: if k % 2 == 0 {
+                    Quantifier::All
+                } else {
+                    Quantifier::Any
+                },
+                window: window.filter(|_| scope == Scope::Motion),
+                scope,
+            };
+            let enters = |(p, r): &(Polyline, f64)| {
+                let region = constraint.frustum.inflated(*r);
+                match constraint.scope {
+                    Scope::Motion => p.first_entry(&region, constraint.window).is_some(),
+                    Scope::FinalPose => p.final_pose_inside(&region),
+                }
+            };
+            let brute: WorldSet = paths
+                .iter()
+                .enumerate()
+                .filter(|(_, objs)| {
+                    let mut chosen = constraint
+                        .objects
+                        .iter()
+                        .map(|&o| enters(&objs[o as usize]));
+                    let touched = match constraint.quantifier {
+                        Quantifier::Any => chosen.any(|x| x),
+                        Quantifier::All => chosen.all(|x| x),
+                    };
+                    constraint.satisfied_given(touched)
+                })
+                .map(|(i, _)| i as u32)
+                .collect();
+            kept += usize::from(!brute.is_empty() && brute.len() < 800);
+            assert_eq!(shard.evaluate_all(&constraint), brute, "constraint {k}");
+            assert_eq!(shard.evaluate_each(&constraint), brute, "constraint {k}");
+        }
+        assert!(kept > 150 && late > 50, "kept {kept}, late {late}");
+    }
+
+    /// Undo and redo with nothing to undo or redo are refused (the client exits non-zero);
+    /// a final-pose constraint with a window is refused naming the field; the bodies and a
+    /// ranking's unscored count come back.
+    #[test]
+    fn refused_edits_bodies_and_unscored_worlds() {
+        let mut shard = Shard::new(ShardSpec::default(), "a");
+        shard.insert(world(0, 0.0, 1.0));
+        let mut moving = world(1, 3.0, 2.0);
+        moving.metrics[0].came_to_rest = false;
+        shard.insert(moving);
+        for (seq, req, what) in [
+            (1, Request::Redo, "nothing to redo"),
+            (2, Request::Undo, "nothing to undo"),
+        ] {
+            match edit(&mut shard, seq, req) {
+                ShardReply::Ok {
+                    reply: Reply::Error { message },
+                    ..
+                } => assert_eq!(message, what),
+                other => panic!("{other:?}"),
+            }
+        }
+        let bad = Constraint {
+            scope: Scope::FinalPose,
+            window: TimeWindow::new(1.0, 2.0).ok(),
+            ..through_origin(1, Polarity::Positive)
+        };
+        match edit(
+            &mut shard,
+            3,
+            Request::Add {
+                constraint: Box::new(bad),
+            },
+        ) {
+            ShardReply::Ok {
+                reply: Reply::Error { message },
+                ..
+            } => assert!(message.starts_with("window:"), "{message}"),
+            other => panic!("{other:?}"),
+        }
+        assert_eq!(
+            read(&mut shard, Request::Bodies),
+            Reply::Bodies {
+                scenes: vec![SceneBodies {
+                    objects: 1,
+                    names: vec!["box".into()],
+                    worlds: 2
+                }]
+            }
+        );
+        let rank = read(
+            &mut shard,
+            Request::Rank {
+                key: RankKey::Metric {
+                    metric: Metric::TimeToRest,
+                    objects: vec![0],
+                    aggregate: Aggregate::Max,
+                },
+                order: Order::Ascending,
+                k: 5,
+                all_worlds: false,
+            },
+        );
+        match rank {
+            Reply::Ranking {
+                candidates,
+                unscored,
+                rows,
+            } => {
+                assert_eq!((candidates, unscored), (2, 1));
+                assert_eq!((rows[0].world, rows[1].score), (0, None));
+            }
+            other => panic!("{other:?}"),
+        }
+        match read(&mut shard, Request::Summary { world: 1 }) {
+            Reply::Summary(s) => assert_eq!(s.bodies, vec!["box".to_owned()]),
+            other => panic!("{other:?}"),
+        }
     }
 
     #[test]

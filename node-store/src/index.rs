@@ -5,7 +5,51 @@
 use crate::assembly::StoredWorld;
 use mwb_codec::WorldReader;
 use mwb_core::browse::{ObjectMetrics, PathTree, Polyline, RestThresholds, Track, WorldMetrics};
-use mwb_proto::v1::{Encoding, MotionSegment};
+use mwb_proto::v1::{Encoding, Job, MotionSegment};
+use std::sync::Arc;
+
+/// What indexing needs from a job's scene: its rest thresholds (for the time-to-rest metric)
+/// and its body names in object-index order (so that browsing can name objects). Read once per
+/// job.
+#[derive(Debug, Clone, PartialEq)]
+pub struct JobScene {
+    pub rest: RestThresholds,
+    /// Empty when the scene could not be read here.
+    pub bodies: Arc<[String]>,
+}
+
+impl Default for JobScene {
+    /// The scene defaults' thresholds and no names.
+    fn default() -> Self {
+        Self {
+            rest: RestThresholds::from(&mwb_core::scene::Settings::default()),
+            bodies: Arc::from(Vec::new()),
+        }
+    }
+}
+
+impl JobScene {
+    /// From the job's scene text; the defaults if it does not parse here.
+    pub fn of(job: &Job) -> Self {
+        job.scene
+            .as_ref()
+            .and_then(|s| mwb_core::scene::SceneTemplate::parse(&s.toml, &s.name).ok())
+            .map_or_else(Self::default, |t| Self {
+                rest: RestThresholds::from(t.settings()),
+                bodies: t.body_names().map(str::to_owned).collect(),
+            })
+    }
+}
+
+impl From<RestThresholds> for JobScene {
+    /// Thresholds without names (benchmarks, tests).
+    fn from(rest: RestThresholds) -> Self {
+        Self {
+            rest,
+            ..Self::default()
+        }
+    }
+}
 
 /// One object of an indexed world.
 #[derive(Debug, Clone)]
@@ -28,6 +72,8 @@ pub struct IndexedWorld {
     pub frames: u32,
     pub frame_dt: f64,
     pub rested: bool,
+    /// Body names in object-index order, shared by every world of the job; empty if unknown.
+    pub bodies: Arc<[String]>,
     pub objects: Vec<IndexedObject>,
     /// Per object, the §4.4.3 ranking metrics (a slice, as rankings combine them).
     pub metrics: Vec<ObjectMetrics>,
@@ -134,7 +180,8 @@ fn round_radius(r: f64) -> f64 {
     if q >= r { q } else { q + PATH_RADIUS_STEP_M }
 }
 
-/// Indexes a complete (assembled, CRC-verified) world under global index `world`.
+/// Indexes a complete (assembled, CRC-verified) world under global index `world`, with its
+/// job's scene facts (`scene`: rest thresholds, body names; a bare [`RestThresholds`] converts).
 ///
 /// Every segment is decoded once (full rate). From the decoded centre-of-mass positions each
 /// object gets an error-bounded polyline ([`Polyline::simplify`], deviation ≤ `tolerance`) and
@@ -146,9 +193,13 @@ fn round_radius(r: f64) -> f64 {
 pub fn index_world(
     stored: &StoredWorld,
     world: u32,
-    rest: RestThresholds,
+    scene: impl Into<JobScene>,
     tolerance: f64,
 ) -> Result<IndexedWorld, IndexError> {
+    let JobScene {
+        rest,
+        bodies: names,
+    } = scene.into();
     let done = &stored.done;
     let first = stored.segments.first().ok_or(IndexError::Empty)?;
     let dt = done.frame_dt;
@@ -219,6 +270,12 @@ pub fn index_world(
         frames: done.frame_count,
         frame_dt: dt,
         rested: done.rested,
+        // Names only when they fit the world (a scene edited under the same job id would not).
+        bodies: if names.len() == objects.len() {
+            names
+        } else {
+            Arc::from(Vec::new())
+        },
         objects,
         metrics: all_metrics,
         // Reverse nodes measure a backward world's plausibility (§5.3.1); forward worlds leave

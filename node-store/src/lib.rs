@@ -7,15 +7,19 @@
 //! * [`spatial`] — pure: per object index, a bounding-volume hierarchy over every world's path
 //!   pieces (4 segments each, vertices copied in), so a constraint visits only the parts of
 //!   paths near it.
+//! * [`journal`] — the store's durable journal (MCAP files via `mwb-record`) and loading
+//!   recordings into a store.
 //! * [`node`] — the bus node around them.
 
 pub mod assembly;
 pub mod browse;
 pub mod index;
+pub mod journal;
 pub mod node;
 pub mod spatial;
 
 pub use assembly::{Assembler, Outcome, Rejection, StoredWorld};
 pub use browse::{Shard, ShardSpec};
 pub use index::{IndexError, IndexedWorld, index_world};
+pub use journal::{FileReport, Journal, JournalCounters, JournalError, StartReport};
 pub use node::{DEFAULT_MEMORY_CAP_MIB, StoreConfig, StoreError, StoreHandle, run_store};

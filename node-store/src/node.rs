@@ -5,20 +5,24 @@
 
 use crate::assembly::{Assembler, Outcome};
 use crate::browse::{Shard, ShardSpec};
-use crate::index::index_world;
-use mwb_core::browse::RestThresholds;
+use crate::index::{JobScene, index_world};
+use crate::journal::{
+    Journal, JournalCounters, JournalError, MAX_BATCH, StartReport, StoreInput, checkpoint,
+    read_store_input,
+};
 use mwb_core::browse::api::{Reply, ShardReply, ShardRequest};
-use mwb_core::keys::{check_identifier, last_chunk, role};
+use mwb_core::keys::{Keys, check_identifier, last_chunk, role};
 use mwb_node::bus::{self, Queries, Subscription};
 use mwb_node::{Node, NodeError};
 use mwb_proto::v1::{Job, JobState, Message, MotionSegment, NodeStats, World, WorldDone};
 use std::collections::HashMap;
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
-use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
-use tracing::{debug, info, warn};
+use tracing::{debug, error, info, warn};
 use zenoh::Session;
 use zenoh::key_expr::KeyExpr;
 use zenoh::sample::SampleKind;
@@ -50,6 +54,12 @@ pub struct StoreConfig {
     /// are widened by this plus the codec's e_max); default
     /// [`crate::index::DEFAULT_PATH_TOLERANCE_M`].
     pub path_tolerance_m: f64,
+    /// Directory of the store's journal ([`crate::journal`]): read back at start, then every
+    /// world is durable before it is acknowledged. `None` (the default): memory only.
+    pub journal: Option<PathBuf>,
+    /// Recordings whose worlds are loaded at start, in order, after the journal (and written
+    /// to it).
+    pub load: Vec<PathBuf>,
 }
 
 impl Default for StoreConfig {
@@ -62,12 +72,22 @@ impl Default for StoreConfig {
             node_id: None,
             shard: ShardSpec::default(),
             path_tolerance_m: crate::index::DEFAULT_PATH_TOLERANCE_M,
+            journal: None,
+            load: Vec::new(),
         }
     }
 }
 
 /// Why the store could not start.
-pub type StoreError = NodeError;
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    #[error(transparent)]
+    Node(#[from] NodeError),
+    /// The journal directory cannot be created or its first file written (damage in the
+    /// files already there never stops the store: they are read up to it).
+    #[error(transparent)]
+    Journal(#[from] JournalError),
+}
 
 fn now_ms() -> u64 {
     SystemTime::now()
@@ -82,6 +102,8 @@ struct Shared {
     /// world must not stall ingest of segments).
     browse: Mutex<Shard>,
     index_failures: AtomicU64,
+    /// The journal's counts after its last commit (`None`: no journal).
+    journal: Mutex<Option<JournalCounters>>,
 }
 
 impl Shared {
@@ -124,6 +146,7 @@ impl Shared {
 pub struct StoreHandle {
     shared: Arc<Shared>,
     tasks: Vec<JoinHandle<()>>,
+    started: Arc<StartReport>,
 }
 
 impl StoreHandle {
@@ -150,6 +173,22 @@ impl StoreHandle {
     pub fn indexed_count(&self) -> u64 {
         self.shared.browse().world_count()
     }
+    /// Complete worlds held for a job the store has not seen yet.
+    pub fn held_worlds(&self) -> usize {
+        self.shared.lock().held_count()
+    }
+    /// What the store read at start (journal files, recordings) and what it skipped.
+    pub fn start_report(&self) -> &StartReport {
+        &self.started
+    }
+    /// The journal's counts after its last commit (`None`: no journal).
+    pub fn journal_counters(&self) -> Option<JournalCounters> {
+        *self
+            .shared
+            .journal
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+    }
     pub fn stop(self) {
         for t in self.tasks {
             t.abort();
@@ -163,6 +202,8 @@ enum Incoming {
     State(JobState),
     Done(WorldDone),
     Job(Job),
+    /// A job state read back from the journal.
+    Restored(JobState),
     Left(String),
     Tick,
 }
@@ -183,7 +224,11 @@ pub async fn run_store(session: Session, cfg: StoreConfig) -> Result<StoreHandle
         table: Mutex::new(Assembler::sharded(cfg.memory_cap_bytes, cfg.shard)),
         browse: Mutex::new(Shard::new(cfg.shard, node.id())),
         index_failures: AtomicU64::new(0),
+        journal: Mutex::new(None),
     });
+    // The journal and the recordings are read before the node subscribes or answers.
+    let mut applier = Applier::new(shared.clone(), &cfg, keys.clone());
+    let started = Arc::new(applier.start(&cfg)?);
     let segments = node.subscribe(keys.segments()).await?;
     let dones = node.subscribe(keys.dones()).await?;
     let jobs = node.subscribe(keys.jobs()).await?;
@@ -227,7 +272,7 @@ pub async fn run_store(session: Session, cfg: StoreConfig) -> Result<StoreHandle
         tokio::spawn(watch_departures(departures, tx.clone())),
         tokio::spawn(tick(tx.clone())),
         tokio::spawn(catch_up(node.clone(), tx, authority_states)),
-        tokio::spawn(apply(Applier::new(shared.clone(), &cfg), rx)),
+        tokio::spawn(apply(applier, rx)),
         tokio::spawn(serve_browse(shared.clone(), browse_queries)),
         tokio::spawn(serve_worlds(shared.clone(), world_queries)),
         tokio::spawn(serve_stats(shared.clone(), stats_queries)),
@@ -240,7 +285,11 @@ pub async fn run_store(session: Session, cfg: StoreConfig) -> Result<StoreHandle
         tasks.push(tokio::spawn(serve_job_states(shared.clone(), q)));
     }
     info!(node = %node.id(), space = %cfg.space, cap = cfg.memory_cap_bytes, "store started");
-    Ok(StoreHandle { shared, tasks })
+    Ok(StoreHandle {
+        shared,
+        tasks,
+        started,
+    })
 }
 
 /// Liveliness deletes: a producer of worlds left (its partial worlds will be discarded).
@@ -309,12 +358,14 @@ struct Applier {
     grace_ms: u64,
     idle_ms: u64,
     path_tolerance_m: f64,
-    /// Each job's rest thresholds, for the time-to-rest metric.
-    rest: HashMap<String, RestThresholds>,
+    /// Each job's rest thresholds (for the time-to-rest metric) and body names.
+    rest: HashMap<String, JobScene>,
+    keys: Keys,
+    journal: Option<Journal>,
 }
 
 impl Applier {
-    fn new(shared: Arc<Shared>, cfg: &StoreConfig) -> Self {
+    fn new(shared: Arc<Shared>, cfg: &StoreConfig, keys: Keys) -> Self {
         Self {
             shared,
             authority: cfg.shard.is_authority(),
@@ -322,33 +373,172 @@ impl Applier {
             idle_ms: cfg.partial_idle.as_millis() as u64,
             path_tolerance_m: cfg.path_tolerance_m,
             rest: HashMap::new(),
+            keys,
+            journal: None,
         }
     }
 
-    /// Applies one message to the table: the job state to publish, if it changed, and the
-    /// world it stored, if any.
-    fn take(&mut self, msg: Incoming) -> (Option<JobState>, Option<Arc<crate::StoredWorld>>) {
+    /// Reads the journal (if any), opens it for writing, then loads the recordings (their
+    /// worlds are journaled like any other).
+    fn start(&mut self, cfg: &StoreConfig) -> Result<StartReport, JournalError> {
+        let t0 = Instant::now();
+        let mut report = StartReport::default();
+        let worlds = |a: &Self| a.shared.lock().world_count() as u64;
+        let refused = |a: &Self| {
+            let c = a.shared.lock().counters;
+            c.crc_failures + c.incomplete + c.duplicates + c.refused_memory + c.late
+        };
+        let refused0 = refused(self);
+        if let Some(dir) = &cfg.journal {
+            let (journal, files) = Journal::open(dir, &cfg.space)?;
+            for f in &files {
+                let fr = read_store_input(f, true, |m| self.load(m));
+                log_file("journal", &fr);
+                report.journal.push(fr);
+            }
+            report.worlds_from_journal = worlds(self);
+            self.journal = Some(journal);
+        }
+        for f in &cfg.load {
+            let fr = read_store_input(f, false, |m| self.load(m));
+            log_file("recording", &fr);
+            report.recordings.push(fr);
+        }
+        report.worlds_from_recordings = worlds(self) - report.worlds_from_journal;
+        report.worlds_refused = refused(self) - refused0;
+        // What is still partial now can only be a world cut by damage, or held for a job no
+        // file announced: nothing will complete it.
+        report.partial_discarded = self.shared.lock().expire(u64::MAX, 0, 0) as u64;
+        // The first commit starts this run's journal file with a checkpoint of every job.
+        self.commit_now()?;
+        report.seconds = t0.elapsed().as_secs_f64();
+        if cfg.journal.is_some() || !cfg.load.is_empty() {
+            info!(
+                from_journal = report.worlds_from_journal,
+                from_recordings = report.worlds_from_recordings,
+                refused = report.worlds_refused,
+                partial_discarded = report.partial_discarded,
+                damaged_files = report.damaged_files(),
+                skipped_bytes = report.skipped_bytes(),
+                seconds = report.seconds,
+                "store loaded"
+            );
+        }
+        Ok(report)
+    }
+
+    /// One message read from a journal or a recording, applied like a live one.
+    fn load(&mut self, input: StoreInput) {
+        let msg = match input {
+            StoreInput::Job(j) => Incoming::Job(j),
+            StoreInput::State(st) => Incoming::Restored(st),
+            StoreInput::Segment(s) => Incoming::Segment(s),
+            StoreInput::Done(d) => Incoming::Done(d),
+        };
+        let (_, worlds) = self.take(msg);
+        for w in &worlds {
+            self.index(w);
+        }
+        if self
+            .journal
+            .as_ref()
+            .is_some_and(|j| j.pending() >= MAX_BATCH)
+        {
+            let r = self.commit_now();
+            self.commit_failed(r);
+        }
+    }
+
+    /// Commits the journal on this thread (at start). The first commit of a run creates its
+    /// file, so a directory that cannot be written fails the start.
+    fn commit_now(&mut self) -> Result<(), JournalError> {
+        let Some(j) = self.journal.as_mut() else {
+            return Ok(());
+        };
+        let (shared, keys) = (&self.shared, &self.keys);
+        let r = j.commit(|| checkpoint(&shared.lock(), keys));
+        *self
+            .shared
+            .journal
+            .lock()
+            .unwrap_or_else(|p| p.into_inner()) = Some(j.counters);
+        r
+    }
+
+    fn commit_failed(&mut self, r: Result<(), JournalError>) {
+        if let Err(e) = r {
+            error!(error = %e, "journal commit failed: worlds of this batch are not durable");
+            if let Some(j) = self.journal.as_mut() {
+                j.counters.failures += 1;
+                // The next commit starts a new file rather than writing after a failed write.
+                j.abandon_file();
+            }
+        }
+    }
+
+    /// Group commit: everything the batch appended reaches the disk (on a blocking thread)
+    /// before the caller publishes the batch's job states.
+    async fn commit(&mut self) {
+        let Some(mut j) = self.journal.take() else {
+            return;
+        };
+        if j.pending() == 0 {
+            self.journal = Some(j);
+            return;
+        }
+        let (shared, keys) = (self.shared.clone(), self.keys.clone());
+        match tokio::task::spawn_blocking(move || {
+            let r = j.commit(|| checkpoint(&shared.lock(), &keys));
+            (j, r)
+        })
+        .await
+        {
+            Ok((j, r)) => {
+                *self
+                    .shared
+                    .journal
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner()) = Some(j.counters);
+                self.journal = Some(j);
+                self.commit_failed(r);
+            }
+            Err(e) => error!(error = %e, "journal writer failed; the store goes on without it"),
+        }
+    }
+
+    /// Applies one message to the table: the job states to publish (in order) and the worlds
+    /// it stored; both are appended to the journal, if there is one, after the job.
+    fn take(&mut self, msg: Incoming) -> (Vec<JobState>, Vec<Arc<crate::StoredWorld>>) {
         let now = now_ms();
         let mut t = self.shared.lock();
-        let mut stored = None;
-        let state = match msg {
-            Incoming::Segment(m) => outcome_state(t.on_segment(m, now), &mut stored),
-            Incoming::Done(m) => outcome_state(t.on_done(m, now), &mut stored),
+        let mut outcomes = Vec::new();
+        let mut states = Vec::new();
+        match msg {
+            Incoming::Segment(m) => outcomes.push(t.on_segment(m, now)),
+            Incoming::Done(m) => outcomes.push(t.on_done(m, now)),
             Incoming::Job(j) => {
                 info!(job = %j.id, target = j.target_worlds, cancelled = j.cancelled, "job");
                 self.rest
                     .entry(j.id.clone())
                     .or_insert_with(|| rest_thresholds(&j));
-                t.submit_job(j)
+                let (id, bytes) = (
+                    j.id.clone(),
+                    self.journal.is_some().then(|| j.encode_to_vec()),
+                );
+                if let Some(st) = t.submit_job(j) {
+                    if let (Some(journal), Some(bytes)) = (self.journal.as_mut(), bytes) {
+                        journal.append(self.keys.job(&id), bytes);
+                    }
+                    states.push(st);
+                    // Worlds that completed before their job arrived.
+                    outcomes.extend(t.release_held(&id, now));
+                }
             }
-            Incoming::State(st) => {
-                t.adopt_state(&st);
-                None
-            }
+            Incoming::State(st) => t.adopt_state(&st),
+            Incoming::Restored(st) => t.restore_state(&st),
             Incoming::Left(node) => {
                 debug!(%node, "producer of worlds left");
                 t.node_left(&node, now);
-                None
             }
             Incoming::Tick => {
                 let n = t.expire(now, self.grace_ms, self.idle_ms);
@@ -358,20 +548,29 @@ impl Applier {
                         "discarded partial worlds of departed samplers"
                     );
                 }
-                None
             }
-        };
-        (state, stored.and_then(|i| t.world(i)))
+        }
+        let mut stored = Vec::new();
+        for o in outcomes {
+            let mut index = None;
+            states.extend(outcome_state(o, &mut index));
+            stored.extend(index.and_then(|i| t.world(i)));
+        }
+        if let Some(journal) = self.journal.as_mut() {
+            for w in &stored {
+                journal.append_world(&self.keys, w);
+            }
+            for st in &states {
+                journal.append(self.keys.job_state(&st.job_id), st.encode_to_vec());
+            }
+        }
+        (states, stored)
     }
 
     /// Indexes a stored world for browsing; a world that cannot be indexed stays stored (and
     /// fetchable) and is counted.
     fn index(&self, w: &crate::StoredWorld) {
-        let thresholds = self
-            .rest
-            .get(&w.job_id)
-            .copied()
-            .unwrap_or_else(default_rest);
+        let thresholds = self.rest.get(&w.job_id).cloned().unwrap_or_default();
         match index_world(w, w.index, thresholds, self.path_tolerance_m) {
             Ok(indexed) => {
                 let index_bytes = {
@@ -389,19 +588,42 @@ impl Applier {
     }
 }
 
+/// Applies what is queued in batches of up to [`MAX_BATCH`] (group commit): the batch's
+/// worlds and states reach the journal's disk before its job states are published.
 async fn apply(mut a: Applier, mut rx: mpsc::Receiver<Incoming>) {
-    while let Some(msg) = rx.recv().await {
-        let (state, world) = a.take(msg);
-        if let Some(w) = world {
-            a.index(&w);
+    while let Some(first) = rx.recv().await {
+        let mut states = Vec::new();
+        let mut next = Some(first);
+        let mut n = 0;
+        while let Some(msg) = next {
+            let (st, worlds) = a.take(msg);
+            for w in &worlds {
+                a.index(w);
+            }
+            states.extend(st);
+            n += 1;
+            next = if n < MAX_BATCH {
+                rx.try_recv().ok()
+            } else {
+                None
+            };
         }
-        if a.authority
-            && let Some(st) = state
-        {
+        a.commit().await;
+        if a.authority {
             let node = &a.shared.node;
-            node.put(&node.keys().job_state(&st.job_id), st.encode_to_vec())
-                .await;
+            for st in states {
+                node.put(&node.keys().job_state(&st.job_id), st.encode_to_vec())
+                    .await;
+            }
         }
+    }
+}
+
+fn log_file(what: &str, f: &crate::journal::FileReport) {
+    if f.damage.is_some() && !f.cut_short {
+        warn!("{what} damaged: {}", f.describe());
+    } else {
+        info!("{what}: {}", f.describe());
     }
 }
 
@@ -539,16 +761,9 @@ fn outcome_state(o: Outcome, stored: &mut Option<u32>) -> Option<JobState> {
 }
 
 /// The rest thresholds of a job's scene (the ones its sampler ends a world with), for the
-/// time-to-rest metric; the scene defaults if the scene does not parse here.
-fn rest_thresholds(job: &Job) -> RestThresholds {
-    job.scene
-        .as_ref()
-        .and_then(|s| mwb_core::scene::SceneTemplate::parse(&s.toml, &s.name).ok())
-        .map_or_else(default_rest, |t| RestThresholds::from(t.settings()))
-}
-
-fn default_rest() -> RestThresholds {
-    RestThresholds::from(&mwb_core::scene::Settings::default())
+/// time-to-rest metric, and its body names; the scene defaults if the scene does not parse here.
+fn rest_thresholds(job: &Job) -> JobScene {
+    JobScene::of(job)
 }
 
 fn intersects(query: &KeyExpr<'_>, key: &str) -> bool {

@@ -11,7 +11,9 @@
 //! the entry. A query walks the hierarchy with the frustum's planes — plane masking as in the
 //! trees: a node wholly inside a plane spares everything below it that plane — and the
 //! bounding box of the inflated frustum's vertices, skips pieces whose time range misses the
-//! window, and clips the segments of the pieces that remain.
+//! window, and clips the segments of the pieces that remain. A path's last piece reaches to
+//! +∞ in time: its world has ended and the body stays at its final pose, which the piece's box
+//! holds (it is the last vertex), so windows past the end still reach it ([`rest_entry`]).
 //!
 //! The work of one query comes in [`Part`]s (subtrees near the top, runs of the pending list)
 //! that threads take one at a time. Pieces that arrive after the last build wait in a pending
@@ -21,7 +23,9 @@
 //! and buys the speed: without it every surviving piece was a chain of cache misses into its
 //! world (see docs/performance.md).
 
-use mwb_core::browse::{ALL_PLANES, Frustum, Plane, Polyline, TimeWindow, segment_entry};
+use mwb_core::browse::{
+    ALL_PLANES, Frustum, Plane, Polyline, TimeWindow, rest_entry, segment_entry,
+};
 
 type Vec3 = [f64; 3];
 
@@ -161,6 +165,8 @@ struct Entry {
     world: u32,
     /// Segments in the piece, 1..=[`PIECE_SEGMENTS`].
     count: u32,
+    /// Whether the piece ends the path: its last vertex is the final pose, held after the end.
+    last: bool,
     verts: [[f64; 4]; PIECE_SEGMENTS + 1],
 }
 
@@ -169,8 +175,18 @@ impl Entry {
         self.verts[0][3]
     }
 
+    /// The end of the piece's time range: +∞ for a path's last piece (the held final pose).
     fn t1(&self) -> f64 {
-        self.verts[self.count as usize][3]
+        if self.last {
+            f64::INFINITY
+        } else {
+            self.verts[self.count as usize][3]
+        }
+    }
+
+    fn end(&self) -> ([f64; 3], f64) {
+        let v = self.verts[self.count as usize];
+        ([v[0], v[1], v[2]], v[3])
     }
 }
 
@@ -194,23 +210,47 @@ impl Piece<'_> {
         self.entry.radius
     }
 
+    /// Whether this piece ends its path (and so holds the final pose).
+    pub fn is_last(&self) -> bool {
+        self.entry.last
+    }
+
     /// The exact test ([`segment_entry`], as brute force and the OBB trees run it) of the
     /// piece's segments against `region` — the query's frustum inflated by
-    /// [`radius`](Self::radius) — during `window`: the earliest time inside, if any.
+    /// [`radius`](Self::radius) — during `window`, then, for a path's last piece, of the final
+    /// pose held after the end ([`rest_entry`]): the earliest time inside, if any.
     pub fn first_entry(&self, region: &Frustum, window: Option<TimeWindow>) -> Option<f64> {
         let v = &self.entry.verts;
-        (0..self.entry.count as usize).find_map(|i| {
-            let (a, b) = (v[i], v[i + 1]);
-            segment_entry(
-                [a[0], a[1], a[2]],
-                [b[0], b[1], b[2]],
-                a[3],
-                b[3],
-                region,
-                self.mask,
-                window,
-            )
-        })
+        (0..self.entry.count as usize)
+            .find_map(|i| {
+                let (a, b) = (v[i], v[i + 1]);
+                segment_entry(
+                    [a[0], a[1], a[2]],
+                    [b[0], b[1], b[2]],
+                    a[3],
+                    b[3],
+                    region,
+                    self.mask,
+                    window,
+                )
+            })
+            .or_else(|| {
+                let (p, t) = self.entry.end();
+                self.entry
+                    .last
+                    .then(|| rest_entry(p, t, region, self.mask, window))
+                    .flatten()
+            })
+    }
+
+    /// Whether the piece ends its path and the final pose is inside `region` (the query's
+    /// frustum inflated by [`radius`](Self::radius)), as [`Polyline::final_pose_inside`].
+    pub fn final_pose_inside(&self, region: &Frustum) -> bool {
+        let (p, _) = self.entry.end();
+        self.entry.last
+            && region
+                .clip_segment_masked(p, p, 0.0, 1.0, self.mask)
+                .is_some()
     }
 }
 
@@ -264,6 +304,7 @@ impl PathBvh {
                 radius,
                 world,
                 count: count as u32,
+                last: first + count >= segments,
                 verts,
             });
         }

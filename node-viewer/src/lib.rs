@@ -1,1 +1,52 @@
-//! placeholder
+//! The manyworlds workstation viewer (§4.4 of Twigg and James, SIGGRAPH 2007): every world's
+//! centre-of-mass paths in 3D, screen rectangles that become positive or negative constraints,
+//! undo/redo, and playback of one world.
+//!
+//! * [`state`] — [`ViewerState`], pure: scene, worlds, camera, constraints, selection and
+//!   playback, changed only by [`Msg`]s; constraints are evaluated with `mwb_core::browse`.
+//! * [`camera`] — an orbit camera that hands out `mwb_core::browse::Camera`s, so the view is
+//!   drawn and queried through one projection.
+//! * [`world`] / [`offline`] — worlds sampled in-process and decoded with `mwb-codec`, indexed
+//!   like the store indexes them.
+//! * [`draw`] — the 3D view as egui shapes, projected on the CPU.
+//! * [`ui`] — [`ViewerApp`]: panels, the 3D view's mouse and keys, the eframe app.
+//! * [`softpaint`] — a software rasteriser for egui's tessellated output: headless screenshots
+//!   and image snapshots without a GPU or display.
+
+pub mod camera;
+pub mod draw;
+pub mod math;
+pub mod offline;
+pub mod screenshot;
+pub mod softpaint;
+pub mod state;
+pub mod ui;
+pub mod world;
+
+pub use camera::OrbitCamera;
+pub use state::{Msg, Playback, ViewerState};
+pub use ui::ViewerApp;
+pub use world::WorldData;
+
+/// What can go wrong in the viewer's logic. Every variant names what it is about.
+#[derive(Debug, thiserror::Error, Clone, PartialEq)]
+pub enum ViewerError {
+    #[error(transparent)]
+    Browse(#[from] mwb_core::browse::BrowseError),
+    #[error("world has no segments")]
+    NoSegments,
+    #[error("segment {seq}: {what}")]
+    Segment { seq: u32, what: String },
+    #[error("body {body}: {what}")]
+    Body { body: usize, what: String },
+    #[error("frame_dt {0} is not a positive number")]
+    FrameDt(f64),
+    #[error("the scene has {scene} bodies but the motion has {motion}")]
+    BodyCount { scene: usize, motion: usize },
+    #[error("world index {found}: expected {expected} (worlds are numbered densely)")]
+    WorldIndex { expected: u32, found: u32 },
+    #[error("world {world}: sampling failed: {what}")]
+    Sampling { world: u32, what: String },
+    #[error("screenshot size {0}: expected WIDTHxHEIGHT, each 64..=8192")]
+    Size(String),
+}

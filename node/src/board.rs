@@ -93,6 +93,20 @@ impl<S> Board<S> {
         })
     }
 
+    /// The jobs this node has given up (scene refused, or worlds failing in a row) and that
+    /// the stores have not closed: what its statistics report, so that a client can tell a job
+    /// nobody will finish from a slow one.
+    pub fn given_up(&self) -> Vec<String> {
+        let mut ids: Vec<String> = self
+            .jobs
+            .iter()
+            .filter(|(_, e)| e.given_up && !e.closed)
+            .map(|(id, _)| id.clone())
+            .collect();
+        ids.sort();
+        ids
+    }
+
     /// Whether worlds of `job` are still wanted from this node.
     pub fn is_open(&self, job: &str) -> bool {
         self.jobs.get(job).is_some_and(Entry::open)
@@ -301,6 +315,14 @@ mod tests {
         assert_eq!(b.finished("a", Ended::Failed), Some(3));
         assert!(b.pick().is_none());
         assert!(!b.is_open("a"));
+        assert_eq!(b.given_up(), ["a"]);
+        // Once the stores close it, it is nobody's concern any more.
+        b.apply_state(&JobState {
+            job_id: "a".into(),
+            closed: true,
+            ..Default::default()
+        });
+        assert!(b.given_up().is_empty());
     }
 
     #[test]

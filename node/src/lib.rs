@@ -76,5 +76,5 @@ pub mod wire;
 pub mod worker;
 
 pub use bus::{Node, NodeError, cpu_time};
-pub use wire::{SegmentBody, codec_quality, segment_message};
+pub use wire::{SegmentBody, codec_quality, segment_message, world_digest};
 pub use worker::{WorkerConfig, WorkerHandle, WorkerKind, WorldTask, run_workers};

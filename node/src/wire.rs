@@ -1,7 +1,7 @@
 //! The wire forms every producer of worlds shares: a job's codec preset, and a recorded segment
 //! as a `MotionSegment`.
 
-use mwb_proto::v1::{Encoding, LowResPath, MotionSegment, Quality};
+use mwb_proto::v1::{Encoding, LowResPath, MotionSegment, Quality, WorldDone};
 
 /// The job's codec preset; unspecified (or unknown to this version) is standard.
 pub fn codec_quality(q: Quality) -> mwb_codec::Quality {
@@ -78,6 +78,99 @@ fn lowres_message(paths: &[mwb_codec::LowResPath], hz: f64) -> LowResPath {
     }
 }
 
+/// A world's digest: a CRC-32 over everything in its segments and summary that its scene text
+/// and seed determine — each segment's numbering, encoding, payload and low-resolution path,
+/// and the summary's counts, rest times, impacts, perturbations, steps, plausibility numbers
+/// and scene hash — and over nothing that names where or when it was computed (job, node,
+/// counter, CPU time, provenance, the segments' CRCs, which follow from their payloads). A
+/// stored world and its regeneration from `(scene, seed)` (`mwb world`) have equal digests.
+pub fn world_digest(segments: &[MotionSegment], done: &WorldDone) -> u32 {
+    let mut h = crc32fast::Hasher::new();
+    for s in segments {
+        // Every field, by destructuring: a new one does not compile until it is decided here.
+        let MotionSegment {
+            job_id: _,
+            node_id: _,
+            world_counter: _,
+            seed,
+            seq,
+            first_frame,
+            frame_count,
+            body_count,
+            encoding,
+            payload,
+            crc32: _,
+            lowres,
+        } = s;
+        h.update(&seed.to_le_bytes());
+        for x in [seq, first_frame, frame_count, body_count] {
+            h.update(&x.to_le_bytes());
+        }
+        h.update(&encoding.to_le_bytes());
+        h.update(&(payload.len() as u64).to_le_bytes());
+        h.update(payload);
+        if let Some(LowResPath {
+            hz,
+            frames,
+            xyz,
+            max_deviation,
+        }) = lowres
+        {
+            h.update(&hz.to_bits().to_le_bytes());
+            frames.iter().for_each(|f| h.update(&f.to_le_bytes()));
+            xyz.iter()
+                .for_each(|x| h.update(&x.to_bits().to_le_bytes()));
+            max_deviation
+                .iter()
+                .for_each(|x| h.update(&x.to_bits().to_le_bytes()));
+        }
+    }
+    let WorldDone {
+        job_id: _,
+        node_id: _,
+        world_counter: _,
+        seed,
+        frame_count,
+        segment_count,
+        frame_dt,
+        rested,
+        impacts,
+        perturbations,
+        sim_steps,
+        cpu_seconds: _,
+        provenance: _,
+        scene_hash,
+        rest_time_s,
+        body_rested,
+        energy_growth,
+        angular_speed_growth,
+    } = done;
+    for x in [seed, sim_steps, scene_hash] {
+        h.update(&x.to_le_bytes());
+    }
+    for x in [frame_count, segment_count, perturbations] {
+        h.update(&x.to_le_bytes());
+    }
+    h.update(&frame_dt.to_bits().to_le_bytes());
+    h.update(&[u8::from(*rested)]);
+    impacts.iter().for_each(|x| h.update(&x.to_le_bytes()));
+    rest_time_s
+        .iter()
+        .for_each(|x| h.update(&x.to_bits().to_le_bytes()));
+    body_rested.iter().for_each(|x| h.update(&[u8::from(*x)]));
+    // Absent (forward worlds) is not 0.
+    for x in [energy_growth, angular_speed_growth] {
+        match x {
+            Some(v) => {
+                h.update(&[1]);
+                h.update(&v.to_bits().to_le_bytes());
+            }
+            None => h.update(&[0]),
+        }
+    }
+    h.finalize()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -112,6 +205,63 @@ mod tests {
         // 0.1 is not an f32: the f32 sent is the next one up, never below the true bound.
         assert!(f64::from(lowres.max_deviation[0]) >= 0.1);
         assert!(lowres.max_deviation[0] > 0.1f32.next_down());
+    }
+
+    #[test]
+    fn the_digest_ignores_where_a_world_was_computed_and_nothing_else() {
+        let seg = segment_message(
+            "j",
+            "n",
+            3,
+            9,
+            SegmentBody {
+                seq: 0,
+                first_frame: 0,
+                frame_count: 5,
+                body_count: 1,
+                encoding: Encoding::SplineV1,
+                payload: vec![1, 2, 3],
+                lowres: Vec::new(),
+            },
+        );
+        let done = WorldDone {
+            job_id: "j".into(),
+            node_id: "n".into(),
+            seed: 9,
+            frame_count: 5,
+            segment_count: 1,
+            impacts: vec![2],
+            ..Default::default()
+        };
+        let d = world_digest(std::slice::from_ref(&seg), &done);
+        let elsewhere = MotionSegment {
+            job_id: "other".into(),
+            node_id: "m".into(),
+            world_counter: 7,
+            ..seg.clone()
+        };
+        let later = WorldDone {
+            job_id: "other".into(),
+            node_id: "m".into(),
+            world_counter: 7,
+            cpu_seconds: 1.5,
+            provenance: "another build".into(),
+            ..done.clone()
+        };
+        assert_eq!(world_digest(&[elsewhere], &later), d);
+        let mut flipped = seg.clone();
+        flipped.payload[1] ^= 1;
+        assert_ne!(world_digest(&[flipped], &done), d);
+        let measured = WorldDone {
+            energy_growth: Some(0.0),
+            ..done.clone()
+        };
+        assert_ne!(world_digest(std::slice::from_ref(&seg), &measured), d);
+        let other_scene = WorldDone {
+            scene_hash: 1,
+            ..done
+        };
+        assert_ne!(world_digest(&[seg], &other_scene), d);
     }
 
     #[test]

@@ -114,6 +114,8 @@ struct Control {
     counter: AtomicU64,
     worlds: AtomicU64,
     failed: AtomicU64,
+    /// The last world failure's (or scene refusal's) message, for the statistics.
+    last_failure: Mutex<String>,
     steps: AtomicU64,
     bytes: AtomicU64,
 }
@@ -121,6 +123,10 @@ struct Control {
 impl Control {
     fn stopping(&self) -> bool {
         self.stop.load(Ordering::SeqCst)
+    }
+
+    fn note_failure(&self, message: String) {
+        *self.last_failure.lock().unwrap_or_else(|p| p.into_inner()) = message;
     }
 }
 
@@ -156,8 +162,15 @@ impl<K: WorkerKind> Shared<K> {
 
     fn stats(&self, workers: usize) -> NodeStats {
         let c = &self.control;
+        let last_failure = c
+            .last_failure
+            .lock()
+            .map_or_else(|p| p.into_inner().clone(), |m| m.clone());
         NodeStats {
             worlds: c.worlds.load(Ordering::Relaxed),
+            worlds_failed: c.failed.load(Ordering::Relaxed),
+            jobs_given_up: self.lock().given_up(),
+            last_failure,
             sim_steps: c.steps.load(Ordering::Relaxed),
             bytes: c.bytes.load(Ordering::Relaxed),
             workers: u32::try_from(workers).unwrap_or(u32::MAX),
@@ -348,6 +361,9 @@ fn run_world<K: WorkerKind>(
         Ok(s) => Some(Arc::new(s)),
         Err(e) => {
             warn!(job = %job.id, error = %e, "job scene refused; ignoring the job");
+            shared
+                .control
+                .note_failure(format!("job {}: scene refused: {e}", job.id));
             None
         }
     });
@@ -413,6 +429,7 @@ fn run_world<K: WorkerKind>(
         Err(e) => {
             control.failed.fetch_add(1, Ordering::Relaxed);
             warn!(job = %job.id, counter, error = %e, "world failed");
+            control.note_failure(format!("job {}: world failed: {e}", job.id));
         }
     }
     ControlFlow::Continue(())

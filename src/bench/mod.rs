@@ -6,6 +6,7 @@ use clap::Subcommand;
 
 pub mod codec;
 pub mod query;
+pub mod record;
 pub mod reverse;
 pub mod sampler;
 pub mod stepper;
@@ -23,6 +24,9 @@ pub enum BenchCommand {
     Query(query::QueryArgs),
     /// The motion codec on sampled worlds: one line per (scene, preset).
     Codec(codec::CodecArgs),
+    /// Recording, replay and the store's journal: writer MB/s, recorder overhead, replay
+    /// worlds/s, journal restart time and bytes per world on disk.
+    Record(record::RecordArgs),
 }
 
 /// Runs `mwb bench …`.
@@ -33,6 +37,7 @@ pub async fn run(command: BenchCommand) -> Result<()> {
         BenchCommand::Sampler(args) => sampler::run(args).await,
         BenchCommand::Query(args) => query::run(args).await,
         BenchCommand::Codec(args) => codec::run(args),
+        BenchCommand::Record(args) => record::run(args).await,
     }
 }
 

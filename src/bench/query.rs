@@ -253,7 +253,9 @@ fn random_constraint(rng: &mut Rng, id: u64, worlds: &[IndexedWorld]) -> Result<
         },
         frustum: proj.frustum(&rect)?,
         objects,
+        quantifier: Default::default(),
         window,
+        scope: Default::default(),
     })
 }
 
@@ -373,6 +375,7 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
             frames: 0,
             frame_dt: pool[0].frame_dt,
             rested: true,
+            bodies: std::sync::Arc::from(Vec::new()),
             objects: objs,
             metrics,
             world_metrics: Default::default(),

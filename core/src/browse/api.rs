@@ -15,7 +15,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::constraint::{Constraint, ConstraintId, Polarity, TimeWindow};
+use super::constraint::{Constraint, ConstraintId, Polarity, Quantifier, Scope, TimeWindow};
 use super::metrics::{ObjectMetrics, Order, RankKey, Ranked, WorldMetrics, merge_top_k};
 
 /// A browsing request, as a user or the viewer sends it to node-query.
@@ -52,6 +52,9 @@ pub enum Request {
     Summary {
         world: u32,
     },
+    /// The bodies of the worlds held: one entry per distinct scene body list, so that a client
+    /// can turn body names into object indices and check indices against the body count.
+    Bodies,
     /// Forgets the session (its bitsets and undo history).
     Close,
 }
@@ -82,9 +85,23 @@ pub struct ConstraintStatus {
     pub id: ConstraintId,
     pub polarity: Polarity,
     pub objects: Vec<u32>,
+    #[serde(default)]
+    pub quantifier: Quantifier,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub window: Option<TimeWindow>,
+    #[serde(default)]
+    pub scope: Scope,
     pub satisfied: u64,
+}
+
+/// The bodies of a scene as the stores hold its worlds: names in object-index order (empty when
+/// the store could not read the scene) and the object count.
+#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
+pub struct SceneBodies {
+    pub objects: u32,
+    pub names: Vec<String>,
+    /// Worlds held with this body list.
+    pub worlds: u64,
 }
 
 /// A session's state: worlds known, survivors, and each live constraint's count.
@@ -108,6 +125,10 @@ pub struct WorldSummary {
     pub frames: u32,
     pub frame_dt: f64,
     pub rested: bool,
+    /// Body names in object-index order (the scene's `[[body]]` names, `name[i]` for generated
+    /// instances); empty if the store could not read the scene.
+    #[serde(default)]
+    pub bodies: Vec<String>,
     /// Per object, in the scene's body order.
     pub objects: Vec<ObjectMetrics>,
     /// Path-index inflation per object: codec e_max + low-res deviation, metres.
@@ -135,9 +156,17 @@ pub enum Reply {
     Ranking {
         /// Worlds ranked over (survivors, or all).
         candidates: u64,
+        /// Candidates without a value for the key (ranked last): e.g. worlds whose chosen
+        /// bodies were still moving at the end, for time to rest.
+        #[serde(default)]
+        unscored: u64,
         rows: Vec<Ranked>,
     },
     Summary(Box<WorldSummary>),
+    Bodies {
+        /// Distinct body lists, in a stable order.
+        scenes: Vec<SceneBodies>,
+    },
     /// The world is not in this shard (or, merged, in none).
     NoSuchWorld {
         world: u32,
@@ -175,6 +204,7 @@ fn kind(r: &Reply) -> &'static str {
         Reply::Worlds { .. } => "worlds",
         Reply::Ranking { .. } => "ranking",
         Reply::Summary(_) => "summary",
+        Reply::Bodies { .. } => "bodies",
         Reply::NoSuchWorld { .. } => "no_such_world",
         Reply::Closed => "closed",
         Reply::Error { .. } => "error",
@@ -221,19 +251,45 @@ pub fn merge(request: &Request, replies: Vec<Reply>) -> Result<Reply, MergeError
                 worlds: all,
             })
         }
-        (Request::Rank { order, k, .. }, Reply::Ranking { candidates, rows }) => {
-            let mut total = candidates;
+        (
+            Request::Rank { order, k, .. },
+            Reply::Ranking {
+                candidates,
+                unscored,
+                rows,
+            },
+        ) => {
+            let (mut total, mut none) = (candidates, unscored);
             let mut lists = vec![rows];
             for r in iter {
-                let Reply::Ranking { candidates, rows } = r else {
+                let Reply::Ranking {
+                    candidates,
+                    unscored,
+                    rows,
+                } = r
+                else {
                     return Err(MergeError::Mismatch("ranking", kind(&r)));
                 };
                 total += candidates;
+                none += unscored;
                 lists.push(rows);
             }
             Ok(Reply::Ranking {
                 candidates: total,
+                unscored: none,
                 rows: merge_top_k(lists, *k, *order),
+            })
+        }
+        (Request::Bodies, Reply::Bodies { scenes }) => {
+            let mut all = scenes;
+            for r in iter {
+                let Reply::Bodies { scenes } = r else {
+                    return Err(MergeError::Mismatch("bodies", kind(&r)));
+                };
+                all.extend(scenes);
+            }
+            Ok(Reply::Bodies {
+                scenes: merge_bodies(all),
             })
         }
         (Request::Summary { world }, first) => {
@@ -256,6 +312,24 @@ pub fn merge(request: &Request, replies: Vec<Reply>) -> Result<Reply, MergeError
             Ok(first)
         }
     }
+}
+
+/// One entry per distinct body list (names and count), worlds added, most worlds first.
+pub fn merge_bodies(scenes: Vec<SceneBodies>) -> Vec<SceneBodies> {
+    let mut by_list: std::collections::BTreeMap<(u32, Vec<String>), u64> = Default::default();
+    for s in scenes {
+        *by_list.entry((s.objects, s.names)).or_default() += s.worlds;
+    }
+    let mut out: Vec<SceneBodies> = by_list
+        .into_iter()
+        .map(|((objects, names), worlds)| SceneBodies {
+            objects,
+            names,
+            worlds,
+        })
+        .collect();
+    out.sort_by(|a, b| b.worlds.cmp(&a.worlds).then_with(|| a.cmp(b)));
+    out
 }
 
 /// Adds one shard's session status into `acc`. The constraint lists must agree (same ids in the
@@ -295,7 +369,9 @@ mod tests {
                     id: ConstraintId(id),
                     polarity: Polarity::Positive,
                     objects: vec![0],
+                    quantifier: Quantifier::Any,
                     window: None,
+                    scope: Scope::Motion,
                     satisfied,
                 })
                 .collect(),
@@ -378,10 +454,12 @@ mod tests {
             vec![
                 Reply::Ranking {
                     candidates: 5,
+                    unscored: 1,
                     rows: vec![row(2, 9.0), row(0, 3.0)],
                 },
                 Reply::Ranking {
                     candidates: 4,
+                    unscored: 2,
                     rows: vec![row(1, 9.0), row(3, 7.0)],
                 },
             ],
@@ -391,6 +469,7 @@ mod tests {
             merged,
             Reply::Ranking {
                 candidates: 9,
+                unscored: 3,
                 rows: vec![row(1, 9.0), row(2, 9.0)]
             }
         );
@@ -417,12 +496,51 @@ mod tests {
     }
 
     #[test]
+    fn bodies_merge_by_list_and_old_replies_still_parse() {
+        let scene = |names: &[&str], worlds| SceneBodies {
+            objects: names.len() as u32,
+            names: names.iter().map(|n| (*n).to_owned()).collect(),
+            worlds,
+        };
+        let merged = merge(
+            &Request::Bodies,
+            vec![
+                Reply::Bodies {
+                    scenes: vec![scene(&["a", "b"], 3), scene(&["x"], 5)],
+                },
+                Reply::Bodies {
+                    scenes: vec![scene(&["a", "b"], 4)],
+                },
+                Reply::Bodies { scenes: vec![] },
+            ],
+        );
+        assert_eq!(
+            merged,
+            Ok(Reply::Bodies {
+                scenes: vec![scene(&["a", "b"], 7), scene(&["x"], 5)]
+            })
+        );
+        // A ranking from a shard that does not count unscored worlds yet.
+        let old: Reply = serde_json::from_str(r#"{"reply":"ranking","candidates":2,"rows":[]}"#)
+            .expect("parses");
+        assert_eq!(
+            old,
+            Reply::Ranking {
+                candidates: 2,
+                unscored: 0,
+                rows: vec![]
+            }
+        );
+    }
+
+    #[test]
     fn requests_round_trip_as_json() {
         let reqs = [
             r#"{"op":"undo"}"#,
             r#"{"op":"result","limit":5}"#,
             r#"{"op":"rank","key":{"key":"constraints_satisfied"},"order":"descending","k":3,"all_worlds":true}"#,
             r#"{"op":"remove","id":4}"#,
+            r#"{"op":"bodies"}"#,
         ];
         for text in reqs {
             let r: Request = serde_json::from_str(text).expect(text);

@@ -75,24 +75,88 @@ impl TimeWindow {
     }
 }
 
+/// How the chosen objects combine (§4.4.1 asks that "one of these objects" pass through).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Quantifier {
+    /// The question is whether *some* chosen object enters the volume (the default, §4.4.1).
+    #[default]
+    Any,
+    /// The question is whether *every* chosen object enters the volume.
+    All,
+}
+
+impl Quantifier {
+    fn is_any(&self) -> bool {
+        *self == Quantifier::Any
+    }
+}
+
+/// Which part of each chosen object's motion the volume is tested against.
+///
+/// A world ends when its bodies come to rest or its end time is reached; from then on every
+/// body stays at its final pose, for ever. So a time window that reaches past a world's end sees
+/// the bodies where they ended ("ends in this bin" is asked as a window over the last seconds,
+/// or with [`Scope::FinalPose`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Scope {
+    /// The motion, in the time window if there is one, with the final pose held after the end.
+    #[default]
+    Motion,
+    /// Only the final (resting) pose counts; takes no time window.
+    FinalPose,
+}
+
+impl Scope {
+    fn is_motion(&self) -> bool {
+        *self == Scope::Motion
+    }
+}
+
 /// A spatial query over the centre-of-mass paths of a subset of objects (§4.4.1). It travels as
-/// JSON between the viewer, node-query and the stores; the frustum is validated on the way in.
+/// JSON between the viewer, node-query and the stores; the frustum is validated on the way in,
+/// the rest with [`validate`](Self::validate).
+///
+/// The question it asks of a world: does any (or, with [`Quantifier::All`], every) chosen object
+/// enter the frustum — during the window, or in its final pose with [`Scope::FinalPose`]?
+/// [`Polarity::Positive`] keeps the worlds where the answer is yes, [`Polarity::Negative`] those
+/// where it is no: a negative constraint with `Any` keeps worlds where no chosen object enters,
+/// with `All` worlds where at least one stays out.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Constraint {
     pub id: ConstraintId,
     pub polarity: Polarity,
     pub frustum: Frustum,
-    /// Object indices (the scene's body order); the constraint is about "any of these". An empty
-    /// subset touches nothing: a positive constraint then keeps no world, a negative one all.
+    /// Object indices (the scene's body order). An empty subset touches nothing: a positive
+    /// constraint then keeps no world, a negative one all. An object a world does not have does
+    /// not enter (so with `All` such a world fails a positive constraint).
     pub objects: Vec<u32>,
+    #[serde(default, skip_serializing_if = "Quantifier::is_any")]
+    pub quantifier: Quantifier,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub window: Option<TimeWindow>,
+    #[serde(default, skip_serializing_if = "Scope::is_motion")]
+    pub scope: Scope,
 }
 
 impl Constraint {
-    /// Whether any chosen object's path comes within the frustum (inflated per object by the
-    /// radius `path_of` returns with the tree: codec e_max + low-res deviation). Objects the
-    /// world does not have (`None`) do not touch it.
+    /// What the types cannot say: a final-pose constraint takes no time window. The error
+    /// names the field.
+    pub fn validate(&self) -> Result<(), BrowseError> {
+        if self.scope == Scope::FinalPose && self.window.is_some() {
+            return Err(BrowseError::Conflict {
+                field: "window",
+                with: "scope = final_pose (only the final pose counts; it has no time window)",
+            });
+        }
+        Ok(())
+    }
+
+    /// Whether the chosen objects' paths come within the frustum (inflated per object by the
+    /// radius `path_of` returns with the tree: codec e_max + low-res deviation) — some of them,
+    /// or every one with [`Quantifier::All`]. Objects the world does not have (`None`) do not
+    /// touch it.
     pub fn touched<'a>(&self, path_of: impl FnMut(u32) -> Option<(&'a PathTree, f64)>) -> bool {
         self.touched_cached(&mut RegionCache::new(&self.frustum), path_of)
     }
@@ -107,10 +171,16 @@ impl Constraint {
         debug_assert!(
             std::ptr::eq(regions.base(), &self.frustum) || *regions.base() == self.frustum
         );
-        self.objects.iter().any(|&object| {
-            path_of(object)
-                .is_some_and(|(tree, radius)| tree.intersects_cached(regions, self.window, radius))
-        })
+        let mut enters = |object: u32| {
+            path_of(object).is_some_and(|(tree, radius)| match self.scope {
+                Scope::Motion => tree.intersects_cached(regions, self.window, radius),
+                Scope::FinalPose => tree.final_pose_inside(regions.region(radius)),
+            })
+        };
+        match self.quantifier {
+            Quantifier::Any => self.objects.iter().any(|&o| enters(o)),
+            Quantifier::All => !self.objects.is_empty() && self.objects.iter().all(|&o| enters(o)),
+        }
     }
 
     /// Whether a world satisfies the constraint. Inflation makes positive answers a superset
@@ -157,7 +227,9 @@ mod tests {
             polarity,
             frustum: camera.frustum(&rect).expect("valid"),
             objects: vec![0, 2],
+            quantifier: Quantifier::Any,
             window,
+            scope: Scope::Motion,
         }
     }
 
@@ -192,6 +264,79 @@ mod tests {
         assert!(around.evaluate(lookup));
         // Inflation: the miss at y = 4 is caught with a 5 m radius.
         assert!(pos.evaluate(|o| paths.get(o as usize).map(|_| (&miss, 5.0))));
+    }
+
+    /// Issue 24: `All` needs every chosen object in the volume; a window after a world's end
+    /// sees its bodies at their final poses; a final-pose constraint tests only those.
+    #[test]
+    fn every_object_rest_poses_and_final_pose() {
+        // Object 0 crosses the box at t = 1 and ends 3 m beside it at t = 2; object 2 slides
+        // into the middle of the box and stays there from t = 2.
+        let crosses = tree(0.0);
+        let rests_inside = PathTree::build(
+            Polyline::new(vec![0.0, 2.0], vec![[-3.0, 0.0, 0.0], [0.0, 0.0, 0.0]]).expect("valid"),
+        );
+        let miss = tree(4.0);
+        let paths = [&crosses, &miss, &rests_inside];
+        let lookup = |o: u32| paths.get(o as usize).map(|t| (*t, 0.0));
+        let with = |quantifier, window: Option<TimeWindow>, scope| Constraint {
+            quantifier,
+            window,
+            scope,
+            ..constraint(Polarity::Positive, None)
+        };
+        let any = Quantifier::Any;
+        let all = Quantifier::All;
+        let motion = Scope::Motion;
+        let fin = Scope::FinalPose;
+        assert!(
+            with(all, None, motion).evaluate(lookup),
+            "both enter at some time"
+        );
+        // Long after both worlds' ends: only the body resting inside is there.
+        let late = TimeWindow::new(5.0, 8.0).ok();
+        assert!(with(any, late, motion).evaluate(lookup));
+        assert!(!with(all, late, motion).evaluate(lookup));
+        assert!(with(any, None, fin).evaluate(lookup));
+        assert!(!with(all, None, fin).evaluate(lookup));
+        // Negative + all: keeps worlds where at least one chosen object stays out.
+        let neg_all = Constraint {
+            polarity: Polarity::Negative,
+            ..with(all, late, motion)
+        };
+        assert!(neg_all.evaluate(lookup));
+        // A world without object 2 fails "all" (the missing object never enters).
+        let short = |o: u32| paths[..2].get(o as usize).map(|t| (*t, 0.0));
+        assert!(!with(all, None, motion).evaluate(short));
+        // No objects: "all" is not vacuously true.
+        let none = Constraint {
+            objects: vec![],
+            ..with(all, None, motion)
+        };
+        assert!(!none.evaluate(lookup));
+        // Final pose and window do not mix.
+        let bad = with(any, late, fin);
+        assert_eq!(
+            bad.validate(),
+            Err(BrowseError::Conflict {
+                field: "window",
+                with: "scope = final_pose (only the final pose counts; it has no time window)"
+            })
+        );
+        assert_eq!(with(all, late, motion).validate(), Ok(()));
+        // Defaults stay off the wire; set values travel.
+        let text = serde_json::to_string(&with(any, None, motion)).expect("serialises");
+        assert!(
+            !text.contains("quantifier") && !text.contains("scope"),
+            "{text}"
+        );
+        let text = serde_json::to_string(&with(all, None, fin)).expect("serialises");
+        assert!(
+            text.contains(r#""quantifier":"all""#) && text.contains(r#""scope":"final_pose""#),
+            "{text}"
+        );
+        let back: Constraint = serde_json::from_str(&text).expect("parses");
+        assert_eq!((back.quantifier, back.scope), (all, fin));
     }
 
     #[test]

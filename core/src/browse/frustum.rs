@@ -180,9 +180,44 @@ impl Camera {
         })
     }
 
-    /// The world-space frustum seen through `rect` (see [`Projection::frustum`]).
+    /// The world-space frustum seen through `rect` (see [`Projection::frustum`]). Pixels count
+    /// from the viewport's top-left corner, x to the right, y down. A rectangle reaching past
+    /// the viewport's edges is kept as drawn, but one lying entirely outside it (nothing drawn
+    /// there is on screen: a typo, or y measured upwards) is refused, naming the coordinate.
     pub fn frustum(&self, rect: &ScreenRect) -> Result<Frustum, BrowseError> {
-        self.projection()?.frustum(rect)
+        let projection = self.projection()?;
+        let frustum = projection.frustum(rect)?;
+        let (w, h) = (self.viewport.width, self.viewport.height);
+        let (x0, x1) = if rect.x0 <= rect.x1 {
+            (("rect.x0", rect.x0), ("rect.x1", rect.x1))
+        } else {
+            (("rect.x1", rect.x1), ("rect.x0", rect.x0))
+        };
+        let (y0, y1) = if rect.y0 <= rect.y1 {
+            (("rect.y0", rect.y0), ("rect.y1", rect.y1))
+        } else {
+            (("rect.y1", rect.y1), ("rect.y0", rect.y0))
+        };
+        let outside = if x1.1 <= 0.0 {
+            Some(x1)
+        } else if x0.1 >= f64::from(w) {
+            Some(x0)
+        } else if y1.1 <= 0.0 {
+            Some(y1)
+        } else if y0.1 >= f64::from(h) {
+            Some(y0)
+        } else {
+            None
+        };
+        match outside {
+            Some((field, value)) => Err(BrowseError::RectOutsideViewport {
+                field,
+                value,
+                width: w,
+                height: h,
+            }),
+            None => Ok(frustum),
+        }
     }
 }
 
@@ -846,6 +881,43 @@ mod tests {
             ok.frustum(&flat),
             Err(BrowseError::EmptyRect { .. })
         ));
+    }
+
+    /// Issue 24: a rectangle entirely off the 800 × 600 viewport is refused, naming the
+    /// coordinate that puts it there; one reaching past an edge is kept as drawn.
+    #[test]
+    fn rect_entirely_outside_the_viewport_is_refused() {
+        let cam = camera(
+            [0.0; 3],
+            [0.0, 0.0, 0.0, 1.0],
+            Intrinsics::VerticalFov { fov_y_rad: 1.0 },
+        );
+        let r = |x0, y0, x1, y1| ScreenRect { x0, y0, x1, y1 };
+        for (rect, field) in [
+            (r(-50.0, 10.0, -10.0, 20.0), "rect.x1"),
+            (r(-10.0, 10.0, -50.0, 20.0), "rect.x0"), // corners in any order
+            (r(800.0, 10.0, 900.0, 20.0), "rect.x0"),
+            (r(10.0, -30.0, 20.0, 0.0), "rect.y1"),
+            (r(10.0, 600.0, 20.0, 700.0), "rect.y0"),
+            // y measured upwards from the bottom by mistake: 700 px up on a 600 px screen.
+            (r(100.0, 650.0, 200.0, 700.0), "rect.y0"),
+        ] {
+            match cam.frustum(&rect) {
+                Err(e @ BrowseError::RectOutsideViewport { .. }) => {
+                    let text = e.to_string();
+                    assert!(text.starts_with(field), "{rect:?}: {text}");
+                    assert!(text.contains("800 × 600"), "{text}");
+                }
+                other => panic!("{rect:?}: {other:?}"),
+            }
+        }
+        for inside in [
+            r(-50.0, -50.0, 10.0, 10.0),
+            r(790.0, 590.0, 900.0, 700.0),
+            r(0.0, 0.0, 800.0, 600.0),
+        ] {
+            assert!(cam.frustum(&inside).is_ok(), "{inside:?}");
+        }
     }
 
     #[test]

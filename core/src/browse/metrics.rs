@@ -142,12 +142,15 @@ impl ObjectMetrics {
         })
     }
 
-    pub fn get(&self, metric: Metric) -> f64 {
+    /// The object's value of `metric`. A body still moving when its world ended has no time to
+    /// rest (`None`): its `time_to_rest_s` is only the world's end, and ranking it as if it had
+    /// settled then would put the worlds that never settle first.
+    pub fn get(&self, metric: Metric) -> Option<f64> {
         match metric {
-            Metric::AngularTravel => self.angular_travel_rad,
-            Metric::TimeToRest => self.time_to_rest_s,
-            Metric::Impacts => f64::from(self.impacts),
-            Metric::OrientationError => self.orientation_error_rad,
+            Metric::AngularTravel => Some(self.angular_travel_rad),
+            Metric::TimeToRest => self.came_to_rest.then_some(self.time_to_rest_s),
+            Metric::Impacts => Some(f64::from(self.impacts)),
+            Metric::OrientationError => Some(self.orientation_error_rad),
         }
     }
 }
@@ -160,6 +163,47 @@ pub enum Metric {
     TimeToRest,
     Impacts,
     OrientationError,
+}
+
+impl Metric {
+    /// How a ranking combines the chosen objects unless told otherwise — the one definition
+    /// `mwb query rank` and the demo's summary share. Time to rest: the largest, since a world
+    /// has come to rest when its last chosen body has (a sum of rest times means nothing to an
+    /// animator); the others add up (§4.4.3: total spin, total impacts, total error).
+    pub fn default_aggregate(self) -> Aggregate {
+        match self {
+            Metric::TimeToRest => Aggregate::Max,
+            Metric::AngularTravel | Metric::Impacts | Metric::OrientationError => Aggregate::Sum,
+        }
+    }
+
+    /// The unit of the metric's values (and of their sum or maximum).
+    pub fn unit(self) -> &'static str {
+        match self {
+            Metric::AngularTravel | Metric::OrientationError => "rad",
+            Metric::TimeToRest => "s",
+            Metric::Impacts => "impacts",
+        }
+    }
+}
+
+impl WorldMetric {
+    /// The unit of the measurement.
+    pub fn unit(self) -> &'static str {
+        match self {
+            WorldMetric::EnergyGrowth => "m",
+            WorldMetric::AngularSpeedGrowth => "rad/s",
+        }
+    }
+}
+
+impl Aggregate {
+    pub fn name(self) -> &'static str {
+        match self {
+            Aggregate::Sum => "sum",
+            Aggregate::Max => "max",
+        }
+    }
 }
 
 /// How per-object values combine over the chosen objects (§4.4.3: sum or supremum).
@@ -283,8 +327,8 @@ impl RankKey {
     }
 }
 
-/// `metric` summed or maxed over the `chosen` objects of one world; `None` if none is chosen or
-/// a chosen object is missing from `objects`.
+/// `metric` summed or maxed over the `chosen` objects of one world; `None` if none is chosen, a
+/// chosen object is missing from `objects`, or one has no value (see [`ObjectMetrics::get`]).
 pub fn score(
     objects: &[ObjectMetrics],
     chosen: &[u32],
@@ -292,7 +336,7 @@ pub fn score(
     aggregate: Aggregate,
 ) -> Option<f64> {
     aggregate_over(chosen, aggregate, |o| {
-        objects.get(o as usize).map(|m| m.get(metric))
+        objects.get(o as usize).and_then(|m| m.get(metric))
     })
 }
 
@@ -346,16 +390,28 @@ pub fn top_k(
     candidates: impl IntoIterator<Item = u32>,
     k: usize,
     order: Order,
-    mut score: impl FnMut(u32) -> Option<f64>,
+    score: impl FnMut(u32) -> Option<f64>,
 ) -> Vec<Ranked> {
+    top_k_counted(candidates, k, order, score).0
+}
+
+/// [`top_k`] and how many candidates had no value (NaN counts as none); those sort last.
+pub fn top_k_counted(
+    candidates: impl IntoIterator<Item = u32>,
+    k: usize,
+    order: Order,
+    mut score: impl FnMut(u32) -> Option<f64>,
+) -> (Vec<Ranked>, u64) {
+    let mut unscored = 0;
     let rows = candidates
         .into_iter()
-        .map(|world| Ranked {
-            world,
-            score: score(world),
+        .map(|world| {
+            let score = clean(score(world));
+            unscored += u64::from(score.is_none());
+            Ranked { world, score }
         })
         .collect();
-    select(rows, k, order)
+    (select(rows, k, order), unscored)
 }
 
 /// Merges per-shard top-k lists into the global top `k` (each shard's list must be its own top

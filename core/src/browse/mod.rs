@@ -8,7 +8,10 @@
 //!    [`Camera::frustum`]; §4.4.1 draws queries in screen space because it is fast for the user,
 //!    and a screen box seen from a pinhole camera is a frustum in the world.
 //! 2. A [`Constraint`] pairs the frustum with a [`Polarity`] (passes through / never passes
-//!    through), the objects it applies to ("any of these") and an optional [`TimeWindow`].
+//!    through), the objects it applies to ("any of these", or with [`Quantifier::All`] "every
+//!    one of these") and an optional [`TimeWindow`], or asks about the final pose only
+//!    ([`Scope::FinalPose`]). A world that has ended holds its final pose for ever, so windows
+//!    past its end see where its bodies came to rest.
 //! 3. Each store evaluates it against every world's [`PathTree`]s (an OBB tree of depth ≤ 3 over
 //!    the low-resolution centre-of-mass polyline, §4.4.2), inflated so that no world whose true
 //!    path enters the frustum is ever missed, and records the answer in a [`WorldSet`] bitset.
@@ -21,7 +24,7 @@
 //! ```
 //! use mwb_core::browse::{
 //!     Camera, Constraint, ConstraintId, ConstraintSet, Intrinsics, PathTree, Polarity,
-//!     Polyline, ScreenRect, Viewport,
+//!     Polyline, Quantifier, Scope, ScreenRect, Viewport,
 //! };
 //!
 //! // A camera at z = 10 looking down −z at the origin, a box around the middle of the screen.
@@ -52,7 +55,9 @@
 //!     polarity: Polarity::Positive,
 //!     frustum,
 //!     objects: vec![0],
+//!     quantifier: Quantifier::Any,
 //!     window: None,
+//!     scope: Scope::Motion,
 //! };
 //! let mut session = ConstraintSet::new();
 //! session.on_new_world(0, |_, _| unreachable!("no constraints yet"));
@@ -69,6 +74,7 @@
 
 pub mod api;
 mod bitset;
+mod bodies;
 mod constraint;
 mod frustum;
 mod geom;
@@ -77,7 +83,8 @@ mod path;
 mod session;
 
 pub use bitset::{WorldSet, WorldSetIter};
-pub use constraint::{Constraint, ConstraintId, Polarity, TimeWindow};
+pub use bodies::{ObjectsError, object_label, resolve_objects, split_items};
+pub use constraint::{Constraint, ConstraintId, Polarity, Quantifier, Scope, TimeWindow};
 pub use frustum::{
     ALL_PLANES, Camera, DEFAULT_FAR_M, DEFAULT_NEAR_M, Frustum, Intrinsics, Plane, Projection,
     RegionCache, ScreenRect, Viewport,
@@ -85,9 +92,11 @@ pub use frustum::{
 pub use geom::{Quat, Vec3, quat_angle_between};
 pub use metrics::{
     Aggregate, Metric, ObjectMetrics, Order, RankKey, Ranked, RestThresholds, Track, WorldMetric,
-    WorldMetrics, merge_top_k, score, top_k,
+    WorldMetrics, merge_top_k, score, top_k, top_k_counted,
 };
-pub use path::{MAX_TREE_DEPTH, MIN_SPLIT_SEGMENTS, Obb, PathTree, Polyline, segment_entry};
+pub use path::{
+    MAX_TREE_DEPTH, MIN_SPLIT_SEGMENTS, Obb, PathTree, Polyline, rest_entry, segment_entry,
+};
 pub use session::ConstraintSet;
 
 use thiserror::Error;
@@ -107,6 +116,21 @@ pub enum BrowseError {
     ZeroVector { field: &'static str },
     #[error("screen rectangle is empty: {width} × {height} px")]
     EmptyRect { width: f64, height: f64 },
+    #[error(
+        "{field}: the screen rectangle lies entirely outside the {width} × {height} px viewport \
+         (pixels from the top-left corner, x right, y down; {field} = {value})"
+    )]
+    RectOutsideViewport {
+        field: &'static str,
+        value: f64,
+        width: u32,
+        height: u32,
+    },
+    #[error("{field}: cannot be combined with {with}")]
+    Conflict {
+        field: &'static str,
+        with: &'static str,
+    },
     #[error("{field}: expected {expected} entries, found {found}")]
     LengthMismatch {
         field: &'static str,

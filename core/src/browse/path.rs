@@ -15,6 +15,13 @@
 //! low-resolution position at the same t, and that one lies on a tested segment inside the
 //! inflated frustum. Comparing positions *at the same time* (not nearest points) is what makes
 //! the bound hold for time windows too.
+//!
+//! **Rest.** A world ends when its bodies come to rest or its end time is reached, and from then
+//! on each body stays at its final pose. A path therefore holds its last vertex for ever: a
+//! window that begins after the path's last time asks whether that vertex is inside
+//! ([`rest_entry`]), and a final-pose constraint asks only that ([`PathTree::final_pose_inside`]).
+//! The never-miss bound holds there too: the indexed polyline's last vertex *is* the last decoded
+//! frame (simplification and sub-sampling keep it), so after the end the two differ by nothing.
 
 use super::constraint::TimeWindow;
 use super::frustum::{ALL_PLANES, Frustum, RegionCache};
@@ -252,9 +259,32 @@ impl Polyline {
     }
 
     /// The earliest time in `window` at which the polyline is inside `frustum`, testing every
-    /// segment (the brute-force reference for [`PathTree::first_entry`]).
+    /// segment and then the final pose held after the end (the brute-force reference for
+    /// [`PathTree::first_entry`]).
     pub fn first_entry(&self, frustum: &Frustum, window: Option<TimeWindow>) -> Option<f64> {
-        (0..self.segment_count()).find_map(|i| self.segment_entry(i, frustum, ALL_PLANES, window))
+        (0..self.segment_count())
+            .find_map(|i| self.segment_entry(i, frustum, ALL_PLANES, window))
+            .or_else(|| self.rest_entry(frustum, ALL_PLANES, window))
+    }
+
+    /// The last vertex and its time: the pose held after the end.
+    pub fn end(&self) -> (Vec3, f64) {
+        let last = self.points.len() - 1;
+        (self.points[last], self.times[last])
+    }
+
+    /// Whether the final pose is inside `frustum` (on the boundary counts).
+    pub fn final_pose_inside(&self, frustum: &Frustum) -> bool {
+        let (p, _) = self.end();
+        frustum
+            .clip_segment_masked(p, p, 0.0, 1.0, ALL_PLANES)
+            .is_some()
+    }
+
+    /// [`rest_entry`] of this polyline's end.
+    fn rest_entry(&self, frustum: &Frustum, mask: u8, window: Option<TimeWindow>) -> Option<f64> {
+        let (p, t) = self.end();
+        rest_entry(p, t, frustum, mask, window)
     }
 
     /// Exact leaf test of segment `i` ([`segment_entry`]).
@@ -302,6 +332,27 @@ pub fn segment_entry(
     }
     let (lo, _) = frustum.clip_segment_masked(a, b, s0, s1, mask)?;
     Some((ta + lo * (tb - ta)).clamp(ta, tb))
+}
+
+/// The held final pose: after its last vertex `end` (time `t_end`) a path stays there for ever,
+/// since its world has ended. For a `window` that begins after `t_end` — the only windows the
+/// path's last segment does not already answer — returns the window's start if `end` is inside
+/// the planes of `frustum` in `mask`. Brute force, the OBB trees and the store's hierarchy call
+/// this after the last segment, so they agree on rest poses as on segments.
+#[inline]
+pub fn rest_entry(
+    end: Vec3,
+    t_end: f64,
+    frustum: &Frustum,
+    mask: u8,
+    window: Option<TimeWindow>,
+) -> Option<f64> {
+    let w = window?;
+    if w.start() <= t_end {
+        return None;
+    }
+    frustum.clip_segment_masked(end, end, 0.0, 1.0, mask)?;
+    Some(w.start())
 }
 
 /// An oriented bounding box: centre, orthonormal axes and half extents along them.
@@ -434,6 +485,7 @@ impl Obb {
 struct Node {
     obb: Obb,
     t_start: f64,
+    /// +∞ for the nodes holding the last segment: the final pose is held after the end.
     t_end: f64,
     /// Segments `first..end` of the polyline.
     first: u32,
@@ -466,12 +518,18 @@ impl PathTree {
 
     fn build_node(&mut self, first: usize, end: usize, depth: usize) -> u32 {
         let last_point = end.min(self.path.len() - 1);
+        // The box holds the last vertex, so the held final pose is inside it too.
         let obb = Obb::fit(&self.path.points[first..=last_point]);
         let index = self.nodes.len();
+        let t_end = if end >= self.path.segment_count() {
+            f64::INFINITY
+        } else {
+            self.path.times[last_point]
+        };
         self.nodes.push(Node {
             obb,
             t_start: self.path.times[first],
-            t_end: self.path.times[last_point],
+            t_end,
             first: first as u32,
             end: end as u32,
             children: None,
@@ -513,8 +571,8 @@ impl PathTree {
             + self.nodes.capacity() * size_of::<Node>()
     }
 
-    /// The earliest time in `window` at which the polyline is inside `frustum` (exact for the
-    /// polyline; equal to [`Polyline::first_entry`]). Subtrees whose box is outside a plane, or
+    /// The earliest time in `window` at which the polyline, with its final pose held after the
+    /// end, is inside `frustum` (exact for the polyline; equal to [`Polyline::first_entry`]). Subtrees whose box is outside a plane, or
     /// whose time span misses the window, are skipped; see
     /// [`intersects_region`](Self::intersects_region) for the box tests.
     pub fn first_entry(&self, frustum: &Frustum, window: Option<TimeWindow>) -> Option<f64> {
@@ -558,6 +616,13 @@ impl PathTree {
         &self.nodes[0].obb
     }
 
+    /// Whether the final pose is inside `region` (for a never-miss test, the frustum inflated
+    /// by the path's radius: the last vertex is the last decoded frame, which is within e_max
+    /// of the simulated one).
+    pub fn final_pose_inside(&self, region: &Frustum) -> bool {
+        self.path.final_pose_inside(region)
+    }
+
     fn in_window(&self, i: u32, window: Option<TimeWindow>) -> bool {
         let node = &self.nodes[i as usize];
         window.is_none_or(|w| node.t_end >= w.start() && node.t_start <= w.end())
@@ -579,7 +644,12 @@ impl PathTree {
                 .visit(left, region, mask, window)
                 .or_else(|| self.visit(right, region, mask, window)),
             _ => (node.first as usize..node.end as usize)
-                .find_map(|s| self.path.segment_entry(s, region, mask, window)),
+                .find_map(|s| self.path.segment_entry(s, region, mask, window))
+                .or_else(|| {
+                    (node.end as usize >= self.path.segment_count())
+                        .then(|| self.path.rest_entry(region, mask, window))
+                        .flatten()
+                }),
         }
     }
 

@@ -332,3 +332,56 @@ fn world_metrics_rank_backward_worlds_and_leave_forward_ones_unscored() {
     // Absent measurements are not written (forward summaries stay as they were).
     assert_eq!(serde_json::to_string(&forward).expect("serialises"), "{}");
 }
+
+/// Issue 24: a world whose chosen bodies were still moving when it ended has no time to rest, so
+/// "rests soonest" never puts it first — whatever its (end-time) value — and it is counted.
+#[test]
+fn time_to_rest_has_no_value_for_bodies_still_moving_and_those_sort_last() {
+    let moving = ObjectMetrics {
+        came_to_rest: false,
+        ..object(0.0, 0.5)
+    };
+    let worlds = [
+        vec![object(0.0, 2.0), object(0.0, 3.0)], // rests at 3 s (max), 5 s (sum)
+        vec![moving, object(0.0, 0.1)],           // never rests: no value, even at 0.5 s
+        vec![object(0.0, 1.0), object(0.0, 1.5)], // rests at 1.5 s, soonest
+    ];
+    assert_eq!(moving.get(Metric::TimeToRest), None);
+    assert_eq!(moving.get(Metric::AngularTravel), Some(0.0));
+    let agg = Metric::TimeToRest.default_aggregate();
+    assert_eq!(agg, Aggregate::Max);
+    assert_eq!(Metric::Impacts.default_aggregate(), Aggregate::Sum);
+    assert_eq!(Metric::TimeToRest.unit(), "s");
+    let (rows, unscored) = top_k_counted(0..3, 3, Order::Ascending, |w| {
+        score(&worlds[w as usize], &[0, 1], Metric::TimeToRest, agg)
+    });
+    assert_eq!(unscored, 1);
+    assert_eq!(
+        rows,
+        vec![
+            Ranked {
+                world: 2,
+                score: Some(1.5)
+            },
+            Ranked {
+                world: 0,
+                score: Some(3.0)
+            },
+            Ranked {
+                world: 1,
+                score: None
+            },
+        ]
+    );
+    // Only the resting body chosen: world 1 has a value again.
+    assert_eq!(score(&worlds[1], &[1], Metric::TimeToRest, agg), Some(0.1));
+    // Descending ("rests latest") still puts the unscored last, and NaN counts as no value.
+    let (rows, unscored) = top_k_counted(0..3, 1, Order::Descending, |w| {
+        if w == 2 {
+            Some(f64::NAN)
+        } else {
+            score(&worlds[w as usize], &[0, 1], Metric::TimeToRest, agg)
+        }
+    });
+    assert_eq!((rows[0].world, unscored), (0, 2));
+}

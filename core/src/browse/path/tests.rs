@@ -670,8 +670,118 @@ fn a_box_inside_every_plane_answers_without_clipping() {
         );
     }
     assert_eq!(tree.first_entry(&region, None), Some(0.1));
+    // The path ends at 2.07 s; its body rests at the last vertex, inside the box, from then on.
     assert_eq!(
         tree.first_entry(&region, TimeWindow::new(2.5, 3.0).ok()),
-        None
+        Some(2.5)
     );
+}
+
+/// Brute force on decoded motion, frame by frame, with the rule of issue 24: once its world has
+/// ended a body stays at its final pose, so a window reaching past the last frame sees that
+/// pose. Uses nothing of the index (no segment clipping): frames and `Frustum::contains`.
+fn frames_hit(decoded: &Polyline, frustum: &Frustum, window: Option<TimeWindow>) -> bool {
+    let in_window = |t: f64| window.is_none_or(|w| w.contains(t));
+    let (end, t_end) = decoded.end();
+    decoded
+        .times()
+        .iter()
+        .zip(decoded.points())
+        .any(|(&t, &p)| in_window(t) && frustum.contains(p))
+        || (window.is_none_or(|w| w.end() >= t_end) && frustum.contains(end))
+}
+
+/// A case for the rest-pose properties: the never-miss case, a box near the final pose (so that
+/// final poses are often inside), and windows past the end and across it.
+fn rest_case(seed: u64) -> (Case, Frustum, [Option<TimeWindow>; 3]) {
+    let c = case(seed);
+    let mut rng = Rng(seed ^ 0x7E57);
+    let (end, t_end) = c.decoded.end();
+    let centre = add(end, rng.vec3(-0.3, 0.3));
+    let half = rng.range(0.01, 0.4);
+    let near_end = Frustum::aabb(
+        [centre[0] - half, centre[1] - half, centre[2] - half],
+        [centre[0] + half, centre[1] + half, centre[2] + half],
+    )
+    .expect("finite");
+    let after = rng.range(1e-6, 3.0);
+    let past = TimeWindow::new(t_end + after, t_end + after + rng.range(0.0, 3.0)).ok();
+    let from = t_end - rng.range(0.0, 0.5);
+    let across = TimeWindow::new(from, t_end + rng.range(0.0, 3.0)).ok();
+    let windows = [c.window, past, across];
+    (c, near_end, windows)
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 300, ..ProptestConfig::default() })]
+
+    /// Issue 24, never miss with rest poses: whenever brute force on the decoded frames (final
+    /// pose held after the end) finds the body in the volume during a window — before, across
+    /// or wholly after the world's end — the OBB tree over the low-res polyline, inflated by
+    /// its radius, finds it too; a final-pose test likewise. On the decoded polyline itself a
+    /// window wholly past the end and the final-pose test answer exactly what brute force does,
+    /// and the tree always answers exactly what its own polyline does.
+    #[test]
+    fn rest_poses_and_final_states_are_never_missed(seed in any::<u64>()) {
+        let (c, near_end, windows) = rest_case(seed);
+        let low = PathTree::build(c.low.clone());
+        let decoded = PathTree::build(c.decoded.clone());
+        let (end, t_end) = c.decoded.end();
+        prop_assert_eq!(c.low.end(), (c.low.points()[c.low.len() - 1], t_end));
+        for frustum in [c.frustum, near_end] {
+            let inflated = frustum.inflated(c.radius);
+            for window in windows {
+                if frames_hit(&c.decoded, &frustum, window) {
+                    prop_assert!(
+                        low.first_entry(&inflated, window).is_some(),
+                        "missed {window:?} (end {t_end}, radius {})", c.radius
+                    );
+                    prop_assert!(low.intersects(&frustum, window, c.radius));
+                }
+                prop_assert_eq!(low.first_entry(&inflated, window), c.low.first_entry(&inflated, window));
+                prop_assert_eq!(decoded.first_entry(&frustum, window), c.decoded.first_entry(&frustum, window));
+                if let Some(w) = window.filter(|w| w.start() > t_end) {
+                    // Past the end only the final pose is left: exact, and entered at the start.
+                    let inside = frustum.contains(end);
+                    prop_assert_eq!(decoded.first_entry(&frustum, window).is_some(), inside);
+                    if inside {
+                        prop_assert_eq!(decoded.first_entry(&frustum, window), Some(w.start()));
+                    }
+                }
+            }
+            let final_inside = frustum.contains(end);
+            prop_assert_eq!(decoded.final_pose_inside(&frustum), final_inside);
+            if final_inside {
+                prop_assert!(low.final_pose_inside(&inflated), "final pose missed");
+            }
+            // The final pose is part of the motion: a final-pose hit is a hit without a window.
+            if low.final_pose_inside(&inflated) {
+                prop_assert!(low.first_entry(&inflated, None).is_some());
+            }
+        }
+    }
+}
+
+/// The generator exercises what the property is about: many windows wholly past the end find
+/// the resting body (a segments-only test finds none of them: every segment ends before the
+/// window), and many final poses are inside their box.
+#[test]
+fn rest_cases_hit_after_the_end() {
+    let (mut late_hits, mut final_hits) = (0, 0);
+    for seed in 0..300u64 {
+        let (c, near_end, windows) = rest_case(seed);
+        let (_, t_end) = c.decoded.end();
+        let past = windows[1].filter(|w| w.start() > t_end);
+        if let Some(w) = past
+            && frames_hit(&c.decoded, &near_end, past)
+        {
+            late_hits += 1;
+            let segments_only = (0..c.decoded.segment_count())
+                .find_map(|i| c.decoded.segment_entry(i, &near_end, ALL_PLANES, Some(w)));
+            assert_eq!(segments_only, None, "seed {seed}");
+        }
+        final_hits += usize::from(near_end.contains(c.decoded.end().0));
+    }
+    assert!(late_hits > 50, "{late_hits} late hits");
+    assert!(final_hits > 50, "{final_hits} final poses inside");
 }

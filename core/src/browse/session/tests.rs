@@ -30,7 +30,9 @@ fn constraint(id: u64, polarity: Polarity) -> Constraint {
         polarity,
         frustum: frustum_at(id as f64 * 3.0),
         objects: vec![0],
+        quantifier: Default::default(),
         window: None,
+        scope: Default::default(),
     }
 }
 

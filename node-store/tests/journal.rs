@@ -1,0 +1,349 @@
+//! The store's journal and `--load` over a real zenoh session (peer, no scouting): a store
+//! restarted on its journal holds the same worlds byte for byte and the same job state; a
+//! truncated or bit-flipped journal still lets it start, with every world before the damage;
+//! a world that arrives before its job is stored when the job comes (no pause needed in a
+//! replay).
+
+use mwb_core::keys::Keys;
+use mwb_proto::v1::{Job, Message, MotionSegment, WorldDone};
+use mwb_store::{StoreConfig, StoreHandle, run_store};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU32, Ordering};
+use std::time::{Duration, Instant};
+use zenoh::qos::CongestionControl;
+
+const SPACE: &str = "journaltest";
+
+/// A session of its own (no listen, no connect, no scouting): puts reach the store on it.
+async fn session() -> zenoh::Session {
+    let mut c = zenoh::Config::default();
+    for (k, v) in [
+        ("mode", "\"peer\""),
+        ("scouting/multicast/enabled", "false"),
+        ("scouting/gossip/enabled", "false"),
+        ("listen/endpoints", "[]"),
+    ] {
+        c.insert_json5(k, v).unwrap_or_else(|e| panic!("{k}: {e}"));
+    }
+    tokio::time::timeout(Duration::from_secs(20), zenoh::open(c))
+        .await
+        .unwrap_or_else(|_| panic!("open timed out"))
+        .unwrap_or_else(|e| panic!("{e}"))
+}
+
+async fn close(s: zenoh::Session) {
+    tokio::time::timeout(Duration::from_secs(10), s.close())
+        .await
+        .unwrap_or_else(|_| panic!("close timed out"))
+        .unwrap_or_else(|e| panic!("{e}"));
+}
+
+async fn put(s: &zenoh::Session, key: String, bytes: Vec<u8>) {
+    tokio::time::timeout(
+        Duration::from_secs(10),
+        s.put(key, bytes)
+            .congestion_control(CongestionControl::Block),
+    )
+    .await
+    .unwrap_or_else(|_| panic!("put timed out"))
+    .unwrap_or_else(|e| panic!("{e}"));
+}
+
+async fn until(what: &str, mut f: impl FnMut() -> bool) {
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while !f() {
+        assert!(Instant::now() < deadline, "timed out waiting for {what}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+fn job(id: &str, target: u32) -> Job {
+    Job {
+        id: id.into(),
+        revision: 1,
+        target_worlds: target,
+        ..Default::default()
+    }
+}
+
+/// A world of `segs` segments with distinct payloads (not codec data: it is stored and
+/// served, and counted as not browsable).
+fn world(job: &str, counter: u64, seed: u64, segs: u32) -> (Vec<MotionSegment>, WorldDone) {
+    let segments: Vec<MotionSegment> = (0..segs)
+        .map(|i| {
+            let payload: Vec<u8> = (0..300u32)
+                .map(|b| (b as u64 * 31 + seed * 7 + u64::from(i)) as u8)
+                .collect();
+            MotionSegment {
+                job_id: job.into(),
+                node_id: "sampler-j".into(),
+                world_counter: counter,
+                seed,
+                seq: i,
+                first_frame: i * 10,
+                frame_count: 10,
+                body_count: 1,
+                crc32: crc32fast::hash(&payload),
+                payload,
+                ..Default::default()
+            }
+        })
+        .collect();
+    let done = WorldDone {
+        job_id: job.into(),
+        node_id: "sampler-j".into(),
+        world_counter: counter,
+        seed,
+        frame_count: segs * 10,
+        segment_count: segs,
+        impacts: vec![1],
+        ..Default::default()
+    };
+    (segments, done)
+}
+
+async fn put_world(s: &zenoh::Session, keys: &Keys, w: &(Vec<MotionSegment>, WorldDone)) {
+    for seg in &w.0 {
+        put(
+            s,
+            keys.segment(&seg.job_id, &seg.node_id, seg.world_counter, seg.seq),
+            seg.encode_to_vec(),
+        )
+        .await;
+    }
+    let d = &w.1;
+    put(
+        s,
+        keys.done(&d.job_id, &d.node_id, d.world_counter),
+        d.encode_to_vec(),
+    )
+    .await;
+}
+
+async fn store(s: &zenoh::Session, journal: Option<&Path>, load: Vec<PathBuf>) -> StoreHandle {
+    // A store of its own name each time (stores follow each other on one session).
+    static N: AtomicU32 = AtomicU32::new(0);
+    let node_id = format!("store{}", N.fetch_add(1, Ordering::Relaxed));
+    tokio::time::timeout(
+        Duration::from_secs(60),
+        run_store(
+            s.clone(),
+            StoreConfig {
+                space: SPACE.into(),
+                journal: journal.map(Path::to_owned),
+                load,
+                node_id: Some(node_id),
+                ..Default::default()
+            },
+        ),
+    )
+    .await
+    .unwrap_or_else(|_| panic!("store start timed out"))
+    .unwrap_or_else(|e| panic!("{e}"))
+}
+
+/// Every stored world as (job, seed) → its encoded summary and segments.
+fn contents(st: &StoreHandle) -> BTreeMap<(String, u64), Vec<Vec<u8>>> {
+    let mut m = BTreeMap::new();
+    let mut i = 0;
+    while let Some(w) = st.world(i) {
+        let mut bytes = vec![w.done.encode_to_vec()];
+        bytes.extend(w.segments.iter().map(|s| s.encode_to_vec()));
+        m.insert((w.job_id.clone(), w.done.seed), bytes);
+        i += 1;
+    }
+    m
+}
+
+/// A store with a journal in `dir` takes `worlds` worlds of job `id` (one commit each: the
+/// next world is sent once the store holds the last).
+async fn journal_worlds(dir: &Path, id: &str, target: u32, seeds: std::ops::Range<u64>) {
+    let s = session().await;
+    let keys = Keys::new(SPACE).unwrap_or_else(|e| panic!("{e}"));
+    let st = store(&s, Some(dir), vec![]).await;
+    let before = st.world_count();
+    if st.job_state(id).is_none() {
+        put(&s, keys.job(id), job(id, target).encode_to_vec()).await;
+        until("the job", || st.job_state(id).is_some()).await;
+    }
+    for (n, seed) in seeds.clone().enumerate() {
+        put_world(&s, &keys, &world(id, seed, seed, 3)).await;
+        until("the world", || st.world_count() == before + n + 1).await;
+    }
+    // Every world is acknowledged once its state is published, after the commit.
+    until("the journal's commits", || {
+        st.journal_counters()
+            .is_some_and(|c| c.messages >= 4 * seeds.clone().count() as u64)
+    })
+    .await;
+    st.stop();
+    close(s).await;
+}
+
+fn journal_files(dir: &Path) -> Vec<PathBuf> {
+    let mut v: Vec<PathBuf> = std::fs::read_dir(dir)
+        .unwrap_or_else(|e| panic!("{e}"))
+        .map(|e| e.unwrap_or_else(|e| panic!("{e}")).path())
+        .collect();
+    v.sort();
+    v
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_restarted_store_has_every_world_and_the_job_state_of_its_journal() {
+    let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
+    let journal = dir.path().join("journal");
+    journal_worlds(&journal, "j1", 8, 0..5).await;
+
+    let s = session().await;
+    let st = store(&s, Some(&journal), vec![]).await;
+    let r = st.start_report();
+    assert_eq!(r.worlds_from_journal, 5, "{r:?}");
+    assert_eq!(r.journal.len(), 1);
+    // A stopped store's writer finishes its file as it is dropped (a killed one leaves it cut
+    // short; both are read whole).
+    let f = &r.journal[0];
+    assert!(f.damage.is_none() || f.cut_short, "{f:?}");
+    assert_eq!(r.damaged_files(), 0);
+    let state = st.job_state("j1").unwrap_or_else(|| panic!("job j1 lost"));
+    assert_eq!((state.worlds_done, state.closed), (5, false));
+    let expected: BTreeMap<(String, u64), Vec<Vec<u8>>> = (0..5u64)
+        .map(|seed| {
+            let (segs, done) = world("j1", seed, seed, 3);
+            let mut v = vec![done.encode_to_vec()];
+            v.extend(segs.iter().map(|s| s.encode_to_vec()));
+            (("j1".to_owned(), seed), v)
+        })
+        .collect();
+    assert_eq!(contents(&st), expected);
+    // Worlds keep their indices: the journal is read in the order they were stored.
+    for i in 0..5u32 {
+        assert_eq!(st.world(i).map(|w| w.done.seed), Some(u64::from(i)));
+    }
+
+    // The job goes on after the restart, and a replayed duplicate is still refused.
+    let keys = Keys::new(SPACE).unwrap_or_else(|e| panic!("{e}"));
+    put_world(&s, &keys, &world("j1", 2, 2, 3)).await;
+    for seed in 5..8u64 {
+        put_world(&s, &keys, &world("j1", seed, seed, 3)).await;
+    }
+    until("the job to close", || {
+        st.job_state("j1").is_some_and(|s| s.closed)
+    })
+    .await;
+    assert_eq!(st.world_count(), 8);
+    assert_eq!(st.stats().duplicates, 1);
+    st.stop();
+    close(s).await;
+
+    // Two files now (one per run); the second begins with a checkpoint of the job, so it
+    // reads alone.
+    let files = journal_files(&journal);
+    assert_eq!(files.len(), 2, "{files:?}");
+    let s = session().await;
+    let lone = dir.path().join("lone");
+    std::fs::create_dir(&lone).unwrap_or_else(|e| panic!("{e}"));
+    let second = files.get(1).unwrap_or_else(|| panic!("no second file"));
+    std::fs::copy(second, lone.join("journal-000001.mcap")).unwrap_or_else(|e| panic!("{e}"));
+    let st = store(&s, Some(&lone), vec![]).await;
+    assert_eq!(st.world_count(), 3, "worlds 5..8 of the second run");
+    let state = st.job_state("j1").unwrap_or_else(|| panic!("job lost"));
+    assert!(state.closed && state.worlds_done == 8, "{state:?}");
+    st.stop();
+
+    // The whole journal, loaded as recordings (`--load`) into a memory-only store.
+    let st = store(&s, None, files).await;
+    assert_eq!(st.world_count(), 8);
+    assert_eq!(st.start_report().worlds_from_recordings, 8);
+    st.stop();
+    close(s).await;
+}
+
+/// Cut and flipped copies of a journal: the store starts every time, with the worlds whose
+/// records precede the damage — a prefix of the original worlds, byte for byte.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_truncated_or_bit_flipped_journal_loads_what_precedes_the_damage() {
+    let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
+    let journal = dir.path().join("journal");
+    journal_worlds(&journal, "jd", 20, 0..6).await;
+    let files = journal_files(&journal);
+    let [file] = files.as_slice() else {
+        panic!("{files:?}")
+    };
+    let bytes = std::fs::read(file).unwrap_or_else(|e| panic!("{e}"));
+    let s = session().await;
+    let full = {
+        let st = store(&s, None, vec![file.clone()]).await;
+        let c = contents(&st);
+        st.stop();
+        c
+    };
+    assert_eq!(full.len(), 6);
+    let full_list: Vec<_> = full.iter().collect();
+
+    let len = bytes.len();
+    let mut cases: Vec<(String, Vec<u8>)> = Vec::new();
+    for cut in [0, 8, 100, len / 3, len / 2, (3 * len) / 4, len - 1] {
+        cases.push((format!("cut at {cut}"), bytes[..cut].to_vec()));
+    }
+    for at in [len / 4, len / 2, (4 * len) / 5] {
+        let mut b = bytes.clone();
+        b[at] ^= 0x10;
+        cases.push((format!("bit flipped at {at}"), b));
+    }
+    cases.push(("garbage".into(), b"not a journal at all".to_vec()));
+    let mut fewer = 0;
+    for (name, data) in cases {
+        let d = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
+        std::fs::write(d.path().join("journal-000001.mcap"), &data)
+            .unwrap_or_else(|e| panic!("{e}"));
+        let st = store(&s, Some(d.path()), vec![]).await;
+        let r = st.start_report().clone();
+        let got = contents(&st);
+        st.stop();
+        let f = &r.journal[0];
+        assert!(f.damage.is_some(), "{name}: damage not reported: {f:?}");
+        assert_eq!(
+            f.skipped_bytes,
+            data.len() as u64 - f.damage_offset.unwrap_or(0),
+            "{name}"
+        );
+        // A prefix of the original worlds, in order and byte for byte.
+        let got_list: Vec<_> = got.iter().collect();
+        assert!(
+            got_list.len() <= full_list.len() && got_list[..] == full_list[..got_list.len()],
+            "{name}: not a prefix of the original worlds"
+        );
+        assert_eq!(r.worlds_from_journal, got.len() as u64, "{name}");
+        if got.len() < full.len() {
+            fewer += 1;
+        }
+        // The damaged file is left as it was; this run writes a new one beside it.
+        assert_eq!(journal_files(d.path()).len(), 2, "{name}");
+        let kept =
+            std::fs::read(d.path().join("journal-000001.mcap")).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(kept, data, "{name}: the damaged file was changed");
+    }
+    assert!(fewer >= 5, "most cuts and flips should lose some worlds");
+    close(s).await;
+}
+
+/// Segments and the summary of a world put before its job (what a replay at full speed can
+/// do): the store holds the world and stores it when the job comes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_world_that_arrives_before_its_job_is_stored_when_the_job_comes() {
+    let s = session().await;
+    let keys = Keys::new(SPACE).unwrap_or_else(|e| panic!("{e}"));
+    let st = store(&s, None, vec![]).await;
+    put_world(&s, &keys, &world("early", 0, 42, 2)).await;
+    until("the world to be held", || st.held_worlds() == 1).await;
+    assert_eq!(st.world_count(), 0);
+    put(&s, keys.job("early"), job("early", 1).encode_to_vec()).await;
+    until("the held world to be stored", || st.world_count() == 1).await;
+    let state = st.job_state("early").unwrap_or_else(|| panic!("no job"));
+    assert!(state.closed && state.worlds_done == 1 && state.worlds_rejected == 0);
+    assert_eq!(st.world(0).map(|w| w.done.seed), Some(42));
+    st.stop();
+    close(s).await;
+}

@@ -1,0 +1,644 @@
+//! The 3D view as egui shapes: every point goes through `mwb_core::browse::Projection::project`
+//! (the projection constraints are built with), clipped at the near plane, and is painted as
+//! egui lines and triangle meshes (flat-shaded, painter-sorted). No GPU state: the view looks
+//! the same on any egui backend and in the software rasteriser.
+
+use egui::{Color32, Mesh, Pos2, Rect, Shape, Stroke, pos2};
+use mwb_core::browse::{Polarity, Projection, Viewport};
+use mwb_core::scene::Shape as SceneShape;
+
+use crate::camera::{OrbitCamera, rotate};
+use crate::math::{V3, add, cross, dot, lerp, normalize, scale, sub};
+use crate::state::ViewerState;
+
+/// Colours of the view (premultiplied where translucent).
+pub mod palette {
+    use egui::Color32;
+    pub const SKY_TOP: Color32 = Color32::from_rgb(38, 42, 50);
+    pub const SKY_BOTTOM: Color32 = Color32::from_rgb(18, 19, 23);
+    pub const GRID: Color32 = Color32::from_rgb(58, 62, 70);
+    pub const GRID_MAJOR: Color32 = Color32::from_rgb(80, 85, 95);
+    pub const SURVIVOR: [u8; 3] = [90, 180, 255];
+    pub const REJECTED: [u8; 3] = [150, 150, 150];
+    pub const SELECTED: Color32 = Color32::from_rgb(255, 176, 64);
+    pub const POSITIVE: [u8; 3] = [80, 220, 120];
+    pub const NEGATIVE: [u8; 3] = [240, 80, 80];
+    pub const STATIC: [f32; 3] = [0.55, 0.56, 0.6];
+    pub const BODIES: [[f32; 3]; 6] = [
+        [0.86, 0.55, 0.32],
+        [0.45, 0.7, 0.9],
+        [0.6, 0.82, 0.45],
+        [0.88, 0.76, 0.36],
+        [0.74, 0.52, 0.86],
+        [0.9, 0.45, 0.5],
+    ];
+}
+
+/// How a view rectangle maps to the pixels a browse camera sees.
+#[derive(Debug, Clone, Copy)]
+pub struct View {
+    pub proj: Projection,
+    pub rect: Rect,
+    pub ppp: f32,
+    pub viewport: Viewport,
+    eye: V3,
+    forward: V3,
+    near: f64,
+}
+
+/// The pixel viewport of a view rectangle at `ppp` physical pixels per point.
+pub fn viewport_of(rect: Rect, ppp: f32) -> Viewport {
+    Viewport {
+        width: (rect.width() * ppp).round().max(1.0) as u32,
+        height: (rect.height() * ppp).round().max(1.0) as u32,
+    }
+}
+
+impl View {
+    pub fn new(camera: &OrbitCamera, rect: Rect, ppp: f32) -> Option<Self> {
+        let viewport = viewport_of(rect, ppp);
+        let proj = camera.browse_camera(viewport).projection().ok()?;
+        Some(Self {
+            proj,
+            rect,
+            ppp,
+            viewport,
+            eye: proj.position(),
+            forward: proj.forward(),
+            near: camera.near,
+        })
+    }
+
+    /// Screen point (egui points) → browse pixel coordinates of this view.
+    pub fn pixel(&self, p: Pos2) -> [f64; 2] {
+        [
+            f64::from((p.x - self.rect.min.x) * self.ppp),
+            f64::from((p.y - self.rect.min.y) * self.ppp),
+        ]
+    }
+
+    fn screen(&self, px: [f64; 2]) -> Pos2 {
+        pos2(
+            self.rect.min.x + px[0] as f32 / self.ppp,
+            self.rect.min.y + px[1] as f32 / self.ppp,
+        )
+    }
+
+    fn depth(&self, p: V3) -> f64 {
+        dot(sub(p, self.eye), self.forward)
+    }
+
+    /// The screen point of `p`, if it is in front of the near plane.
+    pub fn project(&self, p: V3) -> Option<Pos2> {
+        if self.depth(p) < self.near {
+            return None;
+        }
+        self.proj.project(p).map(|(px, _)| self.screen(px))
+    }
+
+    /// A segment clipped to the near plane, on screen.
+    pub fn segment(&self, a: V3, b: V3) -> Option<[Pos2; 2]> {
+        let (da, db) = (self.depth(a) - self.near, self.depth(b) - self.near);
+        if da < 0.0 && db < 0.0 {
+            return None;
+        }
+        let cut = |from: V3, to: V3, df: f64, dt: f64| lerp(from, to, df / (df - dt));
+        let (a, b) = if da < 0.0 {
+            (cut(a, b, da, db), b)
+        } else if db < 0.0 {
+            (a, cut(a, b, da, db))
+        } else {
+            (a, b)
+        };
+        Some([self.project_unchecked(a)?, self.project_unchecked(b)?])
+    }
+
+    fn project_unchecked(&self, p: V3) -> Option<Pos2> {
+        self.proj.project(p).map(|(px, _)| self.screen(px))
+    }
+
+    /// A polyline on screen, split where it leaves the near side.
+    pub fn polyline(&self, points: &[V3]) -> Vec<Vec<Pos2>> {
+        let mut runs = Vec::new();
+        let mut run: Vec<Pos2> = Vec::new();
+        for w in points.windows(2) {
+            match self.segment(w[0], w[1]) {
+                Some([a, b]) => {
+                    if run.is_empty() {
+                        run.push(a);
+                    }
+                    run.push(b);
+                    if self.depth(w[1]) < self.near {
+                        runs.push(std::mem::take(&mut run));
+                    }
+                }
+                None => {
+                    if run.len() > 1 {
+                        runs.push(std::mem::take(&mut run));
+                    }
+                    run.clear();
+                }
+            }
+        }
+        if run.len() > 1 {
+            runs.push(run);
+        }
+        runs
+    }
+}
+
+fn rgba(c: [u8; 3], a: u8) -> Color32 {
+    Color32::from_rgba_unmultiplied(c[0], c[1], c[2], a)
+}
+
+/// A shape's triangles in its local frame; `closed` shapes may drop back faces.
+fn local_triangles(shape: &SceneShape) -> (Vec<[V3; 3]>, bool) {
+    match shape {
+        SceneShape::Box { half_extents: h } => {
+            let c = |i: usize| -> V3 {
+                [
+                    if i & 1 == 0 { -h[0] } else { h[0] },
+                    if i & 2 == 0 { -h[1] } else { h[1] },
+                    if i & 4 == 0 { -h[2] } else { h[2] },
+                ]
+            };
+            let faces = [
+                [0, 2, 6, 4], // −x
+                [1, 5, 7, 3], // +x
+                [0, 4, 5, 1], // −y
+                [2, 3, 7, 6], // +y
+                [0, 1, 3, 2], // −z
+                [4, 6, 7, 5], // +z
+            ];
+            let mut out = Vec::with_capacity(12);
+            for f in faces {
+                out.push([c(f[0]), c(f[2]), c(f[1])]);
+                out.push([c(f[0]), c(f[3]), c(f[2])]);
+            }
+            (out, true)
+        }
+        SceneShape::Sphere { radius } => (round_body(*radius, 0.0), true),
+        SceneShape::Capsule {
+            half_height,
+            radius,
+        } => (round_body(*radius, *half_height), true),
+        SceneShape::Cylinder {
+            half_height,
+            radius,
+        } => {
+            let n = 20;
+            let ring = |i: usize, y: f64| -> V3 {
+                let a = std::f64::consts::TAU * i as f64 / n as f64;
+                [radius * a.cos(), y, -radius * a.sin()]
+            };
+            let mut out = Vec::new();
+            for i in 0..n {
+                let (a0, a1) = (ring(i, -half_height), ring(i + 1, -half_height));
+                let (b0, b1) = (ring(i, *half_height), ring(i + 1, *half_height));
+                out.push([a0, a1, b1]);
+                out.push([a0, b1, b0]);
+                out.push([[0.0, *half_height, 0.0], b0, b1]);
+                out.push([[0.0, -half_height, 0.0], a1, a0]);
+            }
+            (out, true)
+        }
+        SceneShape::ConvexHull { points } => (hull_triangles(points), true),
+        SceneShape::TriMesh { vertices, indices } => (
+            indices
+                .iter()
+                .filter_map(|t| {
+                    Some([
+                        *vertices.get(t[0] as usize)?,
+                        *vertices.get(t[1] as usize)?,
+                        *vertices.get(t[2] as usize)?,
+                    ])
+                })
+                .collect(),
+            false,
+        ),
+        SceneShape::Plane { .. } => (Vec::new(), false),
+    }
+}
+
+/// A sphere (`half_height` 0) or a capsule along local y: latitude rings, the two hemispheres
+/// pulled apart by ±`half_height`.
+fn round_body(radius: f64, half_height: f64) -> Vec<[V3; 3]> {
+    let (rings, segs) = (10usize, 18usize);
+    // Ring list: upper hemisphere (pole to equator), then lower (equator to pole).
+    let mut lat: Vec<(f64, f64)> = Vec::new();
+    for i in 0..=rings / 2 {
+        lat.push((std::f64::consts::PI * i as f64 / rings as f64, half_height));
+    }
+    for i in rings / 2..=rings {
+        lat.push((std::f64::consts::PI * i as f64 / rings as f64, -half_height));
+    }
+    let point = |(theta, dy): (f64, f64), j: usize| -> V3 {
+        let phi = std::f64::consts::TAU * j as f64 / segs as f64;
+        [
+            radius * theta.sin() * phi.cos(),
+            radius * theta.cos() + dy,
+            -radius * theta.sin() * phi.sin(),
+        ]
+    };
+    let mut out = Vec::new();
+    for r in 0..lat.len() - 1 {
+        for j in 0..segs {
+            let (a, b) = (point(lat[r], j), point(lat[r], j + 1));
+            let (c, d) = (point(lat[r + 1], j), point(lat[r + 1], j + 1));
+            out.push([a, c, d]);
+            out.push([a, d, b]);
+        }
+    }
+    out
+}
+
+/// Faces of the convex hull of a few points (brute force over triples; scenes give tens of
+/// points). Outward-wound.
+fn hull_triangles(points: &[V3]) -> Vec<[V3; 3]> {
+    let n = points.len().min(48);
+    let pts = &points[..n];
+    let centre = scale(
+        pts.iter().fold([0.0; 3], |a, &p| add(a, p)),
+        1.0 / n.max(1) as f64,
+    );
+    let size = pts
+        .iter()
+        .map(|p| crate::math::len(sub(*p, centre)))
+        .fold(0.0, f64::max);
+    let eps = 1e-9 * size.max(1e-9);
+    let mut out = Vec::new();
+    for i in 0..n {
+        for j in i + 1..n {
+            for k in j + 1..n {
+                let nrm = cross(sub(pts[j], pts[i]), sub(pts[k], pts[i]));
+                if crate::math::len(nrm) < 1e-12 * size * size {
+                    continue;
+                }
+                let side = |p: V3| dot(nrm, sub(p, pts[i]));
+                let (mut pos, mut neg) = (false, false);
+                for (m, &p) in pts.iter().enumerate() {
+                    if m == i || m == j || m == k {
+                        continue;
+                    }
+                    let s = side(p);
+                    pos |= s > eps;
+                    neg |= s < -eps;
+                }
+                match (pos, neg) {
+                    (false, _) => out.push([pts[i], pts[j], pts[k]]),
+                    (true, false) => out.push([pts[i], pts[k], pts[j]]),
+                    _ => {}
+                }
+            }
+        }
+    }
+    out
+}
+
+/// A world-space triangle to shade.
+struct Tri {
+    p: [V3; 3],
+    colour: [f32; 3],
+    alpha: f32,
+    closed: bool,
+}
+
+/// Adds a posed shape's triangles.
+fn push_shape(
+    out: &mut Vec<Tri>,
+    shape: &SceneShape,
+    pos: V3,
+    rot: [f64; 4],
+    colour: [f32; 3],
+    alpha: f32,
+) {
+    let (tris, closed) = local_triangles(shape);
+    for t in tris {
+        out.push(Tri {
+            p: t.map(|v| add(pos, rotate(rot, v))),
+            colour,
+            alpha,
+            closed,
+        });
+    }
+}
+
+/// Flat-shades and painter-sorts triangles into one mesh.
+fn shaded_mesh(view: &View, tris: Vec<Tri>) -> Mesh {
+    let light = normalize([0.35, 1.0, 0.55]).unwrap_or([0.0, 1.0, 0.0]);
+    let mut keyed: Vec<(f64, [Pos2; 3], Color32)> = Vec::with_capacity(tris.len());
+    for t in tris {
+        let n = match normalize(cross(sub(t.p[1], t.p[0]), sub(t.p[2], t.p[0]))) {
+            Some(n) => n,
+            None => continue,
+        };
+        let centroid = scale(add(add(t.p[0], t.p[1]), t.p[2]), 1.0 / 3.0);
+        let to_eye = sub(view.eye, centroid);
+        let facing = dot(n, to_eye);
+        if t.closed && facing <= 0.0 {
+            continue;
+        }
+        let n = if facing < 0.0 { scale(n, -1.0) } else { n };
+        let Some(a) = view.project(t.p[0]) else {
+            continue;
+        };
+        let Some(b) = view.project(t.p[1]) else {
+            continue;
+        };
+        let Some(c) = view.project(t.p[2]) else {
+            continue;
+        };
+        let lambert = dot(n, light).max(0.0) as f32;
+        let rim = 0.12 * (1.0 - (facing / crate::math::len(to_eye).max(1e-9)).abs() as f32);
+        let k = 0.32 + 0.6 * lambert + rim;
+        let col = t.colour.map(|c| ((c * k).clamp(0.0, 1.0) * 255.0) as u8);
+        let a8 = (t.alpha.clamp(0.0, 1.0) * 255.0) as u8;
+        keyed.push((view.depth(centroid), [a, b, c], rgba(col, a8)));
+    }
+    keyed.sort_by(|x, y| y.0.total_cmp(&x.0));
+    let mut mesh = Mesh::default();
+    for (_, p, col) in keyed {
+        let base = mesh.vertices.len() as u32;
+        for q in p {
+            mesh.colored_vertex(q, col);
+        }
+        mesh.add_triangle(base, base + 1, base + 2);
+    }
+    mesh
+}
+
+/// The height of the ground: the first static plane facing up, else 0.
+fn ground_height(state: &ViewerState) -> f64 {
+    state
+        .statics()
+        .iter()
+        .find_map(|s| match &s.shape {
+            SceneShape::Plane { normal } => {
+                let n = rotate(s.rotation, *normal);
+                (n[1] > 0.9).then_some(s.position[1])
+            }
+            _ => None,
+        })
+        .unwrap_or(0.0)
+}
+
+/// Inputs the view needs besides the state.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Overlay {
+    /// The rectangle being dragged, screen points, and whether it is negative.
+    pub drag: Option<(Pos2, Pos2, bool)>,
+    /// The world under the cursor.
+    pub hovered: Option<u32>,
+}
+
+/// Every shape of the 3D view of `state` in `view`.
+pub fn scene_shapes(state: &ViewerState, view: &View, overlay: Overlay) -> Vec<Shape> {
+    let mut shapes = Vec::new();
+    let r = view.rect;
+    // Background: a vertical gradient.
+    let mut sky = Mesh::default();
+    sky.colored_vertex(r.left_top(), palette::SKY_TOP);
+    sky.colored_vertex(r.right_top(), palette::SKY_TOP);
+    sky.colored_vertex(r.right_bottom(), palette::SKY_BOTTOM);
+    sky.colored_vertex(r.left_bottom(), palette::SKY_BOTTOM);
+    sky.add_triangle(0, 1, 2);
+    sky.add_triangle(0, 2, 3);
+    shapes.push(Shape::mesh(sky));
+
+    // Ground grid, 0.5 m, around the scene.
+    let y = ground_height(state);
+    let (centre, radius) = state.bounds().unwrap_or(([0.0; 3], 3.0));
+    let half = ((radius * 1.6).ceil()).clamp(3.0, 200.0);
+    let (cx, cz) = (
+        (centre[0] * 2.0).round() / 2.0,
+        (centre[2] * 2.0).round() / 2.0,
+    );
+    let steps = (2.0 * half / 0.5).round() as i64;
+    for i in 0..=steps {
+        let o = -half + 0.5 * i as f64;
+        let major = (o + cx).rem_euclid(1.0).abs() < 1e-9;
+        let stroke = Stroke::new(
+            if major { 1.0 } else { 0.6 },
+            if major {
+                palette::GRID_MAJOR
+            } else {
+                palette::GRID
+            },
+        );
+        for (a, b) in [
+            ([cx + o, y, cz - half], [cx + o, y, cz + half]),
+            ([cx - half, y, cz + o], [cx + half, y, cz + o]),
+        ] {
+            if let Some(s) = view.segment(a, b) {
+                shapes.push(Shape::line_segment(s, stroke));
+            }
+        }
+    }
+    // Axes at the origin: x red, y green, z blue, 1 m.
+    for (d, c) in [
+        ([1.0, 0.0, 0.0], Color32::from_rgb(220, 70, 70)),
+        ([0.0, 1.0, 0.0], Color32::from_rgb(90, 200, 90)),
+        ([0.0, 0.0, 1.0], Color32::from_rgb(80, 130, 240)),
+    ] {
+        if let Some(s) = view.segment([0.0, y, 0.0], add([0.0, y, 0.0], d)) {
+            shapes.push(Shape::line_segment(s, Stroke::new(2.0, c)));
+        }
+    }
+
+    // Static geometry.
+    let mut tris = Vec::new();
+    for s in state.statics() {
+        push_shape(
+            &mut tris,
+            &s.shape,
+            s.position,
+            s.rotation,
+            palette::STATIC,
+            1.0,
+        );
+    }
+    if !tris.is_empty() {
+        shapes.push(Shape::mesh(shaded_mesh(view, std::mem::take(&mut tris))));
+    }
+
+    // Paths: rejected dim first, survivors over them, the selected / hovered world on top.
+    let chosen = state.chosen_objects();
+    let n = state.worlds().len().max(1) as f32;
+    // Fainter the more worlds overlap.
+    let survivor_alpha = (255.0 * (6.0 / n.sqrt()).clamp(0.12, 0.8)) as u8;
+    let rejected_alpha = (survivor_alpha / 4).max(10);
+    for pass in [false, true] {
+        for w in state.worlds() {
+            if state.survives(w.index) != pass {
+                continue;
+            }
+            let stroke = if pass {
+                Stroke::new(1.2, rgba(palette::SURVIVOR, survivor_alpha))
+            } else {
+                Stroke::new(1.0, rgba(palette::REJECTED, rejected_alpha))
+            };
+            for &o in &chosen {
+                if let Some(p) = w.paths.get(o as usize) {
+                    for run in view.polyline(p.tree.path().points()) {
+                        shapes.push(Shape::line(run, stroke));
+                    }
+                }
+            }
+        }
+    }
+    for (w, stroke) in [
+        (
+            overlay.hovered,
+            Stroke::new(2.0, Color32::from_rgb(235, 235, 235)),
+        ),
+        (state.selected(), Stroke::new(2.5, palette::SELECTED)),
+    ] {
+        if let Some(world) = w.and_then(|w| state.worlds().get(w as usize)) {
+            for &o in &chosen {
+                if let Some(p) = world.paths.get(o as usize) {
+                    for run in view.polyline(p.tree.path().points()) {
+                        shapes.push(Shape::line(run, stroke));
+                    }
+                }
+            }
+        }
+    }
+
+    // Bodies of the shown world at the playback time.
+    if let Some(world) = state.shown_world() {
+        let t = state.playback().time;
+        for (b, body) in world.scene.bodies.iter().enumerate() {
+            if let Some((p, q)) = world.pose_at(b, t) {
+                let colour = palette::BODIES[b % palette::BODIES.len()];
+                let alpha = if state.is_chosen(b as u32) { 1.0 } else { 0.55 };
+                push_shape(&mut tris, &body.shape, p, q, colour, alpha);
+            }
+        }
+        shapes.push(Shape::mesh(shaded_mesh(view, tris)));
+    }
+
+    // Constraints: their frustum's four side edges from the eye they were drawn with to the
+    // depth of the scene, and the cross-section there.
+    for c in state.constraints().constraints() {
+        let Some(k) = c.frustum.corners() else {
+            continue;
+        };
+        let col = match c.polarity {
+            Polarity::Positive => palette::POSITIVE,
+            Polarity::Negative => palette::NEGATIVE,
+        };
+        let stroke = Stroke::new(1.5, rgba(col, 200));
+        let mut section = [[0.0; 3]; 4];
+        for (e, (ni, fi)) in [(0, 4), (1, 5), (3, 7), (2, 6)].into_iter().enumerate() {
+            let (a, b) = (k[ni], k[fi]);
+            let d = sub(b, a);
+            let s = (dot(sub(centre, a), d) / dot(d, d).max(1e-300)).clamp(0.0, 1.0);
+            // Reach a little past the scene's centre.
+            let s = (s + 1.2 * radius / dot(d, d).sqrt().max(1e-9)).min(1.0);
+            section[e] = lerp(a, b, s);
+            if let Some(seg) = view.segment(a, section[e]) {
+                shapes.push(Shape::line_segment(seg, Stroke::new(1.0, rgba(col, 110))));
+            }
+        }
+        for e in 0..4 {
+            if let Some(seg) = view.segment(section[e], section[(e + 1) % 4]) {
+                shapes.push(Shape::line_segment(seg, stroke));
+            }
+        }
+    }
+
+    // The rectangle being drawn.
+    if let Some((a, b, negative)) = overlay.drag {
+        let col = if negative {
+            palette::NEGATIVE
+        } else {
+            palette::POSITIVE
+        };
+        let rect = Rect::from_two_pos(a, b);
+        shapes.push(Shape::rect_filled(rect, 0.0, rgba(col, 40)));
+        shapes.push(Shape::rect_stroke(
+            rect,
+            0.0,
+            Stroke::new(1.5, rgba(col, 230)),
+            egui::StrokeKind::Inside,
+        ));
+    }
+    shapes
+}
+
+/// The world whose drawn path passes closest to `p` (within `max_px` screen points), among the
+/// chosen objects' paths; survivors win ties over rejected worlds.
+pub fn pick_world(state: &ViewerState, view: &View, p: Pos2, max_px: f32) -> Option<u32> {
+    let mut best: Option<(f32, u32)> = None;
+    for w in state.worlds() {
+        let bias = if state.survives(w.index) { 0.0 } else { 2.0 };
+        for o in state.chosen_objects() {
+            let Some(path) = w.paths.get(o as usize) else {
+                continue;
+            };
+            for run in view.polyline(path.tree.path().points()) {
+                for s in run.windows(2) {
+                    let d = dist_to_segment(p, s[0], s[1]) + bias;
+                    if d <= max_px && best.is_none_or(|(bd, _)| d < bd) {
+                        best = Some((d, w.index));
+                    }
+                }
+            }
+        }
+    }
+    best.map(|(_, w)| w)
+}
+
+fn dist_to_segment(p: Pos2, a: Pos2, b: Pos2) -> f32 {
+    let ab = b - a;
+    let t = ((p - a).dot(ab) / ab.length_sq().max(1e-12)).clamp(0.0, 1.0);
+    (a + ab * t - p).length()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shapes_have_closed_outward_meshes() {
+        for shape in [
+            SceneShape::Box {
+                half_extents: [0.5, 0.2, 0.3],
+            },
+            SceneShape::Sphere { radius: 0.4 },
+            SceneShape::Capsule {
+                half_height: 0.3,
+                radius: 0.2,
+            },
+            SceneShape::Cylinder {
+                half_height: 0.3,
+                radius: 0.2,
+            },
+            SceneShape::ConvexHull {
+                points: vec![
+                    [0.0, 0.0, 0.0],
+                    [1.0, 0.0, 0.0],
+                    [0.0, 1.0, 0.0],
+                    [0.0, 0.0, 1.0],
+                ],
+            },
+        ] {
+            let (tris, closed) = local_triangles(&shape);
+            assert!(closed && !tris.is_empty(), "{shape:?}");
+            // Outward: the signed volume (divergence theorem) is positive.
+            let vol: f64 = tris
+                .iter()
+                .map(|t| dot(t[0], cross(t[1], t[2])) / 6.0)
+                .sum();
+            assert!(vol > 0.0, "{shape:?}: volume {vol}");
+        }
+        let (tris, _) = local_triangles(&SceneShape::Box {
+            half_extents: [1.0, 1.0, 1.0],
+        });
+        let vol: f64 = tris
+            .iter()
+            .map(|t| dot(t[0], cross(t[1], t[2])) / 6.0)
+            .sum();
+        assert!((vol - 8.0).abs() < 1e-12);
+    }
+}

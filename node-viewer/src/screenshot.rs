@@ -1,0 +1,81 @@
+//! Headless screenshots of the real UI: a few egui passes of [`ViewerApp::ui`] at a given size,
+//! painted by [`SoftPainter`] (no window, no display, no GPU).
+
+use egui::{Pos2, RawInput, Rect, ViewportId, vec2};
+
+use crate::ViewerError;
+use crate::softpaint::SoftPainter;
+use crate::ui::ViewerApp;
+
+/// Parses `WIDTHxHEIGHT` (pixels, each 64..=8192).
+pub fn parse_size(text: &str) -> Result<[u32; 2], ViewerError> {
+    let bad = || ViewerError::Size(text.to_owned());
+    let (w, h) = text.split_once(['x', 'X']).ok_or_else(bad)?;
+    let w: u32 = w.trim().parse().map_err(|_| bad())?;
+    let h: u32 = h.trim().parse().map_err(|_| bad())?;
+    if !(64..=8192).contains(&w) || !(64..=8192).contains(&h) {
+        return Err(bad());
+    }
+    Ok([w, h])
+}
+
+/// Renders `app` at `size` pixels (`ppp` pixels per point) after `passes` UI passes (layout
+/// settles in two; the first frames the camera when it was not placed).
+pub fn screenshot(
+    app: &mut ViewerApp,
+    size: [u32; 2],
+    ppp: f32,
+    passes: usize,
+) -> image::RgbaImage {
+    let ctx = egui::Context::default();
+    ctx.all_styles_mut(|style| {
+        style.animation_time = 0.0;
+    });
+    let points = vec2(size[0] as f32, size[1] as f32) / ppp;
+    let mut painter = SoftPainter::new();
+    let mut last = None;
+    for _ in 0..passes.max(2) {
+        let mut input = RawInput {
+            screen_rect: Some(Rect::from_min_size(Pos2::ZERO, points)),
+            ..Default::default()
+        };
+        if let Some(v) = input.viewports.get_mut(&ViewportId::ROOT) {
+            v.native_pixels_per_point = Some(ppp);
+        }
+        let mut out = ctx.run_ui(input, |ui| app.ui(ui));
+        painter.handle_delta(&out.textures_delta);
+        // Applied to the painter: an output dropped with pending deltas panics in epaint.
+        out.textures_delta.clear();
+        last = Some(out);
+    }
+    let Some(out) = last else {
+        return image::RgbaImage::new(size[0], size[1]);
+    };
+    let clear = ctx.global_style().visuals.panel_fill;
+    painter.paint_shapes(&ctx, out.shapes, out.pixels_per_point, size, clear)
+}
+
+/// Encodes an image as PNG bytes.
+pub fn png_bytes(img: &image::RgbaImage) -> Result<Vec<u8>, image::ImageError> {
+    let mut out = std::io::Cursor::new(Vec::new());
+    img.write_to(&mut out, image::ImageFormat::Png)?;
+    Ok(out.into_inner())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sizes_parse_and_bad_ones_are_named() {
+        assert_eq!(parse_size("1280x720"), Ok([1280, 720]));
+        assert_eq!(parse_size("640X480"), Ok([640, 480]));
+        for bad in ["1280", "x720", "10x10", "1280x-1", "axb", "99999x100"] {
+            assert_eq!(
+                parse_size(bad),
+                Err(ViewerError::Size(bad.to_owned())),
+                "{bad}"
+            );
+        }
+    }
+}
