@@ -109,7 +109,7 @@ pub fn diagnose(e: &Evidence<'_>) -> Option<Stall> {
     }
     if e.workers
         .iter()
-        .all(|w| w.jobs_given_up.iter().any(|j| *j == st.job_id))
+        .all(|w| w.jobs_given_up.contains(&st.job_id))
     {
         let last_failure = e
             .workers

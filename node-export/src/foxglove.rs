@@ -42,6 +42,8 @@ pub fn body_frame(name: &str) -> String {
 }
 
 /// Writes one world as MCAP bytes.
+// Frame k indexes every body's positions and rotations at once: a range loop says it best.
+#[allow(clippy::needless_range_loop)]
 pub fn write(world: &ExportWorld<'_>) -> Result<Vec<u8>, ExportError> {
     world.check()?;
     let scene = world.scene;

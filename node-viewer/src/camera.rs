@@ -108,7 +108,7 @@ impl OrbitCamera {
     /// on a view `height` pixels tall (the point under the cursor follows the cursor at the
     /// target's depth).
     pub fn pan(&mut self, dx: f64, dy: f64, height: f64) {
-        if !(height > 0.0) {
+        if height.is_nan() || height <= 0.0 {
             return;
         }
         let metres_per_px = 2.0 * self.distance * (0.5 * self.fov_y_rad).tan() / height;
