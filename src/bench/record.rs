@@ -11,12 +11,13 @@
 //!   `record_headroom` = their ratio (the issue's target: ≥ 10).
 //! * `replay_worlds_per_s`: the recording replayed at `max` into a fresh store, until the
 //!   store holds every world.
-//! * journal: a store with `--journal` loads the recording (its worlds are journaled), stops;
-//!   a store restarted on that journal is timed from reading the journal to holding every
-//!   world (`journal_restart_s_per_10k_worlds`, scaled linearly from the run's worlds; it
-//!   includes indexing each world for browsing, not opening the zenoh session). `bytes_per_world_on_disk` is the journal directory's
-//!   size per world, `store_bytes_per_world` the store's in-memory bytes (worlds + browsing
-//!   index) per world.
+//! * journal: the recording is replayed into a store with `--journal`, which stops once its
+//!   journal has committed every world; a store restarted on that journal is timed from
+//!   reading the journal to holding every world (`journal_restart_s_per_10k_worlds`, scaled
+//!   linearly from the run's worlds; it includes indexing each world for browsing, not
+//!   opening the zenoh session). `bytes_per_world_on_disk` is the journal directory's size
+//!   per world, `store_bytes_per_world` the store's in-memory bytes (worlds + browsing index)
+//!   per world.
 
 use super::free_port;
 use super::sampler::process_cpu_seconds;
@@ -261,6 +262,68 @@ async fn store_on(space: &str, cfg: StoreConfig) -> Result<(zenoh::Session, Stor
     Ok((s, store))
 }
 
+/// Replays `recording` at `max` into a fresh store (journaling into `journal`, if given) and
+/// returns the seconds until the store holds `worlds` worlds; with a journal, the store is
+/// stopped only once its journal has committed everything (its counters stay still).
+async fn replay_into(
+    recording: &Path,
+    space: &str,
+    journal: Option<&Path>,
+    worlds: usize,
+) -> Result<f64> {
+    let (store_bus, client_bus) = bus_pair(space)?;
+    let s = store_bus.open(Mode::Router).await?;
+    let c = client_bus.open(Mode::Client).await?;
+    let store = run_store(
+        s.clone(),
+        StoreConfig {
+            space: space.to_owned(),
+            journal: journal.map(Path::to_owned),
+            ..Default::default()
+        },
+    )
+    .await?;
+    let cfg = ReplayConfig {
+        path: recording.to_owned(),
+        speed: Speed::Max,
+        space: space.to_owned(),
+        wait_for_subscribers: Duration::from_secs(10),
+    };
+    let t = Instant::now();
+    let summary = replay(&c, &cfg, std::future::pending()).await?;
+    if let Some(e) = summary.damage {
+        bail!("replay stopped: {e}");
+    }
+    let deadline = Instant::now() + Duration::from_secs(600);
+    while store.world_count() < worlds {
+        if Instant::now() > deadline {
+            bail!(
+                "the replayed store holds {} of {worlds} worlds",
+                store.world_count()
+            );
+        }
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    let seconds = t.elapsed().as_secs_f64();
+    if journal.is_some() {
+        let mut last = store.journal_counters();
+        loop {
+            tokio::time::sleep(Duration::from_millis(300)).await;
+            let now = store.journal_counters();
+            if now == last {
+                break;
+            }
+            last = now;
+        }
+    }
+    store.stop();
+    crate::bus::close(c).await;
+    crate::bus::close(s).await;
+    // The stopped store's journal writer finishes its file as it is dropped.
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    Ok(seconds)
+}
+
 fn dir_bytes(dir: &Path) -> Result<u64> {
     let mut n = 0;
     for e in std::fs::read_dir(dir)? {
@@ -309,59 +372,38 @@ pub async fn bench_record(args: &RecordArgs, dir: &Path) -> Result<RecordBench> 
     std::fs::remove_file(dir.join("write.mcap"))?;
 
     // Replay at max speed into a fresh store.
-    let space = format!("benchrec{pid}r");
-    let (store_bus, client_bus) = bus_pair(&space)?;
-    let s = store_bus.open(Mode::Router).await?;
-    let c = client_bus.open(Mode::Client).await?;
-    let store = run_store(
-        s.clone(),
-        StoreConfig {
-            space: space.clone(),
-            ..Default::default()
-        },
+    let replay_seconds = replay_into(
+        &recording,
+        &format!("benchrec{pid}r"),
+        None,
+        args.worlds as usize,
     )
     .await?;
-    let cfg = ReplayConfig {
-        path: recording.clone(),
-        speed: Speed::Max,
-        space: space.clone(),
-        wait_for_subscribers: Duration::from_secs(10),
-    };
-    let t = Instant::now();
-    let summary = replay(&c, &cfg, std::future::pending()).await?;
-    if let Some(e) = summary.damage {
-        bail!("replay stopped: {e}");
-    }
-    let worlds = args.worlds as usize;
-    let deadline = Instant::now() + Duration::from_secs(600);
-    while store.world_count() < worlds {
-        if Instant::now() > deadline {
-            bail!(
-                "the replayed store holds {} of {worlds} worlds",
-                store.world_count()
-            );
-        }
-        tokio::time::sleep(Duration::from_millis(5)).await;
-    }
-    let replay_worlds_per_s = worlds as f64 / t.elapsed().as_secs_f64().max(1e-9);
-    store.stop();
-    crate::bus::close(c).await;
-    crate::bus::close(s).await;
+    let replay_worlds_per_s = f64::from(args.worlds) / replay_seconds.max(1e-9);
 
-    // The journal: written by a store loading the recording, read back by a restart.
+    // The journal: written by a store the recording is replayed into (live ingest, group
+    // commits), read back by a restart. (Not by `--load`ing the recording into a journaling
+    // store: such a journal begins with a checkpoint whose job states already count the
+    // loaded worlds, so a restart refuses every one of them as late.)
     let journal = dir.join("journal");
-    let (s, store) = store_on(
+    replay_into(
+        &recording,
         &format!("benchrec{pid}j"),
-        StoreConfig {
-            journal: Some(journal.clone()),
-            load: vec![recording.clone()],
-            ..Default::default()
-        },
+        Some(&journal),
+        args.worlds as usize,
     )
     .await?;
-    let journaled = store.world_count();
-    store.stop();
-    crate::bus::close(s).await;
+    // What a restart must find: every world journaled by the store that was stopped.
+    let mut journaled = 0;
+    let mut files: Vec<PathBuf> = std::fs::read_dir(&journal)?
+        .map(|e| e.map(|e| e.path()))
+        .collect::<std::io::Result<_>>()?;
+    files.sort();
+    for f in &files {
+        mwb_store::journal::read_store_input(f, true, |m| {
+            journaled += usize::from(matches!(m, mwb_store::journal::StoreInput::Done(_)));
+        });
+    }
     let (s, store) = store_on(
         &format!("benchrec{pid}k"),
         StoreConfig {
