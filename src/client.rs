@@ -4,8 +4,7 @@
 use crate::stall::Watch;
 use anyhow::{Context, Result, anyhow, bail};
 use mwb_core::keys::{Keys, role};
-use mwb_core::scene::SceneTemplate;
-use mwb_proto::v1::{Encoding, Job, JobKind, JobState, Message, NodeStats, Quality, Scene, World};
+use mwb_proto::v1::{Encoding, Job, JobKind, JobState, Message, NodeStats, Quality, World};
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use zenoh::Session;
@@ -17,26 +16,14 @@ pub fn unix_ms() -> u64 {
         .map_or(0, |d| d.as_millis() as u64)
 }
 
-/// Reads a scene argument: a path to a TOML file, or the name of a shipped scene.
+/// Reads a scene argument: a path to a TOML file, or the name of a shipped scene
+/// ([`mwb_node::load_scene`]).
 pub fn load_scene(arg: &str) -> Result<(String, String)> {
-    let path = std::path::Path::new(arg);
-    if path.exists() {
-        let text = std::fs::read_to_string(path)
-            .with_context(|| format!("reading scene {}", path.display()))?;
-        return Ok((arg.to_owned(), text));
-    }
-    let name = arg.trim_end_matches(".toml");
-    let name = name.rsplit('/').next().unwrap_or(name);
-    match mwb_core::scene::builtin::get(name) {
-        Some(text) => Ok((format!("scenes/{name}.toml"), text.to_owned())),
-        None => bail!(
-            "scene {arg:?}: no such file, and not a shipped scene ({})",
-            mwb_core::scene::builtin::NAMES.join(", ")
-        ),
-    }
+    Ok(mwb_node::load_scene(arg)?)
 }
 
-/// Builds a job for `target` worlds of the scene text, validating the scene first.
+/// Builds a job for `target` worlds of the scene text, validating the scene first
+/// ([`mwb_node::sample_job`]).
 pub fn make_job(
     file: &str,
     text: &str,
@@ -44,41 +31,14 @@ pub fn make_job(
     priority: i32,
     id: Option<String>,
 ) -> Result<Job> {
-    let template = SceneTemplate::parse(text, file)?;
-    let id = match id {
-        Some(id) => id,
-        None => {
-            let base: String = template
-                .name()
-                .chars()
-                .map(|c| if c.is_ascii_alphanumeric() { c } else { '-' })
-                .take(40)
-                .collect();
-            format!(
-                "{}-{:x}",
-                if base.is_empty() { "job" } else { &base },
-                unix_ms()
-            )
-        }
-    };
-    mwb_core::keys::check_identifier("job id", &id)?;
-    Ok(Job {
-        id,
-        revision: 1,
-        kind: JobKind::Sample as i32,
-        scene: Some(Scene {
-            revision: 1,
-            name: template.name().to_owned(),
-            toml: text.to_owned(),
-            content_hash: mwb_core::content_hash(text),
-        }),
-        target_worlds: target,
+    Ok(mwb_node::sample_job(
+        file,
+        text,
+        target,
         priority,
-        created_unix_ms: unix_ms(),
-        cancelled: false,
-        encoding: Encoding::SplineV1 as i32,
-        quality: Quality::Standard as i32,
-    })
+        id,
+        unix_ms(),
+    )?)
 }
 
 /// Waits until at least one store is alive.

@@ -55,6 +55,10 @@ pub struct DemoArgs {
     /// Keep serving after the summary (store + node-query) so `mwb query` can browse.
     #[arg(long)]
     pub stay: bool,
+    /// After the summary, open the viewer on the demo's bus (a window: needs a display); the
+    /// demo's nodes serve until the window is closed.
+    #[arg(long)]
+    pub viewer: bool,
     /// Record the demo's bus into this MCAP file (as `mwb record` would, losing nothing: the
     /// demo waits for the disk). The recording ends with the summary.
     #[arg(long, value_name = "FILE")]
@@ -67,6 +71,7 @@ pub struct DemoArgs {
 pub async fn run(args: DemoArgs) -> Result<()> {
     let opts = DemoOptions {
         stay: args.stay,
+        viewer: args.viewer,
         scene: args.scene,
         worlds: args.worlds,
         samplers: args.samplers,
@@ -96,6 +101,9 @@ pub struct DemoOptions {
     /// After the summary, keep the bus, store and node-query running until Ctrl-C so that
     /// `mwb query --connect <endpoint>` can browse the worlds.
     pub stay: bool,
+    /// After the summary, open the viewer window on the demo's own session until it is closed
+    /// (with `stay`, the demo serves on after that).
+    pub viewer: bool,
     /// Record every put on the demo's bus into this MCAP file, from before the job is
     /// submitted until every world has been read back.
     pub record: Option<std::path::PathBuf>,
@@ -380,11 +388,52 @@ pub async fn run_demo_with(
         summary.recorded_messages = Some(rec.received.saturating_sub(rec.dropped));
     }
     report(&summary)?;
+    if opts.viewer {
+        let shown = open_viewer(&session, &bus.space, &summary.scene).await;
+        if let Err(e) = shown {
+            stop_all(samplers, query, store, session).await;
+            return Err(e);
+        }
+    }
     if opts.stay {
         stay_until_ctrl_c(&bus.listen).await;
     }
     stop_all(samplers, query, store, session).await;
     Ok(summary)
+}
+
+/// The viewer window on the demo's own session (live: it browses what the demo's store holds),
+/// until the user closes it.
+async fn open_viewer(session: &zenoh::Session, space: &str, scene: &str) -> Result<()> {
+    let repaint = mwb_viewer::ui::RepaintSlot::default();
+    let endpoint = "the demo's embedded bus".to_owned();
+    let link = mwb_viewer::live::LiveLink::start(
+        session.clone(),
+        mwb_viewer::live::LiveConfig {
+            space: space.to_owned(),
+            session: "viewer".into(),
+            endpoint: endpoint.clone(),
+            ..Default::default()
+        },
+        &tokio::runtime::Handle::current(),
+        repaint.waker(),
+    )?;
+    let app = mwb_viewer::ViewerApp::live(mwb_viewer::ViewerState::live(endpoint), link);
+    eprintln!("mwb demo: opening the viewer (close its window to stop)");
+    tokio::task::block_in_place(|| {
+        mwb_viewer::ui::run_window(
+            app,
+            &format!("manyworlds viewer — demo ({scene})"),
+            [1280, 800],
+            repaint,
+        )
+    })
+    .map_err(|e| {
+        anyhow::anyhow!(
+            "opening the viewer window: {e} (it needs a display; without one, browse with `mwb \
+             demo --stay` and `mwb query`, or `mwb viewer --connect … --screenshot out.png`)"
+        )
+    })
 }
 
 /// Stops the demo's nodes and closes its session.

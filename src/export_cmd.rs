@@ -3,9 +3,9 @@
 //!
 //! Where the worlds come from:
 //! * a running store (default; `--connect …` like every client): `--world N` / `--worlds a,b`
-//!   by global index, fetched with `q/world/<i>`. The scene comes from the job if a store still
-//!   serves it (open jobs); for a closed job give `--scene FILE`, which is checked against the
-//!   world's scene hash;
+//!   by global index, fetched with `q/world/<i>`. The scene comes from the job, which the store
+//!   holding the world serves (`q/job/<job>`, open or closed); `--scene FILE` overrides it and
+//!   is checked against the world's scene hash;
 //! * a recording (`--from session.mcap`): its jobs, segments and summaries are assembled as a
 //!   fresh single store loading the file would (`mwb_store::Assembler`, in recorded order), so
 //!   world `N` is the world such a store numbers `N`. A damaged recording is refused, naming
@@ -294,8 +294,7 @@ fn load_world(
             s.toml.clone(),
         ),
         SceneSource::Job { lacking, .. } => bail!(
-            "{name}: {lacking} does not have the scene of job {:?} (stores serve the scenes of \
-             open jobs only): give it with --scene FILE",
+            "{name}: {lacking} does not have the scene of job {:?}: give it with --scene FILE",
             done.job_id
         ),
     };
@@ -430,18 +429,17 @@ async fn fetch_all(
         let Some(done) = &world.done else {
             bail!("world {index}: the store's reply has no summary");
         };
-        let job = open_job(session, keys, &world.job_id).await?;
+        let job = held_job(session, keys, &world.job_id).await?;
         let source = scene_source(&user, job.as_ref(), "no store");
         out.push(load_world(Some(index), done, &world.segments, source)?);
     }
     Ok(out)
 }
 
-/// The job's announcement, if a store still serves it (the job authority answers for open
-/// jobs only).
-async fn open_job(session: &zenoh::Session, keys: &Keys, job: &str) -> Result<Option<Job>> {
+/// The job's announcement from the stores that hold its worlds (open or closed jobs).
+async fn held_job(session: &zenoh::Session, keys: &Keys, job: &str) -> Result<Option<Job>> {
     let replies = session
-        .get(keys.job(job))
+        .get(keys.held_job(job))
         .timeout(Duration::from_secs(2))
         .await
         .map_err(|e| anyhow::anyhow!("job query: {e}"))?;

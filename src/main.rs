@@ -42,8 +42,8 @@ enum Command {
     Status(mwb::status::StatusArgs),
     /// Check a scene file: parse, validate, instantiate one world.
     Scene(mwb::scene::SceneArgs),
-    /// The workstation viewer: sample --worlds of --scene here, draw their paths, box them, play
-    /// one back; --screenshot renders the UI to a PNG without a display.
+    /// The workstation viewer: worlds' paths as a live cluster indexes them (or, with --scene,
+    /// sampled here), screen boxes, rankings, playback; --screenshot renders it to a PNG.
     Viewer(mwb::viewer_cmd::ViewerArgs),
     /// Regenerate one world from its scene and seed alone: its summary and digest (--check N:
     /// compare with stored world N).
@@ -133,7 +133,7 @@ async fn run(command: Command) -> Result<()> {
         Command::Job { command } => mwb::job::run(command).await,
         Command::Status(args) => mwb::status::run(args).await,
         Command::Scene(args) => mwb::scene::run(args),
-        Command::Viewer(args) => mwb::viewer_cmd::run(args),
+        Command::Viewer(args) => mwb::viewer_cmd::run(args).await,
         Command::World(args) => mwb::world_cmd::run(args).await,
         Command::Export(args) => mwb::export_cmd::run(args).await,
         Command::Record(args) => mwb::record_cmd::record(args).await,

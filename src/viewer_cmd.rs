@@ -1,34 +1,52 @@
-//! `mwb viewer`: the workstation viewer (mwb-viewer). This increment is offline only: worlds are
-//! sampled in this process with the sampler and codec libraries (`--scene`, `--worlds`) and
-//! decoded for their true motion; `--screenshot` renders the real UI to a PNG without a display.
+//! `mwb viewer`: the workstation viewer (mwb-viewer). Live by default — it connects to a running
+//! cluster (`--connect`, `$MWB_CONNECT`, else tcp/127.0.0.1:7447), draws worlds as the stores
+//! index them and browses in a node-query session — or offline with `--scene`, sampling worlds
+//! in this process. `--screenshot` renders the real UI to a PNG without a display.
 
 use std::path::PathBuf;
+use std::time::Duration;
 
 use anyhow::{Context, Result, anyhow, bail};
 use mwb_core::browse::{Polarity, ScreenRect};
+use mwb_viewer::live::{LiveConfig, LiveLink};
 use mwb_viewer::screenshot::{parse_size, png_bytes, screenshot};
+use mwb_viewer::ui::RepaintSlot;
 use mwb_viewer::{Msg, OrbitCamera, ViewerApp, ViewerState};
 
+use crate::bus::BusArgs;
 use crate::client;
 
 /// Arguments of `mwb viewer`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct ViewerArgs {
-    /// Scene file or shipped scene name; its worlds are sampled in this process.
+    #[command(flatten)]
+    pub bus: BusArgs,
+    /// Offline: sample this scene (file or shipped name) in this process instead of connecting.
     #[arg(long)]
-    pub scene: String,
-    /// How many worlds to sample (world i has seed i).
-    #[arg(long, default_value_t = 200)]
+    pub scene: Option<String>,
+    /// Offline: how many worlds to sample (world i has seed i).
+    #[arg(long, default_value_t = 200, requires = "scene")]
     pub worlds: u32,
-    /// Sampling threads (default: every core).
-    #[arg(long)]
+    /// Offline: sampling threads (default: every core).
+    #[arg(long, requires = "scene")]
     pub threads: Option<usize>,
+    /// Live: the browsing session the viewer's constraints live in (`mwb query --session`
+    /// shows the same one).
+    #[arg(long, default_value = "viewer")]
+    pub session: String,
     /// Render the UI once to this PNG file instead of opening a window.
     #[arg(long)]
     pub screenshot: Option<PathBuf>,
-    /// Screenshot size in pixels, WIDTHxHEIGHT.
+    /// Screenshot (or window) size in pixels, WIDTHxHEIGHT.
     #[arg(long, default_value = "1280x720")]
     pub size: String,
+    /// Live --screenshot: wait for this many worlds [default: what the stores hold when the
+    /// viewer connects]; at most --wait-s seconds.
+    #[arg(long, requires = "screenshot")]
+    pub wait_worlds: Option<u64>,
+    /// Live --screenshot: the longest wait for worlds and answers, seconds.
+    #[arg(long, default_value_t = 60.0, requires = "screenshot")]
+    pub wait_s: f64,
     /// Start from this camera: JSON in the format `mwb query add --camera` reads (position,
     /// rotation, intrinsics, viewport). Without it the view frames every path.
     #[arg(long)]
@@ -40,12 +58,39 @@ pub struct ViewerArgs {
     /// Like --rect, for a negative constraint (worlds that never pass through).
     #[arg(long = "not-rect", value_name = "X0,Y0,X1,Y1")]
     pub not_rects: Vec<String>,
+    /// Rank the survivors at start (the sorter's choices: spin, rest, impacts, turn,
+    /// constraints).
+    #[arg(long, value_enum)]
+    pub rank: Option<RankArg>,
     /// Select this world at start.
     #[arg(long)]
     pub select: Option<u32>,
     /// Playback time at start, seconds.
     #[arg(long)]
     pub time: Option<f64>,
+}
+
+/// The sorter's choices on the command line.
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum RankArg {
+    Spin,
+    Rest,
+    Impacts,
+    Turn,
+    Constraints,
+}
+
+impl From<RankArg> for mwb_viewer::ui::SortBy {
+    fn from(r: RankArg) -> Self {
+        use mwb_viewer::ui::SortBy;
+        match r {
+            RankArg::Spin => SortBy::Spin,
+            RankArg::Rest => SortBy::TimeToRest,
+            RankArg::Impacts => SortBy::Impacts,
+            RankArg::Turn => SortBy::OrientationError,
+            RankArg::Constraints => SortBy::ConstraintsSatisfied,
+        }
+    }
 }
 
 fn parse_rect(text: &str) -> Result<ScreenRect> {
@@ -60,8 +105,8 @@ fn parse_rect(text: &str) -> Result<ScreenRect> {
     Ok(ScreenRect { x0, y0, x1, y1 })
 }
 
-/// Samples the worlds, then opens the window or writes the screenshot.
-pub fn run(args: ViewerArgs) -> Result<()> {
+/// Opens the window, or writes the screenshot.
+pub async fn run(args: ViewerArgs) -> Result<()> {
     let size = parse_size(&args.size).map_err(|e| anyhow!("--size: {e}"))?;
     let rects: Vec<(ScreenRect, Polarity)> = args
         .rects
@@ -73,7 +118,43 @@ pub fn run(args: ViewerArgs) -> Result<()> {
                 .map(|r| parse_rect(r).map(|r| (r, Polarity::Negative))),
         )
         .collect::<Result<_>>()?;
-    let (file, text) = client::load_scene(&args.scene)?;
+    if args.screenshot.is_none() && !rects.is_empty() {
+        bail!("--rect and --not-rect are for --screenshot; in the window, drag a box");
+    }
+    let (app, title, session) = match &args.scene {
+        Some(scene) => {
+            let (app, title) = tokio::task::block_in_place(|| offline(&args, scene))?;
+            (app, title, None)
+        }
+        None => {
+            let (app, title, session) = live(&args).await?;
+            (app, title, Some(session))
+        }
+    };
+    let (mut app, repaint) = app;
+    let placed = start_camera(&mut app, args.camera.as_deref())?;
+    app = app.with_camera_placed(placed);
+    let result = match &args.screenshot {
+        Some(out) => shoot(app, &args, rects, size, out).await,
+        None => {
+            start_choices(&mut app, &args)?;
+            tokio::task::block_in_place(|| {
+                mwb_viewer::ui::run_window(app, &title, size, repaint)
+                    .map_err(|e| anyhow!("opening the viewer window: {e}"))
+            })
+        }
+    };
+    if let Some(s) = session {
+        crate::bus::close(s).await;
+    }
+    result
+}
+
+type Started = (ViewerApp, RepaintSlot);
+
+/// Offline: samples `--worlds` of the scene here.
+fn offline(args: &ViewerArgs, scene: &str) -> Result<(Started, String)> {
+    let (file, text) = client::load_scene(scene)?;
     let template = mwb_core::scene::SceneTemplate::parse(&text, &file)?;
     let threads = args
         .threads
@@ -102,62 +183,149 @@ pub fn run(args: ViewerArgs) -> Result<()> {
         template.name(),
         started.elapsed().as_secs_f64()
     );
-    let placed = if let Some(path) = &args.camera {
-        let text = std::fs::read_to_string(path)
-            .with_context(|| format!("reading camera file {}", path.display()))?;
-        let camera: mwb_core::browse::Camera = serde_json::from_str(&text)
-            .with_context(|| format!("camera file {}", path.display()))?;
-        let focus = state.bounds().map_or([0.0; 3], |(c, _)| c);
-        let orbit = OrbitCamera::from_browse(&camera, focus)
-            .with_context(|| format!("camera file {}", path.display()))?;
-        state
-            .update(Msg::SetCamera(orbit))
-            .map_err(|e| anyhow!("{e}"))?;
-        true
+    let title = format!("manyworlds viewer — {} (offline)", template.name());
+    Ok(((ViewerApp::new(state), RepaintSlot::default()), title))
+}
+
+/// Live: connects and starts the bus task.
+async fn live(args: &ViewerArgs) -> Result<(Started, String, zenoh::Session)> {
+    let mode = args.bus.client_default();
+    let (endpoints, _) = args.bus.endpoints(mode);
+    let session = args.bus.open(mode).await?;
+    let endpoint = if endpoints.is_empty() {
+        "the bus".to_owned()
     } else {
-        false
+        endpoints.join(", ")
     };
+    let repaint = RepaintSlot::default();
+    let link = LiveLink::start(
+        session.clone(),
+        LiveConfig {
+            space: args.bus.space.clone(),
+            session: args.session.clone(),
+            endpoint: endpoint.clone(),
+            ..LiveConfig::default()
+        },
+        &tokio::runtime::Handle::current(),
+        repaint.waker(),
+    )?;
+    let app = ViewerApp::live(ViewerState::live(endpoint.clone()), link);
+    let title = format!("manyworlds viewer — {endpoint}");
+    Ok(((app, repaint), title, session))
+}
+
+/// Places the camera from `--camera`; whether it was placed.
+fn start_camera(app: &mut ViewerApp, path: Option<&std::path::Path>) -> Result<bool> {
+    let Some(path) = path else {
+        return Ok(false);
+    };
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("reading camera file {}", path.display()))?;
+    let camera: mwb_core::browse::Camera =
+        serde_json::from_str(&text).with_context(|| format!("camera file {}", path.display()))?;
+    let focus = app.state.bounds().map_or([0.0; 3], |(c, _)| c);
+    let orbit = OrbitCamera::from_browse(&camera, focus)
+        .with_context(|| format!("camera file {}", path.display()))?;
+    app.state
+        .update(Msg::SetCamera(orbit))
+        .map_err(|e| anyhow!("{e}"))?;
+    Ok(true)
+}
+
+/// `--rank`, `--select` and `--time`.
+fn start_choices(app: &mut ViewerApp, args: &ViewerArgs) -> Result<()> {
+    if let Some(r) = args.rank {
+        app.set_sort(r.into());
+    }
     if let Some(w) = args.select {
-        if (w as usize) >= state.worlds().len() {
-            bail!("--select {w}: there are {} worlds", state.worlds().len());
+        if app.state.world(w).is_none() {
+            bail!(
+                "--select {w}: no such world (there are {})",
+                app.state.worlds().len()
+            );
         }
-        state
+        app.state
             .update(Msg::SelectWorld(Some(w)))
             .map_err(|e| anyhow!("{e}"))?;
     }
     if let Some(t) = args.time {
-        state.update(Msg::Seek(t)).map_err(|e| anyhow!("{e}"))?;
+        app.state.update(Msg::Seek(t)).map_err(|e| anyhow!("{e}"))?;
     }
-    let mut app = ViewerApp::new(state).with_camera_placed(placed);
-    if let Some(out) = &args.screenshot {
-        // Lay the UI out (and frame the camera), then add the boxes in that view, then paint.
-        let _ = screenshot(&mut app, size, 1.0, 2);
-        for (r, p) in rects {
-            app.add_box_px(r, p, 1.0);
-            if let Some(e) = app.last_error() {
-                bail!("--rect: {e}");
-            }
+    Ok(())
+}
+
+/// Renders the screenshot: waits (live) for the worlds, adds the boxes in the laid-out view,
+/// waits for their answers and the shown world's motion, then paints.
+async fn shoot(
+    mut app: ViewerApp,
+    args: &ViewerArgs,
+    rects: Vec<(ScreenRect, Polarity)>,
+    size: [u32; 2],
+    out: &std::path::Path,
+) -> Result<()> {
+    let wait = Duration::from_secs_f64(args.wait_s.max(0.0));
+    let live = app.state.is_live();
+    if live {
+        let want = args.wait_worlds;
+        let ok = app
+            .pump_until(wait, |a| {
+                let Some(link) = a.state.link() else {
+                    return false;
+                };
+                let target = want.unwrap_or(link.store_worlds);
+                link.connected && target > 0 && a.state.worlds().len() as u64 >= target
+            })
+            .await;
+        if !ok {
+            let link = app.state.link().cloned().unwrap_or_default();
+            bail!(
+                "the viewer had {} worlds after {:.0} s (the stores hold {}; {}): \
+                 is a store with worlds running there?",
+                app.state.worlds().len(),
+                wait.as_secs_f64(),
+                link.store_worlds,
+                link.error.as_deref().unwrap_or("connected")
+            );
         }
-        let img = screenshot(&mut app, size, 1.0, 3);
-        let bytes = png_bytes(&img).context("encoding the screenshot")?;
-        std::fs::write(out, bytes).with_context(|| format!("writing {}", out.display()))?;
-        println!(
-            "{}: {}x{} screenshot, {} worlds, {} survive",
-            out.display(),
-            size[0],
-            size[1],
-            app.state.worlds().len(),
-            app.state.survivor_count()
-        );
-        return Ok(());
     }
-    if !rects.is_empty() {
-        bail!("--rect and --not-rect are for --screenshot; in the window, drag a box");
+    // Lay the UI out (and frame the camera), then add the boxes in that view, then paint.
+    let _ = screenshot(&mut app, size, 1.0, 2);
+    for (r, p) in rects {
+        app.add_box_px(r, p, 1.0);
+        if let Some(e) = app.last_error() {
+            bail!("--rect: {e}");
+        }
     }
-    mwb_viewer::ui::run_window(
-        app,
-        &format!("manyworlds viewer — {}", template.name()),
-        size,
-    )
-    .map_err(|e| anyhow!("opening the viewer window: {e}"))
+    start_choices(&mut app, args)?;
+    if live {
+        let settled = app
+            .pump_until(wait, |a| {
+                a.state.pending() == 0
+                    && a.unsent() == 0
+                    && !a.state.shown_loading()
+                    && (a.state.rank_spec().is_none() || a.state.ranking().is_some())
+            })
+            .await;
+        if !settled {
+            bail!(
+                "no answer from the cluster within {:.0} s: {}",
+                wait.as_secs_f64(),
+                app.state
+                    .browse_error()
+                    .unwrap_or("node-query did not answer")
+            );
+        }
+    }
+    let img = screenshot(&mut app, size, 1.0, 3);
+    let bytes = png_bytes(&img).context("encoding the screenshot")?;
+    std::fs::write(out, bytes).with_context(|| format!("writing {}", out.display()))?;
+    println!(
+        "{}: {}x{} screenshot, {} worlds, {} survive",
+        out.display(),
+        size[0],
+        size[1],
+        app.state.world_total(),
+        app.state.survivor_count()
+    );
+    Ok(())
 }

@@ -174,6 +174,8 @@ fn a_job_that_cannot_complete_says_why_and_fails() {
         "store",
         &["store", "--listen", &endpoint, "--space", &space],
     );
+    // The store must be listening before a client connects (a busy machine starts it slowly).
+    wait_port(port);
     let (status, _, stderr) = run(
         mwb()
             .args(["job", "submit", "tumble", "--worlds", "3", "--wait"])

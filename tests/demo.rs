@@ -24,6 +24,7 @@ async fn demo_samples_and_verifies_every_world() {
         show_progress: false,
         motion: Default::default(),
         stay: false,
+        viewer: false,
         record: Some(recording.clone()),
     };
     let s = tokio::time::timeout(Duration::from_secs(120), run_demo(&bus, &opts))

@@ -124,6 +124,20 @@ impl Keys {
     pub fn browse_all(&self) -> String {
         format!("{}/browse/*", self.prefix)
     }
+    /// The browsing index's paths (store shards' queryable; `PathsRequest` → one `PathBatch`
+    /// per shard), for drawing worlds as they arrive.
+    pub fn paths(&self) -> String {
+        format!("{}/q/paths", self.prefix)
+    }
+    /// A job the store holds worlds of, open or closed (its scene, for clients that draw or
+    /// export its worlds after it closed).
+    pub fn held_job(&self, job: &str) -> String {
+        format!("{}/q/job/{job}", self.prefix)
+    }
+    /// What the store declares for [`held_job`](Self::held_job).
+    pub fn held_jobs(&self) -> String {
+        format!("{}/q/job/*", self.prefix)
+    }
     /// Store statistics query.
     pub fn store_stats(&self) -> String {
         format!("{}/q/stats", self.prefix)

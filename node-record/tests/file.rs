@@ -346,8 +346,14 @@ fn chunks(buf: &[u8]) -> Vec<(u64, u64, u64, usize)> {
         .chunk_indexes
         .iter()
         .map(|ci| {
-            let idx = summary.read_message_indexes(buf, ci).unwrap();
-            let n = idx.values().map(Vec::len).sum();
+            // A chunk of schema and channel records only (the schema set is large enough to
+            // fill one) has no message indexes, which the mcap crate reports as BadIndex.
+            let n = if ci.message_index_offsets.is_empty() {
+                0
+            } else {
+                let idx = summary.read_message_indexes(buf, ci).unwrap();
+                idx.values().map(Vec::len).sum()
+            };
             (
                 ci.chunk_start_offset,
                 ci.chunk_start_offset + ci.chunk_length,

@@ -12,6 +12,7 @@ use mwb_core::browse::{
     BrowseError, Constraint, ConstraintId, ConstraintSet, Quantifier, RankKey, RegionCache, Scope,
     WorldSet, top_k_counted,
 };
+use mwb_proto::v1::PathBatch;
 use std::cell::RefCell;
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -187,6 +188,32 @@ impl Shard {
     pub fn world(&self, global: u32) -> Option<&IndexedWorld> {
         let local = self.spec.local(global)?;
         self.worlds.get(local as usize)?.as_ref()
+    }
+
+    /// The indexed paths of local slots `seen..` (at most `max` worlds), for drawing: what a
+    /// `q/paths` query gets from this shard. Slots whose world could not be indexed are
+    /// skipped; `next_local` is where the asker continues.
+    pub fn path_batch(&self, seen: u32, max: usize) -> PathBatch {
+        let first = (seen as usize).min(self.worlds.len());
+        let mut worlds = Vec::new();
+        let mut next = first;
+        for slot in &self.worlds[first..] {
+            if worlds.len() >= max.max(1) {
+                break;
+            }
+            next += 1;
+            if let Some(w) = slot {
+                worlds.push(w.paths_message());
+            }
+        }
+        PathBatch {
+            shard_index: self.spec.index,
+            shard_count: self.spec.count,
+            first_local: first as u32,
+            next_local: next as u32,
+            worlds,
+            indexed: self.indexed,
+        }
     }
 
     /// Heap bytes of the path index and metrics, plus every session's bitsets.

@@ -5,7 +5,7 @@
 use crate::assembly::StoredWorld;
 use mwb_codec::WorldReader;
 use mwb_core::browse::{ObjectMetrics, PathTree, Polyline, RestThresholds, Track, WorldMetrics};
-use mwb_proto::v1::{Encoding, Job, MotionSegment};
+use mwb_proto::v1::{Encoding, IndexedPaths, Job, MotionSegment, ObjectPath};
 use std::sync::Arc;
 
 /// What indexing needs from a job's scene: its rest thresholds (for the time-to-rest metric)
@@ -92,6 +92,34 @@ impl IndexedWorld {
                 .iter()
                 .map(|o| o.tree.heap_bytes())
                 .sum::<usize>()
+    }
+}
+
+impl IndexedWorld {
+    /// The world's indexed paths as they travel on `q/paths` (for drawing): every object's
+    /// polyline and radius exactly as the index holds them, so that a client testing a frustum
+    /// against them gets the store's answer.
+    pub fn paths_message(&self) -> IndexedPaths {
+        IndexedPaths {
+            world: self.world,
+            job_id: self.job_id.clone(),
+            seed: self.seed,
+            frames: self.frames,
+            frame_dt: self.frame_dt,
+            rested: self.rested,
+            objects: self
+                .objects
+                .iter()
+                .map(|o| {
+                    let path = o.tree.path();
+                    ObjectPath {
+                        times: path.times().to_vec(),
+                        xyz: path.points().iter().flatten().copied().collect(),
+                        radius: o.radius,
+                    }
+                })
+                .collect(),
+        }
     }
 }
 

@@ -1,5 +1,6 @@
-//! The store node: subscribes to segments, world summaries and jobs; serves open jobs, job
-//! states, worlds by index, browsing requests and statistics as queryables; publishes job
+//! The store node: subscribes to segments, world summaries and jobs; serves open jobs, held
+//! jobs, job states, worlds by index, the browsing index's paths, browsing requests and
+//! statistics as queryables; publishes job
 //! states and stats. [`run_store`] declares what the node listens to and starts one task per
 //! duty; each task is a function below.
 
@@ -14,7 +15,9 @@ use mwb_core::browse::api::{Reply, ShardReply, ShardRequest};
 use mwb_core::keys::{Keys, check_identifier, last_chunk, role};
 use mwb_node::bus::{self, Queries, Subscription};
 use mwb_node::{Node, NodeError};
-use mwb_proto::v1::{Job, JobState, Message, MotionSegment, NodeStats, World, WorldDone};
+use mwb_proto::v1::{
+    Job, JobState, Message, MotionSegment, NodeStats, PathsRequest, World, WorldDone,
+};
 use std::collections::HashMap;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -31,6 +34,9 @@ use zenoh::sample::SampleKind;
 pub const DEFAULT_MEMORY_CAP_MIB: u64 = 4096;
 /// Capacity of the ingest queue between the subscribers and the applier.
 const INGEST_QUEUE: usize = 4096;
+/// Worlds per shard in one `q/paths` answer when the request does not say (about 3 kB each for
+/// a 5-body world: answers stay well under a megabyte).
+pub const DEFAULT_PATH_BATCH: usize = 256;
 /// How often the applier looks for partial worlds to discard.
 const TICK: Duration = Duration::from_millis(250);
 
@@ -251,6 +257,8 @@ pub async fn run_store(session: Session, cfg: StoreConfig) -> Result<StoreHandle
     let browse_queries = node.queryable(keys.shard_browse_all(node.id())).await?;
     let world_queries = node.queryable(keys.worlds()).await?;
     let stats_queries = node.queryable(keys.store_stats()).await?;
+    let path_queries = node.queryable(keys.paths()).await?;
+    let held_job_queries = node.queryable(keys.held_jobs()).await?;
     let token = node.declare_alive().await?;
 
     // All ingest goes through one bounded queue, so segments and summaries are applied in the
@@ -276,6 +284,8 @@ pub async fn run_store(session: Session, cfg: StoreConfig) -> Result<StoreHandle
         tokio::spawn(serve_browse(shared.clone(), browse_queries)),
         tokio::spawn(serve_worlds(shared.clone(), world_queries)),
         tokio::spawn(serve_stats(shared.clone(), stats_queries)),
+        tokio::spawn(serve_paths(shared.clone(), path_queries)),
+        tokio::spawn(serve_held_jobs(shared.clone(), held_job_queries)),
         tokio::spawn(bus::publish_stats(node.clone(), stats)),
     ];
     if let Some(q) = job_queries {
@@ -398,6 +408,11 @@ impl Applier {
             }
             report.worlds_from_journal = worlds(self);
             self.journal = Some(journal);
+            // This run's file starts now, with a checkpoint of the jobs as the journal left
+            // them. Started later, its checkpoint would already count (and perhaps close the
+            // jobs of) the worlds loaded below, which it precedes in the file: read back, those
+            // worlds would be counted twice or refused as late.
+            self.commit_now()?;
         }
         for f in &cfg.load {
             let fr = read_store_input(f, false, |m| self.load(m));
@@ -409,7 +424,7 @@ impl Applier {
         // What is still partial now can only be a world cut by damage, or held for a job no
         // file announced: nothing will complete it.
         report.partial_discarded = self.shared.lock().expire(u64::MAX, 0, 0) as u64;
-        // The first commit starts this run's journal file with a checkpoint of every job.
+        // The worlds loaded from recordings reach the disk before the store answers anyone.
         self.commit_now()?;
         report.seconds = t0.elapsed().as_secs_f64();
         if cfg.journal.is_some() || !cfg.load.is_empty() {
@@ -729,6 +744,57 @@ async fn serve_worlds(shared: Arc<Shared>, queries: Queries) {
                 segments: w.segments.clone(),
             };
             node.reply(&q, &node.keys().world(idx), msg.encode_to_vec())
+                .await;
+        }
+    }
+}
+
+/// The browsing index's paths from the asker's cursor for this shard (`PathsRequest` →
+/// `PathBatch`), for viewers drawing worlds as they arrive. A malformed request is answered
+/// with an error and counted.
+async fn serve_paths(shared: Arc<Shared>, queries: Queries) {
+    let node = &shared.node;
+    while let Ok(q) = queries.recv_async().await {
+        let req = match q
+            .payload()
+            .map(|p| PathsRequest::decode(p.to_bytes().as_ref()))
+        {
+            None => PathsRequest::default(),
+            Some(Ok(r)) => r,
+            Some(Err(e)) => {
+                node.count_malformed();
+                node.reply_err(&q, &format!("malformed PathsRequest: {e}"))
+                    .await;
+                continue;
+            }
+        };
+        let batch = {
+            let b = shared.browse();
+            let seen = req.seen.get(b.spec().index as usize).copied().unwrap_or(0);
+            let max = match req.max_worlds {
+                0 => DEFAULT_PATH_BATCH,
+                n => (n as usize).min(4 * DEFAULT_PATH_BATCH),
+            };
+            b.path_batch(seen, max)
+        };
+        node.reply(&q, &node.keys().paths(), batch.encode_to_vec())
+            .await;
+    }
+}
+
+/// A job this store holds (open or closed), so that a client can read the scene of any world
+/// it was given. A shard that does not know the job stays silent.
+async fn serve_held_jobs(shared: Arc<Shared>, queries: Queries) {
+    let node = &shared.node;
+    while let Ok(q) = queries.recv_async().await {
+        let id = last_chunk(q.key_expr().as_str()).to_owned();
+        let job = shared
+            .lock()
+            .jobs()
+            .find(|(j, _)| j.id == id)
+            .map(|(j, _)| j.clone());
+        if let Some(j) = job {
+            node.reply(&q, &node.keys().held_job(&j.id), j.encode_to_vec())
                 .await;
         }
     }

@@ -260,6 +260,33 @@ async fn a_restarted_store_has_every_world_and_the_job_state_of_its_journal() {
     close(s).await;
 }
 
+/// A journaling store started with `--load`: the loaded worlds are journaled after the run's
+/// checkpoint (which counts none of them), so a restart on the journal alone has each of them
+/// once, and the job as the recording left it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn worlds_loaded_into_a_journaling_store_survive_its_restart() {
+    let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
+    let first = dir.path().join("first");
+    journal_worlds(&first, "j1", 4, 0..4).await;
+    let recordings = journal_files(&first);
+
+    let s = session().await;
+    let journal = dir.path().join("journal");
+    let st = store(&s, Some(&journal), recordings).await;
+    assert_eq!(st.start_report().worlds_from_recordings, 4);
+    let before = contents(&st);
+    st.stop();
+
+    let st = store(&s, Some(&journal), vec![]).await;
+    let r = st.start_report();
+    assert_eq!((r.worlds_from_journal, r.worlds_refused), (4, 0), "{r:?}");
+    assert_eq!(contents(&st), before);
+    let state = st.job_state("j1").unwrap_or_else(|| panic!("job lost"));
+    assert!(state.closed && state.worlds_done == 4, "{state:?}");
+    st.stop();
+    close(s).await;
+}
+
 /// Cut and flipped copies of a journal: the store starts every time, with the worlds whose
 /// records precede the damage — a prefix of the original worlds, byte for byte.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -493,7 +493,7 @@ pub fn scene_shapes(state: &ViewerState, view: &View, overlay: Overlay) -> Vec<S
         ),
         (state.selected(), Stroke::new(2.5, palette::SELECTED)),
     ] {
-        if let Some(world) = w.and_then(|w| state.worlds().get(w as usize)) {
+        if let Some(world) = w.and_then(|w| state.world(w)) {
             for &o in &chosen {
                 if let Some(p) = world.paths.get(o as usize) {
                     for run in view.polyline(p.tree.path().points()) {
@@ -504,11 +504,11 @@ pub fn scene_shapes(state: &ViewerState, view: &View, overlay: Overlay) -> Vec<S
         }
     }
 
-    // Bodies of the shown world at the playback time.
-    if let Some(world) = state.shown_world() {
+    // Bodies of the shown world at the playback time (once its motion is loaded).
+    if let Some(motion) = state.shown_world().and_then(|w| w.motion.as_ref()) {
         let t = state.playback().time;
-        for (b, body) in world.scene.bodies.iter().enumerate() {
-            if let Some((p, q)) = world.pose_at(b, t) {
+        for (b, body) in motion.scene.bodies.iter().enumerate() {
+            if let Some((p, q)) = motion.pose_at(b, t) {
                 let colour = palette::BODIES[b % palette::BODIES.len()];
                 let alpha = if state.is_chosen(b as u32) { 1.0 } else { 0.55 };
                 push_shape(&mut tris, &body.shape, p, q, colour, alpha);
@@ -519,7 +519,7 @@ pub fn scene_shapes(state: &ViewerState, view: &View, overlay: Overlay) -> Vec<S
 
     // Constraints: their frustum's four side edges from the eye they were drawn with to the
     // depth of the scene, and the cross-section there.
-    for c in state.constraints().constraints() {
+    for c in state.constraint_list() {
         let Some(k) = c.frustum.corners() else {
             continue;
         };

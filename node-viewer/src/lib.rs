@@ -6,8 +6,11 @@
 //!   playback, changed only by [`Msg`]s; constraints are evaluated with `mwb_core::browse`.
 //! * [`camera`] — an orbit camera that hands out `mwb_core::browse::Camera`s, so the view is
 //!   drawn and queried through one projection.
-//! * [`world`] / [`offline`] — worlds sampled in-process and decoded with `mwb-codec`, indexed
-//!   like the store indexes them.
+//! * [`session`] — who answers constraints: this process (offline) or node-query (live).
+//! * [`world`] / [`offline`] — worlds as the store indexed them (from a store's `q/paths`, or
+//!   sampled in-process and indexed with the store's own code), and their decoded motion.
+//! * [`live`] — the bus task of a live viewer: worlds as they arrive, the browsing session,
+//!   motion fetched for playback, the cluster's status; never on the UI thread.
 //! * [`draw`] — the 3D view as egui shapes, projected on the CPU.
 //! * [`ui`] — [`ViewerApp`]: panels, the 3D view's mouse and keys, the eframe app.
 //! * [`softpaint`] — a software rasteriser for egui's tessellated output: headless screenshots
@@ -15,16 +18,19 @@
 
 pub mod camera;
 pub mod draw;
+pub mod live;
 pub mod math;
 pub mod offline;
 pub mod screenshot;
+pub mod session;
 pub mod softpaint;
 pub mod state;
 pub mod ui;
 pub mod world;
 
 pub use camera::OrbitCamera;
-pub use state::{Msg, Playback, ViewerState};
+pub use session::{Command, ConstraintRow};
+pub use state::{LinkStatus, Msg, Playback, RankSpec, Ranking, ViewerState};
 pub use ui::ViewerApp;
 pub use world::WorldData;
 
@@ -33,20 +39,20 @@ pub use world::WorldData;
 pub enum ViewerError {
     #[error(transparent)]
     Browse(#[from] mwb_core::browse::BrowseError),
-    #[error("world has no segments")]
-    NoSegments,
-    #[error("segment {seq}: {what}")]
-    Segment { seq: u32, what: String },
+    #[error("motion: {0}")]
+    Motion(String),
     #[error("body {body}: {what}")]
     Body { body: usize, what: String },
     #[error("frame_dt {0} is not a positive number")]
     FrameDt(f64),
     #[error("the scene has {scene} bodies but the motion has {motion}")]
     BodyCount { scene: usize, motion: usize },
-    #[error("world index {found}: expected {expected} (worlds are numbered densely)")]
-    WorldIndex { expected: u32, found: u32 },
+    #[error("world {found} is already loaded")]
+    WorldIndex { found: u32 },
     #[error("world {world}: sampling failed: {what}")]
     Sampling { world: u32, what: String },
+    #[error("{0} needs a live viewer (`mwb viewer --connect …`)")]
+    Offline(&'static str),
     #[error("screenshot size {0}: expected WIDTHxHEIGHT, each 64..=8192")]
     Size(String),
 }

@@ -1,17 +1,25 @@
-//! Offline worlds: sampled in-process with the sampler library and decoded with the codec, the
-//! same bytes a sampler node would put on the bus. Pure computation (threads, no I/O).
+//! Offline worlds: sampled in-process with the sampler library, in the wire form a sampler node
+//! puts on the bus, indexed with the store's own `index_world` and decoded with
+//! `mwb_export::decode_segments` — so a box drawn offline is tested against exactly the paths
+//! and radii a store would hold. Pure computation (threads, no I/O).
 
 use std::ops::ControlFlow;
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 
+use mwb_core::browse::RestThresholds;
 use mwb_core::scene::SceneTemplate;
-use mwb_sampler::{RunOptions, run_world};
+use mwb_sampler::{RunOptions, run_world, segment_message, world_done};
+use mwb_store::StoredWorld;
+use mwb_store::index::{DEFAULT_PATH_TOLERANCE_M, JobScene, index_world};
 
 use crate::ViewerError;
-use crate::world::{WorldData, decode_segments};
+use crate::world::{Motion, WorldData};
+
+/// The job id offline worlds carry.
+pub const OFFLINE_JOB: &str = "offline";
 
 /// The seed of offline world `i` (worlds are numbered from 0 and world `i` has seed `i`, so a
-/// world seen in the viewer can be re-run with `mwb bench` or a test by its number).
+/// world seen in the viewer can be re-run with `mwb world --seed i` or a test by its number).
 pub fn offline_seed(i: u32) -> u64 {
     u64::from(i)
 }
@@ -60,25 +68,44 @@ pub fn sample_worlds(
         .collect()
 }
 
-/// One offline world: sample, encode, decode, index.
+/// One offline world: sample, index as a store would, decode.
 pub fn sample_one(template: &SceneTemplate, i: u32) -> Result<WorldData, ViewerError> {
     let seed = offline_seed(i);
     let mut segments = Vec::new();
     let summary = run_world(template, seed, RunOptions::default(), &mut |seg| {
-        segments.push(seg);
+        segments.push(segment_message(OFFLINE_JOB, "", 0, seed, seg));
         ControlFlow::Continue(())
     })
     .map_err(|e| ViewerError::Sampling {
         world: i,
         what: e.to_string(),
     })?;
-    let (tracks, e_max) = decode_segments(&segments)?;
-    WorldData::new(
-        i,
-        seed,
+    let done = world_done(OFFLINE_JOB, "", 0, &summary);
+    let stored = StoredWorld {
+        index: i,
+        job_id: OFFLINE_JOB.into(),
+        bytes: 0,
+        done,
+        segments,
+    };
+    let scene = JobScene {
+        rest: RestThresholds::from(template.settings()),
+        bodies: template.body_names().map(str::to_owned).collect(),
+    };
+    let indexed = index_world(&stored, i, scene, DEFAULT_PATH_TOLERANCE_M).map_err(|e| {
+        ViewerError::Sampling {
+            world: i,
+            what: e.to_string(),
+        }
+    })?;
+    let mut world = WorldData::from_paths(&indexed.paths_message())?;
+    world.metrics = indexed.metrics;
+    let motion = Motion::decode(
         template.instantiate(seed),
         summary.frame_dt,
-        tracks,
-        e_max,
-    )
+        &stored.segments,
+        Some(u64::from(summary.frame_count)),
+    )?;
+    world.motion = Some(Arc::new(motion));
+    Ok(world)
 }

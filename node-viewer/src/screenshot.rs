@@ -55,6 +55,40 @@ pub fn screenshot(
     painter.paint_shapes(&ctx, out.shapes, out.pixels_per_point, size, clear)
 }
 
+/// CPU time of whole UI frames of `app` at `size` pixels, milliseconds each: egui's pass over
+/// [`ViewerApp::ui`] (panels, the 3D view's projection into shapes) plus tessellation into
+/// triangles — everything a frame costs before the GPU (or [`SoftPainter`]) draws it. The
+/// camera orbits a little every frame so that nothing is reused between frames.
+pub fn frame_times_ms(app: &mut ViewerApp, size: [u32; 2], frames: usize) -> Vec<f64> {
+    let ctx = egui::Context::default();
+    ctx.all_styles_mut(|style| {
+        style.animation_time = 0.0;
+    });
+    let points = vec2(size[0] as f32, size[1] as f32);
+    let mut times = Vec::with_capacity(frames);
+    for i in 0..frames + 2 {
+        let input = RawInput {
+            screen_rect: Some(Rect::from_min_size(Pos2::ZERO, points)),
+            ..Default::default()
+        };
+        let start = std::time::Instant::now();
+        let mut out = ctx.run_ui(input, |ui| app.ui(ui));
+        let primitives = ctx.tessellate(std::mem::take(&mut out.shapes), out.pixels_per_point);
+        let ms = start.elapsed().as_secs_f64() * 1e3;
+        std::hint::black_box(primitives);
+        out.textures_delta.clear();
+        // The first two passes lay the UI out (and build the font atlas): not counted.
+        if i >= 2 {
+            times.push(ms);
+        }
+        let _ = app.state.update(crate::Msg::Orbit {
+            d_yaw: 0.01,
+            d_pitch: 0.0,
+        });
+    }
+    times
+}
+
 /// Encodes an image as PNG bytes.
 pub fn png_bytes(img: &image::RgbaImage) -> Result<Vec<u8>, image::ImageError> {
     let mut out = std::io::Cursor::new(Vec::new());

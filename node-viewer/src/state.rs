@@ -1,24 +1,33 @@
 //! The viewer's whole state, changed only by [`Msg`]s: no window, no I/O, no clock of its own.
 //!
-//! Constraints are evaluated here with `mwb_core::browse` (the code every store shard runs):
-//! a screen rectangle through the current camera becomes a [`Frustum`] with
-//! [`mwb_core::browse::Camera::frustum`], each world's indexed paths are tested with
-//! [`Constraint::evaluate`], and a [`ConstraintSet`] keeps the bitsets, their AND and the
-//! undo/redo history (§4.4.1–4.4.2 of Twigg and James, SIGGRAPH 2007).
+//! A screen rectangle through the current camera becomes a [`Frustum`] with
+//! [`mwb_core::browse::Camera::frustum`] and a [`Constraint`] over the chosen objects
+//! (§4.4.1–4.4.2 of Twigg and James, SIGGRAPH 2007). Offline, the [`Session`] evaluates it here
+//! over the worlds' path trees; live, the state queues a request ([`Command`]) for the bus task
+//! and mirrors node-query's answer when it comes back as a message. The same holds for
+//! rankings (§4.4.3) and for a world's motion, which a live viewer fetches when it is shown.
 
+use std::collections::VecDeque;
+use std::sync::Arc;
+
+use mwb_core::browse::api::{Reply, Request, SessionStatus};
 use mwb_core::browse::{
-    Constraint, ConstraintId, ConstraintSet, Frustum, Polarity, ScreenRect, TimeWindow, Viewport,
+    Constraint, ConstraintId, ConstraintSet, Frustum, Order, Polarity, RankKey, Ranked, ScreenRect,
+    TimeWindow, Viewport, WorldSet, top_k_counted,
 };
 use mwb_core::scene::StaticBody;
 
 use crate::ViewerError;
-use crate::camera::{OrbitCamera, bounding_sphere};
+use crate::camera::OrbitCamera;
 use crate::math::V3;
-use crate::world::WorldData;
+use crate::session::{Command, ConstraintRow, Session};
+use crate::world::{Motion, WorldData};
 
 /// Playback speeds the timeline allows.
 pub const MIN_SPEED: f64 = 0.1;
 pub const MAX_SPEED: f64 = 4.0;
+/// Decoded motions a live viewer keeps (the selected world's is never dropped).
+pub const MOTION_CACHE: usize = 64;
 
 /// The playback clock of the selected world.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -42,8 +51,63 @@ impl Default for Playback {
     }
 }
 
-/// Everything that changes the state.
+/// What the metric sorter ranks by (§4.4.3).
 #[derive(Debug, Clone, PartialEq)]
+pub struct RankSpec {
+    pub key: RankKey,
+    pub order: Order,
+    pub k: usize,
+    /// Rank every world, not only the survivors (what §4.4.3 does for "constraints satisfied",
+    /// to suggest worlds worth refining).
+    pub all_worlds: bool,
+}
+
+impl RankSpec {
+    /// The browsing request that asks node-query for this ranking.
+    pub fn request(&self) -> Request {
+        Request::Rank {
+            key: self.key.clone(),
+            order: self.order,
+            k: self.k,
+            all_worlds: self.all_worlds,
+        }
+    }
+}
+
+/// The sorter's current answer.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Ranking {
+    pub spec: RankSpec,
+    /// Worlds ranked over.
+    pub candidates: u64,
+    /// Candidates without a value (ranked last).
+    pub unscored: u64,
+    pub rows: Vec<Ranked>,
+}
+
+/// The bus as a live viewer last saw it (shown in the status bar).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct LinkStatus {
+    /// Where the viewer connects, as the user gave it.
+    pub endpoint: String,
+    /// The last round trip to the bus succeeded.
+    pub connected: bool,
+    pub stores: u32,
+    pub samplers: u32,
+    /// Worlds the stores hold (their statistics).
+    pub store_worlds: u64,
+    pub memory_bytes: u64,
+    pub memory_cap_bytes: u64,
+    /// Worlds per second arriving, over the last few seconds.
+    pub worlds_per_s: f64,
+    /// Open jobs: id, worlds done, worlds wanted.
+    pub jobs: Vec<(String, u32, u32)>,
+    /// Why the last request failed, if it did.
+    pub error: Option<String>,
+}
+
+/// Everything that changes the state.
+#[derive(Debug, Clone)]
 pub enum Msg {
     /// Turn the camera about its target, radians.
     Orbit {
@@ -90,6 +154,56 @@ pub enum Msg {
     Tick(f64),
     SetSpeed(f64),
     SetLoop(bool),
+    /// Rank by this (`None`: no ranking).
+    Rank(Option<RankSpec>),
+
+    // What a live viewer's bus task reports.
+    /// The scene the worlds are of: its name, body names and static geometry.
+    Scene {
+        name: String,
+        bodies: Vec<String>,
+        statics: Vec<StaticBody>,
+    },
+    /// Worlds that arrived (their indexed paths).
+    Worlds(Vec<WorldData>),
+    /// A shard's worlds are gone (it restarted without them): forget worlds `index ≡ shard
+    /// (mod count)`.
+    ForgetShard {
+        shard: u32,
+        count: u32,
+    },
+    /// node-query's answer about the session: its status and every survivor, and how many of
+    /// the edits the state sent the bus task has handled (answered or failed) so far.
+    Session {
+        status: SessionStatus,
+        survivors: Vec<u32>,
+        handled_edits: u32,
+    },
+    /// node-query's answer to a ranking request.
+    Ranked {
+        spec: RankSpec,
+        reply: Reply,
+    },
+    /// A browsing request was refused or could not be sent.
+    BrowseFailed(String),
+    /// Something the bus task could not use (a malformed answer, a world that does not
+    /// decode): shown, never fatal.
+    Problem(String),
+    /// A world's motion, fetched and decoded (or why not).
+    MotionLoaded {
+        world: u32,
+        motion: Result<Arc<Motion>, String>,
+    },
+    Link(LinkStatus),
+    /// The user asks for a job (live only): see [`Command::SubmitJob`].
+    SubmitJob {
+        scene: String,
+        worlds: u32,
+        quality: mwb_proto::v1::Quality,
+    },
+    CancelJob(String),
+    /// What became of a job submission or cancellation.
+    JobNotice(Result<String, String>),
 }
 
 /// The viewer state: scene, worlds, camera, constraints, selection, playback.
@@ -98,21 +212,45 @@ pub struct ViewerState {
     scene_name: String,
     body_names: Vec<String>,
     statics: Vec<StaticBody>,
+    /// Sorted by index (live stores number sparsely across shards).
     worlds: Vec<WorldData>,
     /// Worlds that could not be used, with why (shown, never fatal).
     problems: Vec<String>,
     pub camera: OrbitCamera,
-    constraints: ConstraintSet,
+    session: Session,
+    /// Lowest id for the next constraint.
     next_constraint: u64,
     /// Per object: its paths are drawn and new constraints are over it.
     chosen: Vec<bool>,
     window: Option<TimeWindow>,
     selected: Option<u32>,
     playback: Playback,
+    ranking: Option<Ranking>,
+    rank_spec: Option<RankSpec>,
+    /// Requests for the bus task, oldest first.
+    outbox: Vec<Command>,
+    /// Live: worlds whose motion was asked for and has not come back.
+    fetching: Vec<u32>,
+    /// Live: worlds whose motion is loaded, least recently loaded first.
+    loaded: VecDeque<u32>,
+    link: Option<LinkStatus>,
+    /// The last browsing error (shown until the next successful answer).
+    browse_error: Option<String>,
+    /// What became of the last job submitted or cancelled.
+    job_notice: Option<Result<String, String>>,
+    /// Axis-aligned box of every path vertex and bounded static, kept as worlds arrive.
+    extent: Option<(V3, V3)>,
+}
+
+fn find(worlds: &[WorldData], w: u32) -> Option<&WorldData> {
+    worlds
+        .binary_search_by_key(&w, |d| d.index)
+        .ok()
+        .map(|i| &worlds[i])
 }
 
 fn evaluate(worlds: &[WorldData], c: &Constraint, w: u32) -> bool {
-    let Some(world) = worlds.get(w as usize) else {
+    let Some(world) = find(worlds, w) else {
         // Unknown worlds touch nothing.
         return c.satisfied_given(false);
     };
@@ -125,49 +263,84 @@ fn evaluate(worlds: &[WorldData], c: &Constraint, w: u32) -> bool {
 }
 
 impl ViewerState {
-    /// A state for a scene with `body_names` (scene order) and its static geometry.
+    /// An offline state for a scene with `body_names` (scene order) and its static geometry:
+    /// constraints are evaluated here.
     pub fn new(
         scene_name: impl Into<String>,
         body_names: Vec<String>,
         statics: Vec<StaticBody>,
     ) -> Self {
         let chosen = vec![true; body_names.len()];
-        Self {
+        let mut s = Self {
             scene_name: scene_name.into(),
             body_names,
             statics,
             worlds: Vec::new(),
             problems: Vec::new(),
             camera: OrbitCamera::default(),
-            constraints: ConstraintSet::new(),
+            session: Session::Local(ConstraintSet::new()),
             next_constraint: 1,
             chosen,
             window: None,
             selected: None,
             playback: Playback::default(),
-        }
+            ranking: None,
+            rank_spec: None,
+            outbox: Vec::new(),
+            fetching: Vec::new(),
+            loaded: VecDeque::new(),
+            link: None,
+            browse_error: None,
+            job_notice: None,
+            extent: None,
+        };
+        s.recompute_extent();
+        s
     }
 
-    /// Adds a world; its index must be the next one (worlds are numbered densely from 0). It is
-    /// evaluated against every live constraint (§4.4: worlds arriving later are filtered too).
+    /// A live state: worlds, the scene and answers arrive as messages from the bus task, and
+    /// edits leave as [`Command`]s ([`take_commands`](Self::take_commands)).
+    pub fn live(endpoint: impl Into<String>) -> Self {
+        let mut s = Self::new("(waiting for the store)", Vec::new(), Vec::new());
+        s.session = Session::Remote(Box::default());
+        s.link = Some(LinkStatus {
+            endpoint: endpoint.into(),
+            ..LinkStatus::default()
+        });
+        s
+    }
+
+    pub fn is_live(&self) -> bool {
+        self.session.is_remote()
+    }
+
+    /// Adds a world (its index must not be taken). Offline it is evaluated against every live
+    /// constraint (§4.4: worlds arriving later are filtered too); live, the store does that.
     pub fn add_world(&mut self, world: WorldData) -> Result<(), ViewerError> {
-        let expected = self.worlds.len() as u32;
-        if world.index != expected {
-            return Err(ViewerError::WorldIndex {
-                expected,
-                found: world.index,
-            });
-        }
-        if world.scene.bodies.len() != self.body_names.len() {
+        let at = match self.worlds.binary_search_by_key(&world.index, |d| d.index) {
+            Ok(_) => {
+                return Err(ViewerError::WorldIndex { found: world.index });
+            }
+            Err(at) => at,
+        };
+        if !self.body_names.is_empty() && world.paths.len() != self.body_names.len() {
             return Err(ViewerError::BodyCount {
                 scene: self.body_names.len(),
-                motion: world.scene.bodies.len(),
+                motion: world.paths.len(),
             });
         }
-        self.worlds.push(world);
-        let worlds = &self.worlds;
-        self.constraints
-            .on_new_world(expected, |c, w| evaluate(worlds, c, w));
+        let index = world.index;
+        let points: Vec<V3> = world
+            .paths
+            .iter()
+            .flat_map(|p| p.tree.path().points().iter().copied())
+            .collect();
+        self.extend_extent(points.into_iter());
+        self.worlds.insert(at, world);
+        if let Session::Local(set) = &mut self.session {
+            let worlds = &self.worlds;
+            set.on_new_world(index, |c, w| evaluate(worlds, c, w));
+        }
         Ok(())
     }
 
@@ -188,25 +361,101 @@ impl ViewerState {
         &self.statics
     }
 
+    /// The worlds loaded here, by index.
     pub fn worlds(&self) -> &[WorldData] {
         &self.worlds
+    }
+
+    /// World `w`, if loaded.
+    pub fn world(&self, w: u32) -> Option<&WorldData> {
+        find(&self.worlds, w)
     }
 
     pub fn problems(&self) -> &[String] {
         &self.problems
     }
 
-    pub fn constraints(&self) -> &ConstraintSet {
-        &self.constraints
+    /// The live constraints with their counts.
+    pub fn constraint_rows(&self) -> Vec<ConstraintRow> {
+        self.session.rows()
+    }
+
+    /// The live constraints whose geometry is known here (for drawing and tests).
+    pub fn constraint_list(&self) -> Vec<Constraint> {
+        match &self.session {
+            Session::Local(set) => set.constraints().cloned().collect(),
+            Session::Remote(r) => r
+                .status
+                .constraints
+                .iter()
+                .filter_map(|c| r.drawn.get(&c.id).cloned())
+                .collect(),
+        }
+    }
+
+    pub fn can_undo(&self) -> bool {
+        self.session.can_undo()
+    }
+
+    pub fn can_redo(&self) -> bool {
+        self.session.can_redo()
     }
 
     /// Whether world `w` satisfies every live constraint.
     pub fn survives(&self, w: u32) -> bool {
-        self.constraints.result().contains(w)
+        self.session.survivors().contains(w)
     }
 
-    pub fn survivor_count(&self) -> usize {
-        self.constraints.result().len()
+    /// The survivors, ascending (live: those the store named, loaded here or not).
+    pub fn survivors(&self) -> impl Iterator<Item = u32> + '_ {
+        self.session.survivors().iter()
+    }
+
+    /// Worlds satisfying every live constraint (live: of all the store holds).
+    pub fn survivor_count(&self) -> u64 {
+        self.session.survivor_count()
+    }
+
+    /// Worlds browsed: loaded here (offline), or held by the stores (live).
+    pub fn world_total(&self) -> u64 {
+        match &self.session {
+            Session::Local(_) => self.worlds.len() as u64,
+            Session::Remote(r) => r.status.worlds.max(self.worlds.len() as u64),
+        }
+    }
+
+    /// Live: edits sent whose answer has not come back.
+    pub fn pending(&self) -> u32 {
+        match &self.session {
+            Session::Local(_) => 0,
+            Session::Remote(r) => r.pending,
+        }
+    }
+
+    pub fn link(&self) -> Option<&LinkStatus> {
+        self.link.as_ref()
+    }
+
+    /// What became of the last job submitted or cancelled.
+    pub fn job_notice(&self) -> Option<&Result<String, String>> {
+        self.job_notice.as_ref()
+    }
+
+    pub fn browse_error(&self) -> Option<&str> {
+        self.browse_error.as_deref()
+    }
+
+    pub fn ranking(&self) -> Option<&Ranking> {
+        self.ranking.as_ref()
+    }
+
+    pub fn rank_spec(&self) -> Option<&RankSpec> {
+        self.rank_spec.as_ref()
+    }
+
+    /// Takes the requests queued for the bus task.
+    pub fn take_commands(&mut self) -> Vec<Command> {
+        std::mem::take(&mut self.outbox)
     }
 
     pub fn is_chosen(&self, object: u32) -> bool {
@@ -232,11 +481,18 @@ impl ViewerState {
         self.playback
     }
 
-    /// The world whose bodies are drawn: the selected one, else the first survivor, else none.
+    /// The world whose bodies are drawn: the selected one, else the first loaded survivor.
     pub fn shown_world(&self) -> Option<&WorldData> {
-        self.selected
-            .or_else(|| self.constraints.result().iter().next())
-            .and_then(|w| self.worlds.get(w as usize))
+        match self.selected {
+            Some(w) => self.world(w),
+            None => self.survivors().find_map(|w| self.world(w)),
+        }
+    }
+
+    /// Whether the shown world's motion is being fetched.
+    pub fn shown_loading(&self) -> bool {
+        self.shown_world()
+            .is_some_and(|w| w.motion.is_none() && self.fetching.contains(&w.index))
     }
 
     /// Length of the timeline: the shown world's motion, or the longest world's.
@@ -251,32 +507,109 @@ impl ViewerState {
         }
     }
 
-    /// A sphere around every path of the chosen objects, the bodies' start poses and the
-    /// bounded statics.
+    /// A sphere around every path of every world and the bounded statics (the ground grid's
+    /// extent); kept up to date as worlds arrive, so a frame does not walk every path.
     pub fn bounds(&self) -> Option<(V3, f64)> {
+        let (lo, hi) = self.extent?;
+        let c = crate::math::scale(crate::math::add(lo, hi), 0.5);
+        Some((
+            c,
+            (0.5 * crate::math::len(crate::math::sub(hi, lo))).max(0.1),
+        ))
+    }
+
+    /// Grows the cached extent by `points`.
+    fn extend_extent(&mut self, points: impl Iterator<Item = V3>) {
+        for p in points {
+            if !p.iter().all(|c| c.is_finite()) {
+                continue;
+            }
+            let (lo, hi) = self.extent.get_or_insert((p, p));
+            for k in 0..3 {
+                lo[k] = lo[k].min(p[k]);
+                hi[k] = hi[k].max(p[k]);
+            }
+        }
+    }
+
+    /// Recomputes the cached extent from every world and static.
+    fn recompute_extent(&mut self) {
+        self.extent = None;
+        let statics: Vec<V3> = self
+            .statics
+            .iter()
+            .filter_map(|s| match &s.shape {
+                mwb_core::scene::Shape::Plane { .. } => None,
+                _ => Some(s.position),
+            })
+            .collect();
+        let paths: Vec<V3> = self
+            .worlds
+            .iter()
+            .flat_map(|w| w.paths.iter())
+            .flat_map(|p| p.tree.path().points().iter().copied())
+            .collect();
+        self.extend_extent(statics.into_iter().chain(paths));
+    }
+
+    /// What "frame all" frames: a sphere around the bulk of the chosen objects' paths — the
+    /// median point, out to the distance within which 95 % of the path vertices lie — and the
+    /// bodies' bounded statics. A few bodies thrown far away would otherwise shrink every other
+    /// path to a dot. (At most 20 000 vertices are looked at, evenly spread.)
+    pub fn framing(&self) -> Option<(V3, f64)> {
         let chosen: Vec<usize> = (0..self.chosen.len()).filter(|&o| self.chosen[o]).collect();
-        let paths = self.worlds.iter().flat_map(|w| {
-            chosen
-                .iter()
-                .filter_map(move |&o| w.paths.get(o))
-                .flat_map(|p| p.tree.path().points().iter().copied())
-        });
-        let statics = self.statics.iter().filter_map(|s| match &s.shape {
+        let total: usize = self
+            .worlds
+            .iter()
+            .flat_map(|w| chosen.iter().filter_map(move |&o| w.paths.get(o)))
+            .map(|p| p.tree.path().len())
+            .sum();
+        let step = total.div_ceil(20_000).max(1);
+        let mut points: Vec<V3> = self
+            .worlds
+            .iter()
+            .flat_map(|w| chosen.iter().filter_map(move |&o| w.paths.get(o)))
+            .flat_map(|p| p.tree.path().points().iter().copied())
+            .step_by(step)
+            .filter(|p| p.iter().all(|c| c.is_finite()))
+            .collect();
+        points.extend(self.statics.iter().filter_map(|s| match &s.shape {
             mwb_core::scene::Shape::Plane { .. } => None,
             _ => Some(s.position),
-        });
-        bounding_sphere(paths.chain(statics))
+        }));
+        if points.is_empty() {
+            return None;
+        }
+        let median = |k: usize| {
+            let mut v: Vec<f64> = points.iter().map(|p| p[k]).collect();
+            v.sort_by(f64::total_cmp);
+            v[v.len() / 2]
+        };
+        let centre = [median(0), median(1), median(2)];
+        let mut d: Vec<f64> = points
+            .iter()
+            .map(|p| crate::math::len(crate::math::sub(*p, centre)))
+            .collect();
+        d.sort_by(f64::total_cmp);
+        let r = d[((d.len() - 1) as f64 * 0.95).round() as usize];
+        Some((centre, r.max(0.5)))
     }
 
     /// Applies one message. Errors (a degenerate rectangle, an unknown constraint) leave the
     /// state as it was.
     pub fn update(&mut self, msg: Msg) -> Result<(), ViewerError> {
+        let r = self.apply(msg);
+        self.want_shown_motion();
+        r
+    }
+
+    fn apply(&mut self, msg: Msg) -> Result<(), ViewerError> {
         match msg {
             Msg::Orbit { d_yaw, d_pitch } => self.camera.orbit(d_yaw, d_pitch),
             Msg::Pan { dx, dy, height } => self.camera.pan(dx, dy, height),
             Msg::Zoom { factor } => self.camera.zoom(factor),
             Msg::FrameAll { aspect } => {
-                if let Some((c, r)) = self.bounds() {
+                if let Some((c, r)) = self.framing() {
                     self.camera.frame(c, r, aspect);
                 }
             }
@@ -289,14 +622,42 @@ impl ViewerState {
                 let frustum = self.camera.browse_camera(viewport).frustum(&rect)?;
                 self.add_frustum(frustum, polarity)?;
             }
-            Msg::RemoveConstraint(id) => self.constraints.remove(id)?,
-            Msg::Undo => {
-                let worlds = &self.worlds;
-                self.constraints.undo(|c, w| evaluate(worlds, c, w));
-            }
-            Msg::Redo => {
-                let worlds = &self.worlds;
-                self.constraints.redo(|c, w| evaluate(worlds, c, w));
+            Msg::RemoveConstraint(id) => match &mut self.session {
+                Session::Local(set) => {
+                    set.remove(id)?;
+                    self.rerank_local();
+                }
+                Session::Remote(r) => {
+                    if !r.status.constraints.iter().any(|c| c.id == id) {
+                        return Err(mwb_core::browse::BrowseError::UnknownConstraint(id.0).into());
+                    }
+                    self.send_edit(Request::Remove { id });
+                }
+            },
+            Msg::Undo | Msg::Redo => {
+                let undo = matches!(msg, Msg::Undo);
+                match &mut self.session {
+                    Session::Local(set) => {
+                        let worlds = &self.worlds;
+                        if undo {
+                            set.undo(|c, w| evaluate(worlds, c, w));
+                        } else {
+                            set.redo(|c, w| evaluate(worlds, c, w));
+                        }
+                        self.rerank_local();
+                    }
+                    Session::Remote(r) => {
+                        // As offline: nothing to undo (or redo) is no edit at all.
+                        let can = if undo {
+                            r.status.can_undo
+                        } else {
+                            r.status.can_redo
+                        };
+                        if can {
+                            self.send_edit(if undo { Request::Undo } else { Request::Redo });
+                        }
+                    }
+                }
             }
             Msg::ToggleObject(o) => {
                 if let Some(c) = self.chosen.get_mut(o as usize) {
@@ -305,7 +666,7 @@ impl ViewerState {
             }
             Msg::SetWindow(w) => self.window = w,
             Msg::SelectWorld(w) => {
-                self.selected = w.filter(|&w| (w as usize) < self.worlds.len());
+                self.selected = w.filter(|&w| self.world(w).is_some());
                 self.playback.time = self.playback.time.clamp(0.0, self.duration());
             }
             Msg::Play => {
@@ -321,7 +682,7 @@ impl ViewerState {
                 } else {
                     Msg::Play
                 };
-                return self.update(m);
+                return self.apply(m);
             }
             Msg::Seek(t) => {
                 if t.is_finite() {
@@ -334,38 +695,110 @@ impl ViewerState {
                 self.playback.playing = false;
                 self.playback.time = (frame * dt).clamp(0.0, self.duration());
             }
-            Msg::Tick(dt) => {
-                if self.playback.playing && dt.is_finite() && dt > 0.0 {
-                    let end = self.duration();
-                    let t = self.playback.time + dt * self.playback.speed;
-                    if t <= end {
-                        self.playback.time = t;
-                    } else if self.playback.looping && end > 0.0 {
-                        self.playback.time = t.rem_euclid(end);
-                    } else {
-                        self.playback.time = end;
-                        self.playback.playing = false;
-                    }
-                }
-            }
+            Msg::Tick(dt) => self.tick(dt),
             Msg::SetSpeed(s) => {
                 if s.is_finite() {
                     self.playback.speed = s.clamp(MIN_SPEED, MAX_SPEED);
                 }
             }
             Msg::SetLoop(l) => self.playback.looping = l,
+            Msg::Rank(spec) => {
+                if let Some(s) = &spec {
+                    s.key.validate()?;
+                }
+                self.rank_spec = spec;
+                self.ranking = None;
+                self.rerank();
+            }
+            Msg::Scene {
+                name,
+                bodies,
+                statics,
+            } => {
+                if bodies.len() != self.body_names.len() {
+                    self.chosen = vec![true; bodies.len()];
+                }
+                self.scene_name = name;
+                self.body_names = bodies;
+                self.statics = statics;
+                self.recompute_extent();
+            }
+            Msg::Worlds(worlds) => {
+                for w in worlds {
+                    let i = w.index;
+                    if let Err(e) = self.add_world(w) {
+                        self.problems.push(format!("world {i}: {e}"));
+                    }
+                }
+                self.rerank_local();
+            }
+            Msg::ForgetShard { shard, count } => {
+                let gone = |w: u32| count > 0 && w % count == shard;
+                self.worlds.retain(|w| !gone(w.index));
+                self.recompute_extent();
+                if self.selected.is_some_and(gone) {
+                    self.selected = None;
+                }
+            }
+            Msg::Session {
+                status,
+                survivors,
+                handled_edits,
+            } => self.on_session(status, survivors, handled_edits),
+            Msg::Ranked { spec, reply } => self.on_ranked(spec, reply),
+            Msg::BrowseFailed(e) => self.browse_error = Some(e),
+            Msg::Problem(p) => self.problems.push(p),
+            Msg::MotionLoaded { world, motion } => self.on_motion(world, motion),
+            Msg::Link(l) => self.link = Some(l),
+            Msg::SubmitJob {
+                scene,
+                worlds,
+                quality,
+            } => {
+                if !self.is_live() {
+                    return Err(ViewerError::Offline("submitting jobs"));
+                }
+                self.job_notice = None;
+                self.outbox.push(Command::SubmitJob {
+                    scene,
+                    worlds,
+                    quality,
+                });
+            }
+            Msg::CancelJob(job) => {
+                if !self.is_live() {
+                    return Err(ViewerError::Offline("cancelling jobs"));
+                }
+                self.outbox.push(Command::CancelJob(job));
+            }
+            Msg::JobNotice(n) => self.job_notice = Some(n),
         }
         Ok(())
     }
 
+    fn tick(&mut self, dt: f64) {
+        if self.playback.playing && dt.is_finite() && dt > 0.0 {
+            let end = self.duration();
+            let t = self.playback.time + dt * self.playback.speed;
+            if t <= end {
+                self.playback.time = t;
+            } else if self.playback.looping && end > 0.0 {
+                self.playback.time = t.rem_euclid(end);
+            } else {
+                self.playback.time = end;
+                self.playback.playing = false;
+            }
+        }
+    }
+
     /// Adds a constraint over the chosen objects (and the time window, if any) and returns its
-    /// id.
+    /// id. Live, it is sent to node-query and counts once the answer is back.
     pub fn add_frustum(
         &mut self,
         frustum: Frustum,
         polarity: Polarity,
     ) -> Result<ConstraintId, ViewerError> {
-        let id = ConstraintId(self.next_constraint);
+        let id = self.session.next_id(self.next_constraint);
         let constraint = Constraint {
             id,
             polarity,
@@ -375,11 +808,154 @@ impl ViewerState {
             window: self.window,
             scope: Default::default(),
         };
-        let worlds = &self.worlds;
-        self.constraints
-            .add(constraint, |c, w| evaluate(worlds, c, w))?;
-        self.next_constraint += 1;
+        constraint.validate()?;
+        match &mut self.session {
+            Session::Local(set) => {
+                let worlds = &self.worlds;
+                set.add(constraint, |c, w| evaluate(worlds, c, w))?;
+                self.rerank_local();
+            }
+            Session::Remote(r) => {
+                r.drawn.insert(id, constraint.clone());
+                self.send_edit(Request::Add {
+                    constraint: Box::new(constraint),
+                });
+            }
+        }
+        self.next_constraint = id.0 + 1;
         Ok(id)
+    }
+
+    fn send_edit(&mut self, request: Request) {
+        if let Session::Remote(r) = &mut self.session {
+            r.sent += 1;
+            r.pending += 1;
+        }
+        self.outbox.push(Command::Browse(request));
+    }
+
+    fn on_session(&mut self, status: SessionStatus, survivors: Vec<u32>, handled: u32) {
+        let Session::Remote(r) = &mut self.session else {
+            return;
+        };
+        let changed = !r.answered
+            || r.status.edits != status.edits
+            || r.status.worlds != status.worlds
+            || r.status.result != status.result;
+        let mut set = WorldSet::new();
+        for w in survivors {
+            set.insert(w);
+        }
+        r.survivors = set;
+        r.pending = r.sent.saturating_sub(handled);
+        r.status = status;
+        r.answered = true;
+        self.browse_error = None;
+        if changed {
+            self.rerank();
+        }
+    }
+
+    fn on_ranked(&mut self, spec: RankSpec, reply: Reply) {
+        if self.rank_spec.as_ref() != Some(&spec) {
+            return; // an answer to a ranking the user has since changed
+        }
+        match reply {
+            Reply::Ranking {
+                candidates,
+                unscored,
+                rows,
+            } => {
+                self.ranking = Some(Ranking {
+                    spec,
+                    candidates,
+                    unscored,
+                    rows,
+                });
+            }
+            Reply::Error { message } => self.browse_error = Some(message),
+            other => self.browse_error = Some(format!("unexpected answer to a ranking: {other:?}")),
+        }
+    }
+
+    fn on_motion(&mut self, world: u32, motion: Result<Arc<Motion>, String>) {
+        self.fetching.retain(|&w| w != world);
+        match motion {
+            Ok(m) => {
+                if let Ok(i) = self.worlds.binary_search_by_key(&world, |d| d.index) {
+                    self.worlds[i].motion = Some(m);
+                    self.loaded.push_back(world);
+                }
+                // Keep the cache bounded; never drop the world being shown.
+                let shown = self.shown_world().map(|w| w.index);
+                while self.loaded.len() > MOTION_CACHE {
+                    let Some(old) = self.loaded.pop_front() else {
+                        break;
+                    };
+                    if Some(old) == shown {
+                        self.loaded.push_back(old);
+                        continue;
+                    }
+                    if let Ok(i) = self.worlds.binary_search_by_key(&old, |d| d.index) {
+                        self.worlds[i].motion = None;
+                    }
+                }
+            }
+            Err(e) => self.problems.push(format!("world {world}: {e}")),
+        }
+    }
+
+    /// Live: asks for the shown world's motion when it is not loaded or on its way.
+    fn want_shown_motion(&mut self) {
+        if !self.is_live() {
+            return;
+        }
+        let Some(w) = self.shown_world() else {
+            return;
+        };
+        if w.motion.is_some() || self.fetching.contains(&w.index) {
+            return;
+        }
+        let cmd = Command::FetchMotion {
+            world: w.index,
+            job: w.job.clone(),
+        };
+        self.fetching.push(w.index);
+        self.outbox.push(cmd);
+    }
+
+    /// Refreshes the ranking: computed here offline, asked of node-query live.
+    fn rerank(&mut self) {
+        let Some(spec) = self.rank_spec.clone() else {
+            return;
+        };
+        match &self.session {
+            Session::Local(_) => self.rerank_local(),
+            Session::Remote(_) => self.outbox.push(Command::Rank(spec)),
+        }
+    }
+
+    /// Offline ranking over the worlds' metrics, with the function a store shard uses.
+    fn rerank_local(&mut self) {
+        let (Some(spec), Session::Local(set)) = (&self.rank_spec, &self.session) else {
+            return;
+        };
+        let candidates: Vec<u32> = if spec.all_worlds {
+            self.worlds.iter().map(|w| w.index).collect()
+        } else {
+            set.result().iter().collect()
+        };
+        let n = candidates.len() as u64;
+        let (rows, unscored) = top_k_counted(candidates, spec.k, spec.order, |w| {
+            let world = find(&self.worlds, w)?;
+            spec.key.score(&world.metrics, set.satisfied_count(w))
+        });
+        self.ranking = Some(Ranking {
+            spec: spec.clone(),
+            candidates: n,
+            unscored,
+            rows,
+        });
     }
 }
 
@@ -387,34 +963,40 @@ impl ViewerState {
 mod tests {
     use super::*;
     use mwb_codec::Track;
+    use mwb_core::browse::api::ConstraintStatus;
+    use mwb_core::browse::{Aggregate, Metric, ObjectMetrics};
     use mwb_core::scene::SceneTemplate;
 
-    /// A one-body scene and worlds whose body flies along x at height `y[i]`.
-    fn state(heights: &[f64]) -> ViewerState {
-        let template = SceneTemplate::parse(
+    fn scene() -> mwb_core::scene::Scene {
+        SceneTemplate::parse(
             "name = \"t\"\n[[material]]\nname = \"m\"\n[[body]]\nname = \"ball\"\nshape = \"sphere\"\nradius = 0.1\nmaterial = \"m\"\nposition = [0, 1, 0]\n",
             "t.toml",
         )
-        .expect("scene parses");
-        let scene = template.instantiate(0);
-        let names = scene.bodies.iter().map(|b| b.name.clone()).collect();
-        let mut s = ViewerState::new("t", names, scene.statics.clone());
+        .expect("scene parses")
+        .instantiate(0)
+    }
+
+    /// World `i` of a one-body scene whose body flies along x at height `y`.
+    fn world(i: u32, y: f64) -> WorldData {
+        let positions: Vec<V3> = (0..61).map(|f| [-3.0 + 0.1 * f as f64, y, 0.0]).collect();
+        let track = Track {
+            rotations: vec![[0.0, 0.0, 0.0, 1.0]; positions.len()],
+            positions,
+        };
+        let motion = Motion {
+            scene: scene(),
+            frame_dt: 1.0 / 60.0,
+            tracks: vec![track],
+        };
+        WorldData::from_exact_motion(i, u64::from(i), motion).expect("indexes")
+    }
+
+    fn state(heights: &[f64]) -> ViewerState {
+        let sc = scene();
+        let names = sc.bodies.iter().map(|b| b.name.clone()).collect();
+        let mut s = ViewerState::new("t", names, sc.statics.clone());
         for (i, &y) in heights.iter().enumerate() {
-            let positions: Vec<V3> = (0..61).map(|f| [-3.0 + 0.1 * f as f64, y, 0.0]).collect();
-            let track = Track {
-                rotations: vec![[0.0, 0.0, 0.0, 1.0]; positions.len()],
-                positions,
-            };
-            let w = WorldData::new(
-                i as u32,
-                i as u64,
-                scene.clone(),
-                1.0 / 60.0,
-                vec![track],
-                0.0,
-            )
-            .expect("indexes");
-            s.add_world(w).expect("adds");
+            s.add_world(world(i as u32, y)).expect("adds");
         }
         s
     }
@@ -435,28 +1017,31 @@ mod tests {
         }
     }
 
+    const MIDDLE: ScreenRect = ScreenRect {
+        x0: 300.0,
+        y0: 220.0,
+        x1: 340.0,
+        y1: 260.0,
+    };
+
+    fn survivors(s: &ViewerState) -> Vec<u32> {
+        s.survivors().collect()
+    }
+
     #[test]
     fn a_box_keeps_the_worlds_that_pass_through_it_and_undo_redo_remove_work() {
         let mut s = state(&[0.0, 2.0, 0.05]);
         let viewport = front(&mut s);
         // A box around the screen centre: heights 0 and 0.05 pass through, 2 does not.
-        let rect = ScreenRect {
-            x0: 300.0,
-            y0: 220.0,
-            x1: 340.0,
-            y1: 260.0,
-        };
+        let rect = MIDDLE;
         s.update(Msg::AddConstraint {
             viewport,
             rect,
             polarity: Polarity::Positive,
         })
         .expect("adds");
-        assert_eq!(
-            s.constraints().result().iter().collect::<Vec<_>>(),
-            vec![0, 2]
-        );
-        let c = s.constraints().constraints().next().expect("one").clone();
+        assert_eq!(survivors(&s), vec![0, 2]);
+        let c = s.constraint_list().remove(0);
         assert_eq!(
             c.frustum,
             s.camera
@@ -480,7 +1065,7 @@ mod tests {
         s.update(Msg::RemoveConstraint(ConstraintId(1)))
             .expect("removes");
         // Only the negative one is left: world 1 (y = 2) never enters the box.
-        assert_eq!(s.constraints().result().iter().collect::<Vec<_>>(), vec![1]);
+        assert_eq!(survivors(&s), vec![1]);
         assert!(s.update(Msg::RemoveConstraint(ConstraintId(9))).is_err());
         // A degenerate rectangle is refused and changes nothing.
         let before = s.survivor_count();
@@ -494,7 +1079,8 @@ mod tests {
             .is_err()
         );
         assert_eq!(s.survivor_count(), before);
-        assert_eq!(s.constraints().constraints().len(), 1);
+        assert_eq!(s.constraint_rows().len(), 1);
+        assert!(s.take_commands().is_empty(), "offline sends nothing");
     }
 
     #[test]
@@ -504,24 +1090,22 @@ mod tests {
         s.update(Msg::ToggleObject(0)).expect("toggle");
         assert!(s.chosen_objects().is_empty());
         s.update(Msg::ToggleObject(0)).expect("toggle");
-        let rect = ScreenRect {
-            x0: 300.0,
-            y0: 220.0,
-            x1: 340.0,
-            y1: 260.0,
-        };
         s.update(Msg::AddConstraint {
             viewport,
-            rect,
+            rect: MIDDLE,
             polarity: Polarity::Positive,
         })
         .expect("adds");
         assert_eq!(s.survivor_count(), 1);
-        let more = state(&[0.0, 3.0]);
-        let w1 = more.worlds()[1].clone();
-        s.add_world(w1.clone()).expect("adds");
-        assert!(!s.survives(1));
-        assert!(s.add_world(w1).is_err(), "index 1 is taken");
+        // Indices need not be dense (a sharded store numbers 0, 2, 4, … on one shard).
+        s.add_world(world(7, 3.0)).expect("adds");
+        s.add_world(world(5, 0.0)).expect("adds");
+        assert_eq!(
+            s.worlds().iter().map(|w| w.index).collect::<Vec<_>>(),
+            vec![0, 5, 7]
+        );
+        assert_eq!(survivors(&s), vec![0, 5]);
+        assert!(s.add_world(world(7, 0.0)).is_err(), "index 7 is taken");
     }
 
     #[test]
@@ -554,5 +1138,187 @@ mod tests {
             .and_then(|w| w.pose_at(0, 0.5))
             .expect("pose");
         assert!((p[0] - 0.0).abs() < 1e-9 && (p[1] - 1.0).abs() < 1e-9);
+    }
+
+    fn metrics(spin: f64) -> Vec<ObjectMetrics> {
+        vec![ObjectMetrics {
+            angular_travel_rad: spin,
+            time_to_rest_s: 1.0,
+            came_to_rest: true,
+            impacts: 0,
+            orientation_error_rad: 0.0,
+            final_rotation: [0.0, 0.0, 0.0, 1.0],
+        }]
+    }
+
+    #[test]
+    fn offline_rankings_follow_the_survivors() {
+        let mut s = ViewerState::new("t", vec!["ball".into()], Vec::new());
+        for (i, (y, spin)) in [(0.0, 1.0), (2.0, 9.0), (0.0, 5.0)].into_iter().enumerate() {
+            let mut w = world(i as u32, y);
+            w.metrics = metrics(spin);
+            s.add_world(w).expect("adds");
+        }
+        let spec = RankSpec {
+            key: RankKey::Metric {
+                metric: Metric::AngularTravel,
+                objects: vec![0],
+                aggregate: Aggregate::Sum,
+            },
+            order: Order::Descending,
+            k: 10,
+            all_worlds: false,
+        };
+        s.update(Msg::Rank(Some(spec.clone()))).expect("rank");
+        let order = |s: &ViewerState| {
+            s.ranking()
+                .expect("ranked")
+                .rows
+                .iter()
+                .map(|r| r.world)
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(order(&s), vec![1, 2, 0], "most spin first");
+        let viewport = front(&mut s);
+        s.update(Msg::AddConstraint {
+            viewport,
+            rect: MIDDLE,
+            polarity: Polarity::Positive,
+        })
+        .expect("adds");
+        assert_eq!(order(&s), vec![2, 0], "only survivors rank");
+        s.update(Msg::Rank(Some(RankSpec {
+            all_worlds: true,
+            ..spec
+        })))
+        .expect("rank");
+        assert_eq!(order(&s), vec![1, 2, 0]);
+        s.update(Msg::Undo).expect("undo");
+        s.update(Msg::Rank(None)).expect("clear");
+        assert!(s.ranking().is_none());
+    }
+
+    fn status(worlds: u64, result: u64, edits: u64, ids: &[u64]) -> SessionStatus {
+        SessionStatus {
+            worlds,
+            result,
+            constraints: ids
+                .iter()
+                .map(|&id| ConstraintStatus {
+                    id: ConstraintId(id),
+                    polarity: Polarity::Positive,
+                    objects: vec![0],
+                    quantifier: Default::default(),
+                    window: None,
+                    scope: Default::default(),
+                    satisfied: result,
+                })
+                .collect(),
+            can_undo: edits > 0,
+            can_redo: false,
+            edits,
+        }
+    }
+
+    #[test]
+    fn a_live_box_becomes_a_request_and_the_answer_is_what_counts() {
+        let mut s = ViewerState::live("tcp/127.0.0.1:7447");
+        s.update(Msg::Scene {
+            name: "t".into(),
+            bodies: vec!["ball".into()],
+            statics: Vec::new(),
+        })
+        .expect("scene");
+        s.update(Msg::Worlds(vec![world(0, 0.0), world(2, 2.0)]))
+            .expect("worlds");
+        let viewport = front(&mut s);
+        s.update(Msg::AddConstraint {
+            viewport,
+            rect: MIDDLE,
+            polarity: Polarity::Positive,
+        })
+        .expect("adds");
+        // Nothing is evaluated here: the request carries the frustum of this camera and box.
+        assert_eq!(s.survivor_count(), 0);
+        assert_eq!(s.pending(), 1);
+        let cmds = s.take_commands();
+        let [Command::Browse(Request::Add { constraint })] = cmds.as_slice() else {
+            panic!("expected one Add, got {cmds:?}");
+        };
+        assert_eq!(
+            constraint.frustum,
+            s.camera
+                .browse_camera(viewport)
+                .frustum(&MIDDLE)
+                .expect("frustum")
+        );
+        assert_eq!(constraint.objects, vec![0]);
+        // node-query answers: 5 worlds in the store, 3 survive, the edit is handled.
+        s.update(Msg::Session {
+            status: status(5, 3, 1, &[constraint.id.0]),
+            survivors: vec![0, 3, 4],
+            handled_edits: 1,
+        })
+        .expect("answer");
+        assert_eq!(s.pending(), 0);
+        assert_eq!((s.survivor_count(), s.world_total()), (3, 5));
+        assert!(s.survives(0) && !s.survives(2));
+        let rows = s.constraint_rows();
+        assert_eq!(rows.len(), 1);
+        assert_eq!(rows[0].satisfied, 3);
+        assert_eq!(rows[0].frustum.as_ref(), Some(&constraint.frustum));
+        // Undo and remove become requests too; an unknown id is refused here.
+        s.update(Msg::Undo).expect("undo");
+        s.update(Msg::RemoveConstraint(constraint.id))
+            .expect("remove");
+        assert!(s.update(Msg::RemoveConstraint(ConstraintId(99))).is_err());
+        assert_eq!(
+            s.take_commands(),
+            vec![
+                Command::Browse(Request::Undo),
+                Command::Browse(Request::Remove { id: constraint.id })
+            ]
+        );
+        assert_eq!(s.pending(), 2);
+    }
+
+    #[test]
+    fn a_live_viewer_fetches_the_shown_world_and_keeps_a_bounded_cache() {
+        let mut s = ViewerState::live("tcp/127.0.0.1:7447");
+        let mut arriving: Vec<WorldData> = (0..(MOTION_CACHE as u32 + 3))
+            .map(|i| world(i, 0.0))
+            .collect();
+        let motions: Vec<Arc<Motion>> = arriving
+            .iter_mut()
+            .map(|w| w.motion.take().expect("exact worlds have motion"))
+            .collect();
+        s.update(Msg::Worlds(arriving)).expect("worlds");
+        s.update(Msg::SelectWorld(Some(4))).expect("select");
+        assert_eq!(
+            s.take_commands(),
+            vec![Command::FetchMotion {
+                world: 4,
+                job: String::new(),
+            }]
+        );
+        assert!(s.shown_loading());
+        s.update(Msg::SelectWorld(Some(4))).expect("select");
+        assert!(s.take_commands().is_empty(), "asked once");
+        for (i, m) in motions.iter().enumerate() {
+            s.update(Msg::MotionLoaded {
+                world: i as u32,
+                motion: Ok(m.clone()),
+            })
+            .expect("loaded");
+        }
+        let loaded = s.worlds().iter().filter(|w| w.motion.is_some()).count();
+        assert_eq!(loaded, MOTION_CACHE);
+        assert!(s.world(4).is_some_and(|w| w.motion.is_some()), "shown kept");
+        s.update(Msg::MotionLoaded {
+            world: 1,
+            motion: Err("CRC mismatch".into()),
+        })
+        .expect("error");
+        assert!(s.problems().iter().any(|p| p.contains("CRC")));
     }
 }

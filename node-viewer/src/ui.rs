@@ -7,14 +7,19 @@
 //! Alt+right-drag zooms; a click picks the nearest path's world. Keys: F frames everything,
 //! Ctrl+Z / Ctrl+Shift+Z (or Ctrl+Y) undo and redo, Space plays / pauses, ←/→ step a frame.
 
+use std::collections::VecDeque;
+use std::sync::{Arc, OnceLock};
+
 use egui::{
     Align, Color32, Key, KeyboardShortcut, Layout, Modifiers, PointerButton, Pos2, Rect, RichText,
     Sense,
 };
-use mwb_core::browse::{Polarity, ScreenRect};
+use mwb_core::browse::{Aggregate, Metric, Order, Polarity, RankKey, ScreenRect, TimeWindow};
 
 use crate::draw::{self, Overlay, View};
-use crate::state::{MAX_SPEED, MIN_SPEED, Msg, ViewerState};
+use crate::live::LiveLink;
+use crate::session::Command;
+use crate::state::{MAX_SPEED, MIN_SPEED, Msg, RankSpec, ViewerState};
 
 /// Radians of orbit per point of mouse travel.
 const ORBIT_PER_PT: f64 = 0.008;
@@ -29,15 +34,110 @@ struct Drag {
     negative: bool,
 }
 
-/// The viewer: state plus the gesture in progress.
+/// What the metric sorter offers (§4.4.3), in the order of its menu.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SortBy {
+    Spin,
+    TimeToRest,
+    Impacts,
+    OrientationError,
+    ConstraintsSatisfied,
+}
+
+impl SortBy {
+    pub const ALL: [SortBy; 5] = [
+        SortBy::Spin,
+        SortBy::TimeToRest,
+        SortBy::Impacts,
+        SortBy::OrientationError,
+        SortBy::ConstraintsSatisfied,
+    ];
+
+    pub fn label(self) -> &'static str {
+        match self {
+            SortBy::Spin => "most spin",
+            SortBy::TimeToRest => "rests soonest",
+            SortBy::Impacts => "most impacts",
+            SortBy::OrientationError => "turned most from start",
+            SortBy::ConstraintsSatisfied => "constraints satisfied (all worlds)",
+        }
+    }
+
+    /// The ranking over `objects` (the chosen ones), with the aggregate and order an animator
+    /// means by the label.
+    pub fn spec(self, objects: Vec<u32>, aggregate: Option<Aggregate>, k: usize) -> RankSpec {
+        let metric = |metric: Metric, order| RankSpec {
+            key: RankKey::Metric {
+                metric,
+                objects: objects.clone(),
+                aggregate: aggregate.unwrap_or(metric.default_aggregate()),
+            },
+            order,
+            k,
+            all_worlds: false,
+        };
+        match self {
+            SortBy::Spin => metric(Metric::AngularTravel, Order::Descending),
+            SortBy::TimeToRest => metric(Metric::TimeToRest, Order::Ascending),
+            SortBy::Impacts => metric(Metric::Impacts, Order::Descending),
+            SortBy::OrientationError => metric(Metric::OrientationError, Order::Descending),
+            SortBy::ConstraintsSatisfied => RankSpec {
+                key: RankKey::ConstraintsSatisfied,
+                order: Order::Descending,
+                k,
+                all_worlds: true,
+            },
+        }
+    }
+
+    /// The unit of its values.
+    pub fn unit(self) -> &'static str {
+        match self {
+            SortBy::Spin | SortBy::OrientationError => "rad",
+            SortBy::TimeToRest => "s",
+            SortBy::Impacts | SortBy::ConstraintsSatisfied => "",
+        }
+    }
+}
+
+/// Rows the sorter lists.
+pub const SORTER_ROWS: usize = 20;
+
+/// The jobs panel's form: what the next job samples.
+#[derive(Debug, Clone)]
+struct JobForm {
+    /// A scene file or a shipped scene's name.
+    scene: String,
+    worlds: u32,
+    quality: mwb_proto::v1::Quality,
+}
+
+impl Default for JobForm {
+    fn default() -> Self {
+        Self {
+            scene: String::new(),
+            worlds: 200,
+            quality: mwb_proto::v1::Quality::Standard,
+        }
+    }
+}
+
+/// The viewer: state plus the gesture in progress, and for a live viewer its bus task.
 pub struct ViewerApp {
     pub state: ViewerState,
     drag: Option<Drag>,
     view_rect: Rect,
     hovered: Option<u32>,
+    /// The world under the cursor in the sorter list.
+    sorter_hover: Option<u32>,
+    sort_by: SortBy,
     /// The last error an action caused (shown in the top bar until the next action).
     last_error: Option<String>,
     framed: bool,
+    link: Option<LiveLink>,
+    /// Commands the bus task could not take yet (its queue was full), oldest first.
+    unsent: VecDeque<Command>,
+    job_form: JobForm,
 }
 
 impl ViewerApp {
@@ -47,9 +147,75 @@ impl ViewerApp {
             drag: None,
             view_rect: Rect::NOTHING,
             hovered: None,
+            sorter_hover: None,
+            sort_by: SortBy::Spin,
             last_error: None,
             framed: false,
+            link: None,
+            unsent: VecDeque::new(),
+            job_form: JobForm::default(),
         }
+    }
+
+    /// A live viewer: `state` should be [`ViewerState::live`]; `link` its bus task.
+    pub fn live(state: ViewerState, link: LiveLink) -> Self {
+        let mut app = Self::new(state);
+        app.link = Some(link);
+        app
+    }
+
+    /// Applies what the bus task reported and hands it the state's requests, without waiting
+    /// (done at the start of every frame; tests and screenshots call it directly).
+    pub fn pump(&mut self) {
+        if let Some(link) = &mut self.link {
+            for msg in link.drain() {
+                if let Err(e) = self.state.update(msg) {
+                    self.last_error = Some(e.to_string());
+                }
+            }
+        }
+        self.unsent.extend(self.state.take_commands());
+        if let Some(link) = &self.link {
+            while let Some(cmd) = self.unsent.pop_front() {
+                if let Err(cmd) = link.send(cmd) {
+                    self.unsent.push_front(cmd);
+                    break;
+                }
+            }
+        }
+    }
+
+    /// Pumps (see [`pump`](Self::pump)) every 20 ms until `done` holds or `timeout` passes;
+    /// returns whether it held. For headless use (screenshots, tests): a window pumps every
+    /// frame instead.
+    pub async fn pump_until(
+        &mut self,
+        timeout: std::time::Duration,
+        done: impl Fn(&ViewerApp) -> bool,
+    ) -> bool {
+        let deadline = tokio::time::Instant::now() + timeout;
+        loop {
+            self.pump();
+            if done(self) {
+                return true;
+            }
+            if tokio::time::Instant::now() >= deadline {
+                return false;
+            }
+            tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+        }
+    }
+
+    /// Ranks by `by` over the chosen objects (what choosing it in the sorter does).
+    pub fn set_sort(&mut self, by: SortBy) {
+        self.sort_by = by;
+        let spec = by.spec(self.state.chosen_objects(), None, SORTER_ROWS);
+        self.send(Msg::Rank(Some(spec)));
+    }
+
+    /// Commands waiting for room in the bus task's queue.
+    pub fn unsent(&self) -> usize {
+        self.unsent.len()
     }
 
     /// Sets whether the camera was already placed (then the first frame does not frame all).
@@ -90,11 +256,15 @@ impl ViewerApp {
 
     /// Draws the whole UI into `ui` (the window's root) and applies what the user did.
     pub fn ui(&mut self, ui: &mut egui::Ui) {
+        self.pump();
         self.keys(ui);
         self.top_bar(ui);
-        self.side_panel(ui);
+        self.status_bar(ui);
         self.timeline(ui);
+        self.side_panel(ui);
         egui::CentralPanel::no_frame().show(ui, |ui| self.view(ui));
+        // What the frame's gestures asked for leaves now, not a frame later.
+        self.pump();
     }
 
     fn keys(&mut self, ui: &egui::Ui) {
@@ -149,32 +319,49 @@ impl ViewerApp {
                 ui.separator();
                 ui.label(format!("scene {}", self.state.scene_name()));
                 ui.separator();
-                let n = self.state.worlds().len();
+                let n = self.state.world_total();
                 let s = self.state.survivor_count();
                 ui.label(format!("{n} worlds"));
+                let pending = self.state.pending() as usize + self.unsent.len();
+                let survive = if pending > 0 {
+                    format!("{s} survive …")
+                } else {
+                    format!("{s} survive")
+                };
                 ui.label(
-                    RichText::new(format!("{s} survive"))
+                    RichText::new(survive)
                         .color(Color32::from_rgb(120, 195, 255))
                         .strong(),
-                );
+                )
+                .on_hover_text(if pending > 0 {
+                    "waiting for the store's answer to the last edit"
+                } else {
+                    "worlds that satisfy every constraint"
+                });
                 if !self.state.problems().is_empty() {
                     ui.separator();
+                    let problems = self.state.problems();
+                    let shown: Vec<&str> =
+                        problems.iter().rev().take(20).map(String::as_str).collect();
                     ui.colored_label(
                         Color32::from_rgb(240, 170, 60),
-                        format!("{} worlds failed", self.state.problems().len()),
+                        format!("{} problems", problems.len()),
                     )
-                    .on_hover_text(self.state.problems().join("\n"));
+                    .on_hover_text(shown.join("\n"));
                 }
-                if let Some(e) = &self.last_error {
+                let error = self
+                    .last_error
+                    .clone()
+                    .or_else(|| self.state.browse_error().map(str::to_owned));
+                if let Some(e) = error {
                     ui.separator();
-                    ui.colored_label(Color32::from_rgb(240, 90, 90), e.clone());
+                    ui.colored_label(Color32::from_rgb(240, 90, 90), e);
                 }
                 ui.with_layout(Layout::right_to_left(Align::Center), |ui| {
                     if ui.button("Frame all (F)").clicked() {
                         self.frame_all();
                     }
-                    let c = self.state.constraints();
-                    let (can_undo, can_redo) = (c.can_undo(), c.can_redo());
+                    let (can_undo, can_redo) = (self.state.can_undo(), self.state.can_redo());
                     if ui
                         .add_enabled(can_redo, egui::Button::new("Redo"))
                         .on_hover_text("Ctrl+Shift+Z")
@@ -194,113 +381,367 @@ impl ViewerApp {
         });
     }
 
-    fn side_panel(&mut self, ui: &mut egui::Ui) {
-        egui::Panel::left("mwb-side")
-            .default_size(250.0)
-            .show(ui, |ui| {
-                ui.add_space(4.0);
-                ui.heading("Objects");
-                let names: Vec<String> = self.state.body_names().to_vec();
-                for (i, name) in names.iter().enumerate() {
-                    let mut on = self.state.is_chosen(i as u32);
-                    ui.horizontal(|ui| {
-                        let c = draw::palette::BODIES[i % draw::palette::BODIES.len()]
-                            .map(|v| (v * 255.0) as u8);
-                        let (r, _) = ui.allocate_exact_size(egui::vec2(10.0, 10.0), Sense::hover());
-                        ui.painter()
-                            .rect_filled(r, 2.0, Color32::from_rgb(c[0], c[1], c[2]));
-                        if ui.checkbox(&mut on, name.as_str()).changed() {
-                            self.send(Msg::ToggleObject(i as u32));
-                        }
-                    });
-                }
-                ui.separator();
-                ui.heading("Constraints");
-                let total = self.state.worlds().len();
-                let rows: Vec<_> = self
-                    .state
-                    .constraints()
-                    .constraints()
-                    .map(|c| {
-                        let sat = self
-                            .state
-                            .constraints()
-                            .satisfied(c.id)
-                            .map_or(0, |s| s.len());
-                        (c.id, c.polarity, c.objects.clone(), sat)
-                    })
-                    .collect();
-                if rows.is_empty() {
+    /// The connection and the cluster (live viewers), or where the worlds came from.
+    fn status_bar(&mut self, ui: &mut egui::Ui) {
+        egui::Panel::bottom("mwb-status").show(ui, |ui| {
+            ui.horizontal(|ui| {
+                let Some(link) = self.state.link() else {
                     ui.label(
-                        RichText::new(
-                            "Drag a box in the view: keep worlds whose paths pass through it. \
-                             Shift+drag: worlds that never do.",
-                        )
+                        RichText::new(format!(
+                            "offline: {} worlds sampled in this process",
+                            self.state.worlds().len()
+                        ))
                         .weak(),
                     );
-                }
-                let mut remove = None;
-                for (id, polarity, objects, sat) in rows {
-                    ui.horizontal(|ui| {
-                        let (sign, col) = match polarity {
-                            Polarity::Positive => ("+", draw::palette::POSITIVE),
-                            Polarity::Negative => ("-", draw::palette::NEGATIVE),
-                        };
-                        ui.label(
-                            RichText::new(sign)
-                                .strong()
-                                .color(Color32::from_rgb(col[0], col[1], col[2])),
-                        );
-                        let over = if objects.len() == names.len() {
-                            "all".to_owned()
-                        } else {
-                            objects
-                                .iter()
-                                .filter_map(|&o| names.get(o as usize).cloned())
-                                .collect::<Vec<_>>()
-                                .join(", ")
-                        };
-                        ui.label(format!("#{id} {over}: {sat}/{total}"));
-                        ui.with_layout(Layout::right_to_left(Align::Center), |ui| {
-                            if ui
-                                .small_button(format!("x #{id}"))
-                                .on_hover_text("remove this constraint")
-                                .clicked()
-                            {
-                                remove = Some(id);
-                            }
-                        });
-                    });
-                }
-                if let Some(id) = remove {
-                    self.send(Msg::RemoveConstraint(id));
+                    return;
+                };
+                let (colour, what) = if link.connected {
+                    (Color32::from_rgb(90, 200, 110), "connected")
+                } else {
+                    (Color32::from_rgb(230, 90, 80), "not connected")
+                };
+                let (r, _) = ui.allocate_exact_size(egui::vec2(10.0, 10.0), Sense::hover());
+                ui.painter().circle_filled(r.center(), 4.5, colour);
+                ui.label(format!("{what} to {}", link.endpoint))
+                    .on_hover_text(link.error.as_deref().unwrap_or("every request answered"));
+                if let Some(e) = &link.error {
+                    ui.colored_label(Color32::from_rgb(240, 170, 60), e);
                 }
                 ui.separator();
-                ui.heading(format!("Survivors ({})", self.state.survivor_count()));
-                let survivors: Vec<u32> =
-                    self.state.constraints().result().iter().take(500).collect();
-                let selected = self.state.selected();
-                let mut pick = None;
+                ui.label(format!(
+                    "{} store{} · {} sampler{}",
+                    link.stores,
+                    if link.stores == 1 { "" } else { "s" },
+                    link.samplers,
+                    if link.samplers == 1 { "" } else { "s" }
+                ));
+                ui.separator();
+                ui.label(format!(
+                    "{} stored · {} loaded here · {:.1} worlds/s",
+                    link.store_worlds,
+                    self.state.worlds().len(),
+                    link.worlds_per_s
+                ));
+                if link.memory_cap_bytes > 0 {
+                    ui.separator();
+                    ui.label(format!(
+                        "store memory {:.0} / {:.0} MiB",
+                        link.memory_bytes as f64 / 1048576.0,
+                        link.memory_cap_bytes as f64 / 1048576.0
+                    ));
+                }
+                for (job, done, target) in &link.jobs {
+                    ui.separator();
+                    let frac = if *target > 0 {
+                        *done as f32 / *target as f32
+                    } else {
+                        0.0
+                    };
+                    ui.label(format!("job {job}"));
+                    ui.add(
+                        egui::ProgressBar::new(frac)
+                            .desired_width(90.0)
+                            .text(format!("{done}/{target}")),
+                    );
+                }
+                if !self.unsent.is_empty() {
+                    ui.separator();
+                    ui.colored_label(
+                        Color32::from_rgb(240, 170, 60),
+                        format!("{} edits waiting for the bus", self.unsent.len()),
+                    );
+                }
+            });
+        });
+    }
+
+    fn side_panel(&mut self, ui: &mut egui::Ui) {
+        egui::Panel::left("mwb-side")
+            .default_size(270.0)
+            .show(ui, |ui| {
                 egui::ScrollArea::vertical()
                     .auto_shrink([false, false])
                     .show(ui, |ui| {
-                        for w in survivors {
-                            let seed = self.state.worlds().get(w as usize).map_or(0, |d| d.seed);
-                            if ui
-                                .selectable_label(
-                                    selected == Some(w),
-                                    format!("world {w}  (seed {seed})"),
-                                )
-                                .clicked()
-                            {
-                                pick = Some(if selected == Some(w) { None } else { Some(w) });
-                            }
+                        if self.state.is_live() {
+                            self.jobs_section(ui);
+                            ui.separator();
+                        }
+                        self.objects_section(ui);
+                        ui.separator();
+                        self.constraints_section(ui);
+                        ui.separator();
+                        self.sorter_section(ui);
+                        ui.separator();
+                        self.survivors_section(ui);
+                    });
+            });
+    }
+
+    /// Live: submit a job of a scene (a file or a shipped name), follow and cancel open jobs.
+    fn jobs_section(&mut self, ui: &mut egui::Ui) {
+        use mwb_proto::v1::Quality;
+        egui::CollapsingHeader::new("Jobs")
+            .default_open(true)
+            .show(ui, |ui| {
+                if self.job_form.scene.is_empty() && !self.state.body_names().is_empty() {
+                    self.job_form.scene = self.state.scene_name().to_owned();
+                }
+                ui.horizontal(|ui| {
+                    let label = ui.label("scene");
+                    ui.add(
+                        egui::TextEdit::singleline(&mut self.job_form.scene)
+                            .hint_text("tumble, or a .toml file")
+                            .desired_width(150.0),
+                    )
+                    .labelled_by(label.id);
+                });
+                ui.horizontal(|ui| {
+                    ui.add(
+                        egui::DragValue::new(&mut self.job_form.worlds)
+                            .range(1..=1_000_000)
+                            .speed(10)
+                            .suffix(" worlds"),
+                    );
+                    let q = &mut self.job_form.quality;
+                    egui::ComboBox::new("mwb-job-quality", "quality")
+                        .selected_text(match q {
+                            Quality::Draft => "draft",
+                            Quality::Final => "final",
+                            _ => "standard",
+                        })
+                        .show_ui(ui, |ui| {
+                            ui.selectable_value(q, Quality::Draft, "draft (5 mm)");
+                            ui.selectable_value(q, Quality::Standard, "standard (1 mm)");
+                            ui.selectable_value(q, Quality::Final, "final (0.1 mm)");
+                        });
+                });
+                let ready = !self.job_form.scene.trim().is_empty();
+                if ui
+                    .add_enabled(ready, egui::Button::new("Submit job"))
+                    .on_hover_text("samplers on the bus take it at once")
+                    .clicked()
+                {
+                    let f = self.job_form.clone();
+                    self.send(Msg::SubmitJob {
+                        scene: f.scene.trim().to_owned(),
+                        worlds: f.worlds,
+                        quality: f.quality,
+                    });
+                }
+                match self.state.job_notice() {
+                    Some(Ok(n)) => {
+                        ui.label(RichText::new(n).weak());
+                    }
+                    Some(Err(e)) => {
+                        ui.colored_label(Color32::from_rgb(240, 90, 90), e);
+                    }
+                    None => {}
+                }
+                let jobs = self
+                    .state
+                    .link()
+                    .map(|l| l.jobs.clone())
+                    .unwrap_or_default();
+                let mut cancel = None;
+                for (job, done, target) in jobs {
+                    ui.horizontal(|ui| {
+                        let frac = if target > 0 {
+                            done as f32 / target as f32
+                        } else {
+                            0.0
+                        };
+                        ui.add(
+                            egui::ProgressBar::new(frac)
+                                .desired_width(120.0)
+                                .text(format!("{done}/{target}")),
+                        )
+                        .on_hover_text(format!("job {job}"));
+                        if ui
+                            .small_button("cancel")
+                            .on_hover_text(format!("cancel job {job}"))
+                            .clicked()
+                        {
+                            cancel = Some(job.clone());
                         }
                     });
-                if let Some(p) = pick {
-                    self.send(Msg::SelectWorld(p));
+                }
+                if let Some(job) = cancel {
+                    self.send(Msg::CancelJob(job));
                 }
             });
+    }
+
+    fn objects_section(&mut self, ui: &mut egui::Ui) {
+        ui.add_space(4.0);
+        ui.heading("Objects");
+        let names: Vec<String> = self.state.body_names().to_vec();
+        if names.is_empty() {
+            ui.label(RichText::new("waiting for the first world …").weak());
+        }
+        for (i, name) in names.iter().enumerate() {
+            let mut on = self.state.is_chosen(i as u32);
+            ui.horizontal(|ui| {
+                let c = draw::palette::BODIES[i % draw::palette::BODIES.len()]
+                    .map(|v| (v * 255.0) as u8);
+                let (r, _) = ui.allocate_exact_size(egui::vec2(10.0, 10.0), Sense::hover());
+                ui.painter()
+                    .rect_filled(r, 2.0, Color32::from_rgb(c[0], c[1], c[2]));
+                if ui.checkbox(&mut on, name.as_str()).changed() {
+                    self.send(Msg::ToggleObject(i as u32));
+                }
+            });
+        }
+    }
+
+    fn constraints_section(&mut self, ui: &mut egui::Ui) {
+        ui.heading("Constraints");
+        let names = self.state.body_names();
+        let total = self.state.world_total();
+        let rows = self.state.constraint_rows();
+        if rows.is_empty() {
+            ui.label(
+                RichText::new(
+                    "Drag a box in the view: keep worlds whose paths pass through it. \
+                     Shift+drag: worlds that never do.",
+                )
+                .weak(),
+            );
+        }
+        let mut remove = None;
+        for row in rows {
+            ui.horizontal(|ui| {
+                let (sign, col) = match row.polarity {
+                    Polarity::Positive => ("+", draw::palette::POSITIVE),
+                    Polarity::Negative => ("-", draw::palette::NEGATIVE),
+                };
+                ui.label(
+                    RichText::new(sign)
+                        .strong()
+                        .color(Color32::from_rgb(col[0], col[1], col[2])),
+                );
+                let over = if row.objects.len() == names.len() {
+                    "all".to_owned()
+                } else {
+                    row.objects
+                        .iter()
+                        .map(|&o| {
+                            names
+                                .get(o as usize)
+                                .cloned()
+                                .unwrap_or_else(|| format!("#{o}"))
+                        })
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                };
+                let window = row
+                    .window
+                    .map(|w| format!(" [{:.2}–{:.2} s]", w.start(), w.end()))
+                    .unwrap_or_default();
+                ui.label(format!(
+                    "#{} {over}{window}: {}/{total}",
+                    row.id, row.satisfied
+                ));
+                ui.with_layout(Layout::right_to_left(Align::Center), |ui| {
+                    if ui
+                        .small_button(format!("x #{}", row.id))
+                        .on_hover_text("remove this constraint")
+                        .clicked()
+                    {
+                        remove = Some(row.id);
+                    }
+                });
+            });
+        }
+        if let Some(id) = remove {
+            self.send(Msg::RemoveConstraint(id));
+        }
+    }
+
+    fn sorter_section(&mut self, ui: &mut egui::Ui) {
+        ui.heading("Sort");
+        let mut by = self.sort_by;
+        let mut on = self.state.rank_spec().is_some();
+        let before = (by, on);
+        ui.horizontal(|ui| {
+            ui.checkbox(&mut on, "rank");
+            egui::ComboBox::new("mwb-sort-by", "first")
+                .selected_text(by.label())
+                .show_ui(ui, |ui| {
+                    for b in SortBy::ALL {
+                        ui.selectable_value(&mut by, b, b.label());
+                    }
+                });
+        });
+        // A new choice of objects re-ranks over them.
+        let objects = self.state.chosen_objects();
+        let stale = self.state.rank_spec().is_some_and(|s| match &s.key {
+            RankKey::Metric { objects: o, .. } => *o != objects,
+            _ => false,
+        });
+        if (by, on) != before || (on && stale) {
+            self.sort_by = by;
+            if by != before.0 {
+                on = true;
+            }
+            let spec = on.then(|| by.spec(objects, None, SORTER_ROWS));
+            self.send(Msg::Rank(spec));
+        }
+        let Some(ranking) = self.state.ranking() else {
+            if self.state.rank_spec().is_some() {
+                ui.label(RichText::new("ranking …").weak());
+            }
+            return;
+        };
+        let unit = self.sort_by.unit();
+        let mut summary = format!("top {} of {}", ranking.rows.len(), ranking.candidates);
+        if ranking.unscored > 0 {
+            summary += &format!(" · {} without a value, last", ranking.unscored);
+        }
+        ui.label(RichText::new(summary).weak());
+        let rows = ranking.rows.clone();
+        let selected = self.state.selected();
+        let mut pick = None;
+        self.sorter_hover = None;
+        for (rank, r) in rows.iter().enumerate() {
+            let value = r
+                .score
+                .map_or_else(|| "—".to_owned(), |v| format!("{v:.3} {unit}"));
+            let resp = ui.selectable_label(
+                selected == Some(r.world),
+                format!("{:>2}. world {}   {}", rank + 1, r.world, value),
+            );
+            if resp.hovered() {
+                self.sorter_hover = Some(r.world);
+            }
+            if resp.clicked() {
+                pick = Some(r.world);
+            }
+        }
+        if let Some(w) = pick {
+            self.send(Msg::SelectWorld(Some(w)));
+        }
+    }
+
+    fn survivors_section(&mut self, ui: &mut egui::Ui) {
+        ui.heading(format!("Survivors ({})", self.state.survivor_count()));
+        let survivors: Vec<u32> = self.state.survivors().take(500).collect();
+        let selected = self.state.selected();
+        let mut pick = None;
+        for w in survivors {
+            let label = match self.state.world(w) {
+                Some(d) => format!("world {w}  (seed {:#x})", d.seed),
+                None => format!("world {w}  (not loaded yet)"),
+            };
+            if ui.selectable_label(selected == Some(w), label).clicked() {
+                pick = Some(if selected == Some(w) { None } else { Some(w) });
+            }
+        }
+        if self.state.survivor_count() > 500 {
+            ui.label(RichText::new("… the first 500 are listed").weak());
+        }
+        if let Some(p) = pick {
+            self.send(Msg::SelectWorld(p));
+        }
     }
 
     fn timeline(&mut self, ui: &mut egui::Ui) {
@@ -328,7 +769,7 @@ impl ViewerApp {
                 }
                 let end = self.state.duration();
                 let mut t = pb.time;
-                ui.style_mut().spacing.slider_width = (ui.available_width() - 420.0).max(120.0);
+                ui.style_mut().spacing.slider_width = (ui.available_width() - 560.0).max(120.0);
                 let r = ui.add(
                     egui::Slider::new(&mut t, 0.0..=end.max(1e-3))
                         .show_value(false)
@@ -357,9 +798,14 @@ impl ViewerApp {
                     self.send(Msg::SetLoop(looping));
                 }
                 ui.separator();
+                let loading = if self.state.shown_loading() {
+                    " — loading motion …"
+                } else {
+                    ""
+                };
                 match self.state.shown_world() {
                     Some(w) if self.state.selected() == Some(w.index) => {
-                        ui.label(format!("world {} (seed {})", w.index, w.seed));
+                        ui.label(format!("world {} (seed {:#x}){loading}", w.index, w.seed));
                     }
                     Some(w) => {
                         ui.label(
@@ -371,14 +817,77 @@ impl ViewerApp {
                     }
                 }
             });
+            self.window_row(ui);
             ui.add_space(2.0);
+        });
+    }
+
+    /// The time window new boxes count in: off (the whole motion), or [start, end] seconds, set
+    /// by value or from the playhead.
+    fn window_row(&mut self, ui: &mut egui::Ui) {
+        ui.horizontal(|ui| {
+            let current = self.state.window();
+            let mut on = current.is_some();
+            let now = self.state.playback().time;
+            let end_max = self.state.duration().max(1e-3);
+            let (mut a, mut b) = current.map_or((0.0, end_max), |w| (w.start(), w.end()));
+            let before = (on, a, b);
+            ui.checkbox(&mut on, "new boxes count only from")
+                .on_hover_text(
+                    "a box then keeps worlds whose objects pass through it in this window",
+                );
+            ui.add_enabled(
+                on,
+                egui::DragValue::new(&mut a)
+                    .speed(0.01)
+                    .max_decimals(2)
+                    .range(0.0..=end_max)
+                    .suffix(" s"),
+            );
+            if ui
+                .add_enabled(on, egui::Button::new("now").small())
+                .on_hover_text("start at the playhead")
+                .clicked()
+            {
+                a = now;
+            }
+            ui.label("to");
+            ui.add_enabled(
+                on,
+                egui::DragValue::new(&mut b)
+                    .speed(0.01)
+                    .max_decimals(2)
+                    .range(0.0..=end_max)
+                    .suffix(" s"),
+            );
+            if ui
+                .add_enabled(on, egui::Button::new("now").small())
+                .on_hover_text("end at the playhead")
+                .clicked()
+            {
+                b = now;
+            }
+            if (on, a, b) != before {
+                let window = if on {
+                    match TimeWindow::new(a.min(b), a.max(b)) {
+                        Ok(w) => Some(w),
+                        Err(e) => {
+                            self.last_error = Some(e.to_string());
+                            return;
+                        }
+                    }
+                } else {
+                    None
+                };
+                self.send(Msg::SetWindow(window));
+            }
         });
     }
 
     fn view(&mut self, ui: &mut egui::Ui) {
         let rect = ui.max_rect();
         self.view_rect = rect;
-        if !self.framed && rect.is_positive() {
+        if !self.framed && rect.is_positive() && !self.state.worlds().is_empty() {
             self.framed = true;
             self.frame_all();
         }
@@ -451,7 +960,7 @@ impl ViewerApp {
         if let Some(view) = view {
             let overlay = Overlay {
                 drag: self.drag.map(|d| (d.start, d.current, d.negative)),
-                hovered: self.hovered,
+                hovered: self.hovered.or(self.sorter_hover),
             };
             let painter = ui.painter_at(rect);
             painter.extend(draw::scene_shapes(&self.state, &view, overlay));
@@ -510,12 +1019,42 @@ impl eframe::App for ViewerApp {
         self.ui(ui);
         if self.state.playback().playing {
             ui.ctx().request_repaint();
+        } else if self.link.is_some() {
+            // The status bar stays current even when the bus task has nothing to say.
+            ui.ctx()
+                .request_repaint_after(std::time::Duration::from_millis(500));
         }
     }
 }
 
+/// Where a bus task finds the window to wake when it has news (filled when the window opens).
+#[derive(Clone, Default)]
+pub struct RepaintSlot(Arc<OnceLock<egui::Context>>);
+
+impl RepaintSlot {
+    /// What the bus task calls after queueing messages.
+    pub fn waker(&self) -> Arc<dyn Fn() + Send + Sync> {
+        let slot = self.0.clone();
+        Arc::new(move || {
+            if let Some(ctx) = slot.get() {
+                ctx.request_repaint();
+            }
+        })
+    }
+
+    pub fn set(&self, ctx: &egui::Context) {
+        // A second window would keep waking the first; there is only ever one.
+        let _ = self.0.set(ctx.clone());
+    }
+}
+
 /// Opens the viewer in a native window (eframe, glow) and runs until it is closed.
-pub fn run_window(app: ViewerApp, title: &str, size: [u32; 2]) -> Result<(), eframe::Error> {
+pub fn run_window(
+    app: ViewerApp,
+    title: &str,
+    size: [u32; 2],
+    repaint: RepaintSlot,
+) -> Result<(), eframe::Error> {
     let options = eframe::NativeOptions {
         viewport: egui::ViewportBuilder::default()
             .with_title(title)
@@ -525,6 +1064,9 @@ pub fn run_window(app: ViewerApp, title: &str, size: [u32; 2]) -> Result<(), efr
     eframe::run_native(
         "manyworlds viewer",
         options,
-        Box::new(move |_cc| Ok(Box::new(app))),
+        Box::new(move |cc| {
+            repaint.set(&cc.egui_ctx);
+            Ok(Box::new(app))
+        }),
     )
 }

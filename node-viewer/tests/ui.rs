@@ -153,7 +153,7 @@ fn a_dragged_box_is_the_frustum_mwb_core_computes_and_remove_undo_redo_work() {
 
     let app = h.state();
     assert_eq!(app.last_error(), None);
-    let constraints: Vec<Constraint> = app.state.constraints().constraints().cloned().collect();
+    let constraints: Vec<Constraint> = app.state.constraint_list();
     assert_eq!(constraints.len(), 1, "one box, one constraint");
     let got = &constraints[0];
     let vr = app.view_rect();
@@ -167,7 +167,7 @@ fn a_dragged_box_is_the_frustum_mwb_core_computes_and_remove_undo_redo_work() {
     assert_eq!(got.frustum, camera.frustum(&rect).expect("frustum"));
     assert_eq!(got.polarity, Polarity::Positive);
     assert_eq!(got.objects, vec![0]);
-    let survivors: Vec<u32> = app.state.constraints().result().iter().collect();
+    let survivors: Vec<u32> = app.state.survivors().collect();
     assert_eq!(survivors, expected_survivors(app.state.worlds(), got));
     assert!(
         survivors.contains(&0),
@@ -175,7 +175,10 @@ fn a_dragged_box_is_the_frustum_mwb_core_computes_and_remove_undo_redo_work() {
     );
     // Never-miss: every world whose decoded crate position is inside the box survives.
     for w in app.state.worlds() {
-        if w.tracks[0]
+        if w.motion
+            .as_ref()
+            .expect("offline worlds have motion")
+            .tracks[0]
             .positions
             .iter()
             .any(|&p| got.frustum.contains(p))
@@ -198,7 +201,7 @@ fn a_dragged_box_is_the_frustum_mwb_core_computes_and_remove_undo_redo_work() {
         Modifiers::SHIFT,
     );
     let app = h.state();
-    let all: Vec<Constraint> = app.state.constraints().constraints().cloned().collect();
+    let all: Vec<Constraint> = app.state.constraint_list();
     assert_eq!(all.len(), 2);
     assert_eq!(all[1].polarity, Polarity::Negative);
     let neg = expected_survivors(app.state.worlds(), &all[1]);
@@ -206,10 +209,7 @@ fn a_dragged_box_is_the_frustum_mwb_core_computes_and_remove_undo_redo_work() {
         .into_iter()
         .filter(|w| neg.contains(w))
         .collect();
-    assert_eq!(
-        app.state.constraints().result().iter().collect::<Vec<_>>(),
-        both
-    );
+    assert_eq!(app.state.survivors().collect::<Vec<_>>(), both);
     assert!(
         !neg.contains(&1),
         "world 1's crate is inside its own negative box at 0.6 s"
@@ -221,21 +221,21 @@ fn a_dragged_box_is_the_frustum_mwb_core_computes_and_remove_undo_redo_work() {
     let ids: Vec<ConstraintId> = h
         .state()
         .state
-        .constraints()
-        .constraints()
+        .constraint_rows()
+        .iter()
         .map(|c| c.id)
         .collect();
     assert_eq!(ids, vec![ConstraintId(2)]);
-    assert_eq!(h.state().state.survivor_count(), neg.len());
+    assert_eq!(h.state().state.survivor_count(), neg.len() as u64);
 
     // Ctrl+Z brings it back (with its bits), Ctrl+Shift+Z removes it again.
     h.key_press_modifiers(Modifiers::COMMAND, egui::Key::Z);
     h.run();
-    assert_eq!(h.state().state.constraints().constraints().len(), 2);
-    assert_eq!(h.state().state.survivor_count(), both.len());
+    assert_eq!(h.state().state.constraint_rows().len(), 2);
+    assert_eq!(h.state().state.survivor_count(), both.len() as u64);
     h.key_press_modifiers(Modifiers::COMMAND | Modifiers::SHIFT, egui::Key::Z);
     h.run();
-    assert_eq!(h.state().state.constraints().constraints().len(), 1);
+    assert_eq!(h.state().state.constraint_rows().len(), 1);
     // Undo twice more: the removal, then the negative box: only the positive one is left.
     h.key_press_modifiers(Modifiers::COMMAND, egui::Key::Z);
     h.run();
@@ -244,23 +244,23 @@ fn a_dragged_box_is_the_frustum_mwb_core_computes_and_remove_undo_redo_work() {
     let ids: Vec<ConstraintId> = h
         .state()
         .state
-        .constraints()
-        .constraints()
+        .constraint_rows()
+        .iter()
         .map(|c| c.id)
         .collect();
     assert_eq!(ids, vec![ConstraintId(1)]);
-    assert_eq!(h.state().state.survivor_count(), positive_count);
+    assert_eq!(h.state().state.survivor_count(), positive_count as u64);
 
     // A click without a drag makes no constraint.
     let p = screen_of(&h, 0, 0, 0.0) + vec2(200.0, 0.0);
     drag(&mut h, p, p, Modifiers::NONE);
-    assert_eq!(h.state().state.constraints().constraints().len(), 1);
+    assert_eq!(h.state().state.constraint_rows().len(), 1);
 }
 
 #[test]
 fn picking_a_survivor_plays_it_back() {
     let mut h = harness();
-    h.get_by_label("world 3  (seed 3)").click();
+    h.get_by_label("world 3  (seed 0x3)").click();
     h.run();
     assert_eq!(h.state().state.selected(), Some(3));
     h.get_by_label("Play").click();
@@ -279,6 +279,52 @@ fn picking_a_survivor_plays_it_back() {
     let dt = h.state().state.worlds()[3].frame_dt;
     let t2 = h.state().state.playback().time;
     assert!((t2 - (0.5 + dt)).abs() < 1e-9, "time {t2}");
+}
+
+#[test]
+fn the_sorter_ranks_the_survivors_and_a_picked_row_plays_back() {
+    let mut h = harness();
+    h.get_by_label("rank").click();
+    h.run();
+    let ranking = h
+        .state()
+        .state
+        .ranking()
+        .cloned()
+        .expect("ranked at once offline");
+    assert_eq!(ranking.candidates, u64::from(WORLDS));
+    assert_eq!(
+        ranking.rows.len(),
+        mwb_viewer::ui::SORTER_ROWS.min(WORLDS as usize)
+    );
+    // Most spin first, over the chosen (all) objects, summed: the store's own scoring.
+    let spin = |w: u32| -> f64 {
+        h.state()
+            .state
+            .world(w)
+            .expect("world")
+            .metrics
+            .iter()
+            .map(|m| m.angular_travel_rad)
+            .sum()
+    };
+    for pair in ranking.rows.windows(2) {
+        assert!(spin(pair[0].world) >= spin(pair[1].world));
+        assert_eq!(pair[0].score, Some(spin(pair[0].world)));
+    }
+    let top = ranking.rows[0].world;
+    h.get_by_label_contains(&format!(" 1. world {top} "))
+        .click();
+    h.run();
+    assert_eq!(h.state().state.selected(), Some(top));
+    // The picked world's bodies are drawn at their decoded poses.
+    let p = screen_of(&h, top as usize, 0, 0.0);
+    let img = h.render().expect("renders");
+    let px = img.get_pixel(p.x as u32, p.y as u32).0;
+    let sky_bottom = mwb_viewer::draw::palette::SKY_BOTTOM.to_array();
+    let sky_top = mwb_viewer::draw::palette::SKY_TOP.to_array();
+    let far = |sky: [u8; 4]| (0..3).map(|i| px[i].abs_diff(sky[i]) as u32).sum::<u32>() > 90;
+    assert!(far(sky_top) && far(sky_bottom), "crate pixel {px:?}");
 }
 
 #[test]

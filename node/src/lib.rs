@@ -8,6 +8,7 @@
 //!   congestion control; giving up jobs whose worlds keep failing. A kind of worker (forward
 //!   sampler, reverse stepper, refinement) implements [`WorkerKind`] — which jobs it takes,
 //!   how a job's scene is prepared, how a job and a seed become segments and a summary.
+//! * [`job`] — jobs as clients make them: a scene argument read, a sampling job built.
 //! * [`wire`] — the wire forms all producers of worlds share (segment messages, the job's
 //!   codec preset).
 //!
@@ -72,9 +73,11 @@
 
 mod board;
 pub mod bus;
+pub mod job;
 pub mod wire;
 pub mod worker;
 
 pub use bus::{Node, NodeError, cpu_time};
+pub use job::{JobError, load_scene, sample_job};
 pub use wire::{SegmentBody, codec_quality, segment_message, world_digest};
 pub use worker::{WorkerConfig, WorkerHandle, WorkerKind, WorldTask, run_workers};

@@ -10,6 +10,7 @@ pub mod record;
 pub mod reverse;
 pub mod sampler;
 pub mod stepper;
+pub mod viewer;
 
 #[derive(Debug, Subcommand)]
 pub enum BenchCommand {
@@ -27,6 +28,9 @@ pub enum BenchCommand {
     /// Recording, replay and the store's journal: writer MB/s, recorder overhead, replay
     /// worlds/s, journal restart time and bytes per world on disk.
     Record(record::RecordArgs),
+    /// The live viewer over a store of many worlds: UI frame CPU time, box → survivor count
+    /// round trip, world pick → playback.
+    Viewer(viewer::ViewerArgs),
 }
 
 /// Runs `mwb bench …`.
@@ -38,6 +42,7 @@ pub async fn run(command: BenchCommand) -> Result<()> {
         BenchCommand::Query(args) => query::run(args).await,
         BenchCommand::Codec(args) => codec::run(args),
         BenchCommand::Record(args) => record::run(args).await,
+        BenchCommand::Viewer(args) => viewer::run(args).await,
     }
 }
 

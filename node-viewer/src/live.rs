@@ -1,0 +1,683 @@
+//! A live viewer's bus task: everything the viewer needs from a running cluster, on a tokio
+//! task and never on the UI thread. It talks to the UI through two bounded channels: the UI
+//! hands it [`Command`]s without waiting ([`LiveLink::send`]), and it hands back [`Msg`]s that
+//! the UI applies once per frame ([`LiveLink::drain`]), waking the UI when it does.
+//!
+//! Every poll (twice a second by default) it asks
+//! * the stores' `q/paths` for worlds indexed since last time (one cursor per shard), and the
+//!   scene of each new job (`q/job/<job>`);
+//! * node-query for the session's status and survivors (`browse/<session>`);
+//! * liveliness, store statistics and job states, for the status bar.
+//!
+//! Every request has a timeout. Edits the user made while node-query could not be reached are
+//! kept, in order, and sent when it answers again; if node-query lost the session (it
+//! restarted), the edits it lacks are sent again, so nothing the user drew is lost.
+
+use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use mwb_core::browse::api::{Reply, Request};
+use mwb_core::keys::{Keys, role};
+use mwb_core::scene::SceneTemplate;
+use mwb_proto::v1::{Job, JobState, Message, NodeStats, PathBatch, PathsRequest, Quality, World};
+use tokio::sync::mpsc;
+use zenoh::Session;
+
+use crate::session::Command;
+use crate::state::{LinkStatus, Msg};
+use crate::world::{Motion, WorldData};
+
+/// Commands the UI may queue before [`LiveLink::send`] reports the link busy.
+pub const COMMAND_QUEUE: usize = 256;
+/// Messages the bus task may queue for the UI before it waits for the UI to take them.
+pub const EVENT_QUEUE: usize = 256;
+
+/// Settings of the bus task.
+#[derive(Debug, Clone)]
+pub struct LiveConfig {
+    /// Browsing space (`mwb/<space>/…`).
+    pub space: String,
+    /// The browsing session the viewer's constraints live in (`mwb query --session` sees the
+    /// same one).
+    pub session: String,
+    /// Where the viewer connects, as the user gave it (for the status bar).
+    pub endpoint: String,
+    /// Time between polls; default 500 ms.
+    pub poll: Duration,
+    /// Timeout of every request; default 5 s.
+    pub timeout: Duration,
+    /// Worlds per shard asked in one `q/paths` request; default 512.
+    pub path_batch: u32,
+}
+
+impl Default for LiveConfig {
+    fn default() -> Self {
+        Self {
+            space: mwb_core::keys::DEFAULT_SPACE.into(),
+            session: "viewer".into(),
+            endpoint: String::new(),
+            poll: Duration::from_millis(500),
+            timeout: Duration::from_secs(5),
+            path_batch: 512,
+        }
+    }
+}
+
+/// Why the link could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum LiveError {
+    #[error(transparent)]
+    Key(#[from] mwb_core::keys::BadIdentifier),
+}
+
+/// The UI's end of the bus task.
+pub struct LiveLink {
+    commands: mpsc::Sender<Command>,
+    events: mpsc::Receiver<Msg>,
+    task: tokio::task::JoinHandle<()>,
+}
+
+impl LiveLink {
+    /// Starts the bus task on `runtime`. `wake` is called after messages are queued (the
+    /// window's repaint request).
+    pub fn start(
+        session: Session,
+        cfg: LiveConfig,
+        runtime: &tokio::runtime::Handle,
+        wake: Arc<dyn Fn() + Send + Sync>,
+    ) -> Result<Self, LiveError> {
+        let keys = Keys::new(&cfg.space)?;
+        mwb_core::keys::check_identifier("session", &cfg.session)?;
+        let (ctx, crx) = mpsc::channel(COMMAND_QUEUE);
+        let (etx, erx) = mpsc::channel(EVENT_QUEUE);
+        let task = Bus {
+            session,
+            keys,
+            cfg,
+            events: etx,
+            wake,
+            seen: Vec::new(),
+            scenes: Arc::new(Mutex::new(HashMap::new())),
+            scene_sent: false,
+            log: Vec::new(),
+            unsent: VecDeque::new(),
+            handled: 0,
+            last_session: None,
+            last_rate: None,
+            rate: 0.0,
+        };
+        let task = runtime.spawn(task.run(crx));
+        Ok(Self {
+            commands: ctx,
+            events: erx,
+            task,
+        })
+    }
+
+    /// Hands a command to the bus task without waiting; gives it back when the queue is full
+    /// or the task has stopped (the caller keeps it and tries again).
+    pub fn send(&self, cmd: Command) -> Result<(), Command> {
+        self.commands.try_send(cmd).map_err(|e| match e {
+            mpsc::error::TrySendError::Full(c) | mpsc::error::TrySendError::Closed(c) => c,
+        })
+    }
+
+    /// The messages the bus task has queued, without waiting.
+    pub fn drain(&mut self) -> Vec<Msg> {
+        let mut out = Vec::new();
+        while let Ok(m) = self.events.try_recv() {
+            out.push(m);
+        }
+        out
+    }
+
+    /// Whether the bus task is still running.
+    pub fn is_running(&self) -> bool {
+        !self.task.is_finished()
+    }
+}
+
+impl Drop for LiveLink {
+    fn drop(&mut self) {
+        self.task.abort();
+    }
+}
+
+type SceneCache = Arc<Mutex<HashMap<String, Result<Arc<SceneTemplate>, String>>>>;
+
+struct Bus {
+    session: Session,
+    keys: Keys,
+    cfg: LiveConfig,
+    events: mpsc::Sender<Msg>,
+    wake: Arc<dyn Fn() + Send + Sync>,
+    /// Per shard index, local world slots seen.
+    seen: Vec<u32>,
+    /// Job id → its scene (or why it has none).
+    scenes: SceneCache,
+    scene_sent: bool,
+    /// The session's edits this viewer made and node-query accepted, in order.
+    log: Vec<Request>,
+    /// Edits not yet delivered (node-query unreachable), in order.
+    unsent: VecDeque<Request>,
+    /// Edit commands handled (answered or refused).
+    handled: u32,
+    /// The session status (and edits handled) last reported to the UI.
+    last_session: Option<(mwb_core::browse::api::SessionStatus, u32)>,
+    last_rate: Option<(Instant, u64)>,
+    rate: f64,
+}
+
+/// What one edit's delivery came to.
+enum Delivery {
+    Accepted,
+    Refused(String),
+    Unreachable(String),
+}
+
+impl Bus {
+    async fn run(mut self, mut commands: mpsc::Receiver<Command>) {
+        let mut tick = tokio::time::interval(self.cfg.poll);
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        loop {
+            tokio::select! {
+                cmd = commands.recv() => match cmd {
+                    Some(c) => self.command(c).await,
+                    None => return,
+                },
+                _ = tick.tick() => self.poll().await,
+            }
+        }
+    }
+
+    async fn emit(&self, msg: Msg) {
+        // Waiting here is the back-pressure: the UI takes messages every frame.
+        if self.events.send(msg).await.is_ok() {
+            (self.wake)();
+        }
+    }
+
+    async fn command(&mut self, cmd: Command) {
+        match cmd {
+            Command::Rank(spec) => match self.browse(&spec.request()).await {
+                Ok(reply) => self.emit(Msg::Ranked { spec, reply }).await,
+                Err(e) => self.emit(Msg::BrowseFailed(e)).await,
+            },
+            Command::Browse(req) if req.is_edit() => {
+                self.unsent.push_back(req);
+                self.deliver().await;
+                self.refresh_session().await;
+            }
+            Command::Browse(req) => match self.browse(&req).await {
+                Ok(Reply::Error { message }) => self.emit(Msg::BrowseFailed(message)).await,
+                Ok(_) => {}
+                Err(e) => self.emit(Msg::BrowseFailed(e)).await,
+            },
+            Command::SubmitJob {
+                scene,
+                worlds,
+                quality,
+            } => {
+                let notice = self.submit(&scene, worlds, quality).await;
+                self.emit(Msg::JobNotice(notice)).await;
+            }
+            Command::CancelJob(job) => {
+                let notice = self.cancel(&job).await;
+                self.emit(Msg::JobNotice(notice)).await;
+            }
+            Command::FetchMotion { world, job } => {
+                let session = self.session.clone();
+                let keys = self.keys.clone();
+                let timeout = self.cfg.timeout;
+                let scenes = self.scenes.clone();
+                let events = self.events.clone();
+                let wake = self.wake.clone();
+                tokio::spawn(async move {
+                    let motion = fetch_motion(&session, &keys, timeout, &scenes, world, &job)
+                        .await
+                        .map(Arc::new);
+                    if events
+                        .send(Msg::MotionLoaded { world, motion })
+                        .await
+                        .is_ok()
+                    {
+                        wake();
+                    }
+                });
+            }
+        }
+    }
+
+    /// Reads the scene (off the runtime: it may be a file), announces the job and waits until
+    /// a store has taken it.
+    async fn submit(&self, scene: &str, worlds: u32, quality: Quality) -> Result<String, String> {
+        let arg = scene.to_owned();
+        let mut job = tokio::task::spawn_blocking(move || {
+            let (file, text) = mwb_node::load_scene(&arg)?;
+            mwb_node::sample_job(&file, &text, worlds, 0, None, unix_ms())
+        })
+        .await
+        .map_err(|e| format!("reading the scene: {e}"))?
+        .map_err(|e| error_chain(&e))?;
+        job.quality = quality as i32;
+        self.announce(&job).await?;
+        let deadline = Instant::now() + Duration::from_secs(15);
+        loop {
+            let states = self.get_all(&self.keys.job_state(&job.id), None).await?;
+            if !states.is_empty() {
+                return Ok(format!(
+                    "job {} submitted: {worlds} worlds of {scene}",
+                    job.id
+                ));
+            }
+            if Instant::now() > deadline {
+                return Err(format!(
+                    "job {}: no store took it within 15 s (is a store running?)",
+                    job.id
+                ));
+            }
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        }
+    }
+
+    /// Re-announces an open job with `cancelled` set.
+    async fn cancel(&self, id: &str) -> Result<String, String> {
+        let replies = self.get_all(&self.keys.job(id), None).await?;
+        let mut job = replies
+            .iter()
+            .filter_map(|b| Job::decode(b.as_slice()).ok())
+            .filter(|j| j.id == id)
+            .max_by_key(|j| j.revision)
+            .ok_or_else(|| format!("job {id} is not open on any store"))?;
+        job.revision += 1;
+        job.cancelled = true;
+        self.announce(&job).await?;
+        Ok(format!("job {id} cancelled"))
+    }
+
+    async fn announce(&self, job: &Job) -> Result<(), String> {
+        self.session
+            .put(self.keys.job(&job.id), job.encode_to_vec())
+            .congestion_control(zenoh::qos::CongestionControl::Block)
+            .await
+            .map_err(|e| format!("announcing job {}: {e}", job.id))
+    }
+
+    /// One browsing request to node-query; `Err` when it could not be reached.
+    async fn browse(&self, req: &Request) -> Result<Reply, String> {
+        mwb_query::send(
+            &self.session,
+            &self.keys,
+            &self.cfg.session,
+            req,
+            self.cfg.timeout,
+        )
+        .await
+        .map_err(|e| e.to_string())
+    }
+
+    /// Sends the queued edits in order until one cannot be delivered.
+    async fn deliver(&mut self) {
+        while let Some(req) = self.unsent.front().cloned() {
+            let outcome = match self.browse(&req).await {
+                Ok(Reply::Error { message }) => Delivery::Refused(message),
+                Ok(_) => Delivery::Accepted,
+                Err(e) => Delivery::Unreachable(e),
+            };
+            match outcome {
+                Delivery::Accepted => {
+                    self.unsent.pop_front();
+                    self.log.push(req);
+                    self.handled += 1;
+                }
+                Delivery::Refused(message) => {
+                    self.unsent.pop_front();
+                    self.handled += 1;
+                    self.emit(Msg::BrowseFailed(message)).await;
+                }
+                Delivery::Unreachable(e) => {
+                    self.emit(Msg::BrowseFailed(format!(
+                        "{e} — {} edit(s) kept, sent when node-query answers",
+                        self.unsent.len()
+                    )))
+                    .await;
+                    return;
+                }
+            }
+        }
+    }
+
+    /// The session's status and survivors; first sends node-query the edits it lacks (it
+    /// restarted and lost the session) or that could not be delivered before.
+    async fn refresh_session(&mut self) -> bool {
+        let mut status = None;
+        for _ in 0..2 {
+            let s = match self.browse(&Request::Status).await {
+                Ok(Reply::Status(s)) => s,
+                Ok(other) => {
+                    self.emit(Msg::BrowseFailed(format!(
+                        "node-query answered a status request with {other:?}"
+                    )))
+                    .await;
+                    return false;
+                }
+                Err(_) => return false,
+            };
+            if (s.edits as usize) < self.log.len() && self.unsent.is_empty() {
+                let missing: Vec<Request> = self.log.split_off(s.edits as usize);
+                self.handled = self.handled.saturating_sub(missing.len() as u32);
+                self.unsent.extend(missing);
+                self.deliver().await;
+                continue;
+            }
+            status = Some(s);
+            break;
+        }
+        let Some(status) = status else {
+            return false;
+        };
+        // The survivor list is fetched only when something changed: at a million worlds it is
+        // megabytes, and polls come twice a second.
+        let key = (status.clone(), self.handled);
+        if self.last_session.as_ref() == Some(&key) {
+            return true;
+        }
+        let survivors = match self.browse(&Request::Result { limit: None }).await {
+            Ok(Reply::Worlds { worlds, .. }) => worlds,
+            _ => return false,
+        };
+        self.last_session = Some(key);
+        self.emit(Msg::Session {
+            status,
+            survivors,
+            handled_edits: self.handled,
+        })
+        .await;
+        true
+    }
+
+    async fn poll(&mut self) {
+        let mut link = LinkStatus {
+            endpoint: self.cfg.endpoint.clone(),
+            ..LinkStatus::default()
+        };
+        self.poll_paths(&mut link).await;
+        if !self.unsent.is_empty() {
+            self.deliver().await;
+        }
+        let session_ok = self.refresh_session().await;
+        self.poll_cluster(&mut link).await;
+        link.connected = session_ok;
+        if !session_ok && link.error.is_none() {
+            link.error = Some(if link.stores == 0 {
+                "no store answers".into()
+            } else {
+                "node-query does not answer (is `mwb query serve` or the store's shard 0 running?)"
+                    .into()
+            });
+        }
+        self.emit(Msg::Link(link)).await;
+    }
+
+    /// New worlds from every shard, batch after batch while shards have more.
+    async fn poll_paths(&mut self, link: &mut LinkStatus) {
+        for _ in 0..64 {
+            let req = PathsRequest {
+                seen: self.seen.clone(),
+                max_worlds: self.cfg.path_batch,
+            };
+            let batches = match self
+                .get_all(&self.keys.paths(), Some(req.encode_to_vec()))
+                .await
+            {
+                Ok(b) => b,
+                Err(e) => {
+                    link.error = Some(e);
+                    return;
+                }
+            };
+            let mut more = false;
+            let mut worlds = Vec::new();
+            for bytes in batches {
+                let Ok(b) = PathBatch::decode(bytes.as_slice()) else {
+                    self.emit(Msg::Problem("a store sent a malformed path batch".into()))
+                        .await;
+                    continue;
+                };
+                let shard = b.shard_index as usize;
+                if self.seen.len() <= shard {
+                    self.seen.resize(shard + 1, 0);
+                }
+                if b.next_local < self.seen[shard] {
+                    // The shard holds fewer worlds than we saw: it restarted without them.
+                    self.seen[shard] = 0;
+                    self.emit(Msg::ForgetShard {
+                        shard: b.shard_index,
+                        count: b.shard_count,
+                    })
+                    .await;
+                    more = true;
+                    continue;
+                }
+                more |= b.next_local > self.seen[shard]
+                    && b.worlds.len() >= self.cfg.path_batch as usize;
+                self.seen[shard] = b.next_local;
+                for p in &b.worlds {
+                    match WorldData::from_paths(p) {
+                        Ok(w) => worlds.push(w),
+                        Err(e) => {
+                            self.emit(Msg::Problem(format!("world {}: {e}", p.world)))
+                                .await
+                        }
+                    }
+                }
+            }
+            if !worlds.is_empty() {
+                self.announce_scenes(&worlds).await;
+                self.emit(Msg::Worlds(worlds)).await;
+            }
+            if !more {
+                return;
+            }
+        }
+    }
+
+    /// Fetches the scenes of jobs not seen before; the first one becomes the view's scene.
+    async fn announce_scenes(&mut self, worlds: &[WorldData]) {
+        let mut jobs: Vec<&str> = worlds.iter().map(|w| w.job.as_str()).collect();
+        jobs.dedup();
+        for job in jobs {
+            let known = lock(&self.scenes).contains_key(job);
+            if !known {
+                let t = job_scene(&self.session, &self.keys, self.cfg.timeout, job).await;
+                lock(&self.scenes).insert(job.to_owned(), t);
+            }
+            if self.scene_sent {
+                continue;
+            }
+            let template = lock(&self.scenes).get(job).cloned();
+            match template {
+                Some(Ok(t)) => {
+                    self.scene_sent = true;
+                    let first = t.instantiate(0);
+                    self.emit(Msg::Scene {
+                        name: t.name().to_owned(),
+                        bodies: t.body_names().map(str::to_owned).collect(),
+                        statics: first.statics.clone(),
+                    })
+                    .await;
+                }
+                Some(Err(e)) => self.emit(Msg::Problem(e)).await,
+                None => {}
+            }
+        }
+    }
+
+    /// Liveliness, store statistics and open jobs.
+    async fn poll_cluster(&mut self, link: &mut LinkStatus) {
+        link.stores = self.count_alive(role::STORE).await;
+        link.samplers = self.count_alive(role::SAMPLER).await;
+        if let Ok(stats) = self.get_all(&self.keys.store_stats(), None).await {
+            for bytes in stats {
+                if let Ok(s) = NodeStats::decode(bytes.as_slice()) {
+                    link.store_worlds += s.worlds;
+                    link.memory_bytes += s.memory_bytes;
+                    link.memory_cap_bytes += s.memory_cap_bytes;
+                }
+            }
+        }
+        let now = Instant::now();
+        if let Some((t, n)) = self.last_rate {
+            let dt = now.duration_since(t).as_secs_f64();
+            if dt > 0.0 {
+                let r = link.store_worlds.saturating_sub(n) as f64 / dt;
+                self.rate = 0.6 * self.rate + 0.4 * r;
+            }
+        }
+        self.last_rate = Some((now, link.store_worlds));
+        link.worlds_per_s = self.rate;
+        if let Ok(states) = self.get_all(&self.keys.job_states(), None).await {
+            let mut open: BTreeMap<String, (u32, u32)> = BTreeMap::new();
+            for bytes in states {
+                if let Ok(s) = JobState::decode(bytes.as_slice())
+                    && !s.closed
+                {
+                    open.insert(s.job_id, (s.worlds_done, s.target_worlds));
+                }
+            }
+            link.jobs = open.into_iter().map(|(j, (d, t))| (j, d, t)).collect();
+        }
+    }
+
+    async fn count_alive(&self, r: &str) -> u32 {
+        let Ok(replies) = self
+            .session
+            .liveliness()
+            .get(self.keys.alive_role(r))
+            .timeout(self.cfg.timeout)
+            .await
+        else {
+            return 0;
+        };
+        let mut n = 0;
+        while let Ok(reply) = replies.recv_async().await {
+            n += u32::from(reply.result().is_ok());
+        }
+        n
+    }
+
+    /// Every reply's payload to a query on `key`.
+    async fn get_all(&self, key: &str, payload: Option<Vec<u8>>) -> Result<Vec<Vec<u8>>, String> {
+        get_all(&self.session, key, payload, self.cfg.timeout).await
+    }
+}
+
+fn unix_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}
+
+/// An error and its sources, on one line (for the status bar).
+fn error_chain(e: &dyn std::error::Error) -> String {
+    let mut m = e.to_string();
+    let mut source = e.source();
+    while let Some(s) = source {
+        m.push_str(": ");
+        m.push_str(&s.to_string());
+        source = s.source();
+    }
+    m
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+async fn get_all(
+    session: &Session,
+    key: &str,
+    payload: Option<Vec<u8>>,
+    timeout: Duration,
+) -> Result<Vec<Vec<u8>>, String> {
+    let mut get = session.get(key).timeout(timeout);
+    if let Some(p) = payload {
+        get = get.payload(p);
+    }
+    let replies = get.await.map_err(|e| format!("query {key}: {e}"))?;
+    let mut out = Vec::new();
+    while let Ok(reply) = replies.recv_async().await {
+        match reply.result() {
+            Ok(s) => out.push(s.payload().to_bytes().to_vec()),
+            Err(e) => {
+                return Err(format!(
+                    "query {key}: {}",
+                    String::from_utf8_lossy(&e.payload().to_bytes())
+                ));
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// The scene of `job`, from the store that holds its worlds.
+async fn job_scene(
+    session: &Session,
+    keys: &Keys,
+    timeout: Duration,
+    job: &str,
+) -> Result<Arc<SceneTemplate>, String> {
+    let replies = get_all(session, &keys.held_job(job), None, timeout).await?;
+    let bytes = replies
+        .first()
+        .ok_or_else(|| format!("job {job}: no store holds it"))?;
+    let job_msg =
+        Job::decode(bytes.as_slice()).map_err(|e| format!("job {job}: malformed reply: {e}"))?;
+    let scene = job_msg
+        .scene
+        .ok_or_else(|| format!("job {job}: it carries no scene"))?;
+    SceneTemplate::parse(&scene.toml, &scene.name)
+        .map(Arc::new)
+        .map_err(|e| format!("job {job}: its scene cannot be drawn here: {e}"))
+}
+
+/// Fetches world `world` from the store and decodes its motion for its scene instance.
+async fn fetch_motion(
+    session: &Session,
+    keys: &Keys,
+    timeout: Duration,
+    scenes: &SceneCache,
+    world: u32,
+    job: &str,
+) -> Result<Motion, String> {
+    let replies = get_all(session, &keys.world(world), None, timeout).await?;
+    let bytes = replies
+        .first()
+        .ok_or_else(|| format!("no store holds world {world}"))?;
+    let w = World::decode(bytes.as_slice()).map_err(|e| format!("malformed world: {e}"))?;
+    let done = w
+        .done
+        .ok_or_else(|| format!("world {world} has no summary"))?;
+    let cached = lock(scenes).get(job).cloned();
+    let template = match cached {
+        Some(t) => t?,
+        None => {
+            let t = job_scene(session, keys, timeout, job).await;
+            lock(scenes).insert(job.to_owned(), t.clone());
+            t?
+        }
+    };
+    let seed = done.seed;
+    tokio::task::spawn_blocking(move || {
+        Motion::decode(
+            template.instantiate(seed),
+            done.frame_dt,
+            &w.segments,
+            Some(u64::from(done.frame_count)),
+        )
+        .map_err(|e| e.to_string())
+    })
+    .await
+    .map_err(|e| format!("decoding task failed: {e}"))?
+}
