@@ -59,7 +59,7 @@ pub struct ViewerArgs {
     #[arg(long = "not-rect", value_name = "X0,Y0,X1,Y1")]
     pub not_rects: Vec<String>,
     /// Rank the survivors at start (the sorter's choices: spin, rest, impacts, turn,
-    /// constraints).
+    /// constraints); a --screenshot without --select shows the top-ranked world.
     #[arg(long, value_enum)]
     pub rank: Option<RankArg>,
     /// Select this world at start.
@@ -313,6 +313,26 @@ async fn shoot(
                 app.state
                     .browse_error()
                     .unwrap_or("node-query did not answer")
+            );
+        }
+    }
+    // Ranked without --select: show the top-ranked world.
+    let top = app
+        .state
+        .ranking()
+        .and_then(|r| r.rows.first())
+        .map(|r| r.world);
+    if let (None, Some(w)) = (args.select, top) {
+        app.state
+            .update(Msg::SelectWorld(Some(w)))
+            .map_err(|e| anyhow!("{e}"))?;
+        if let Some(t) = args.time {
+            app.state.update(Msg::Seek(t)).map_err(|e| anyhow!("{e}"))?;
+        }
+        if live && !app.pump_until(wait, |a| !a.state.shown_loading()).await {
+            bail!(
+                "world {w}'s motion did not arrive within {:.0} s",
+                wait.as_secs_f64()
             );
         }
     }

@@ -3,7 +3,7 @@
 //! egui lines and triangle meshes (flat-shaded, painter-sorted). No GPU state: the view looks
 //! the same on any egui backend and in the software rasteriser.
 
-use egui::{Color32, Mesh, Pos2, Rect, Shape, Stroke, pos2};
+use egui::{Color32, Mesh, Pos2, Rect, Shape, Stroke, pos2, vec2};
 use mwb_core::browse::{Polarity, Projection, Viewport};
 use mwb_core::scene::Shape as SceneShape;
 
@@ -117,6 +117,38 @@ impl View {
         self.proj.project(p).map(|(px, _)| self.screen(px))
     }
 
+    /// Calls `f` with every segment of a polyline on screen, each vertex projected once;
+    /// segments behind the near plane are clipped, and those wholly to one side of the view
+    /// rectangle skipped.
+    pub fn for_each_segment(&self, points: &[V3], mut f: impl FnMut(Pos2, Pos2)) {
+        let r = self.rect;
+        let mut prev: Option<(V3, f64, Option<Pos2>)> = None;
+        for &p in points {
+            let d = self.depth(p) - self.near;
+            let sp = if d >= 0.0 {
+                self.project_unchecked(p)
+            } else {
+                None
+            };
+            if let Some((q, dq, sq)) = prev {
+                let seg = match (sq, sp) {
+                    (Some(a), Some(b)) if dq >= 0.0 && d >= 0.0 => Some([a, b]),
+                    _ => self.segment(q, p),
+                };
+                if let Some([a, b]) = seg {
+                    let outside = (a.x < r.min.x && b.x < r.min.x)
+                        || (a.x > r.max.x && b.x > r.max.x)
+                        || (a.y < r.min.y && b.y < r.min.y)
+                        || (a.y > r.max.y && b.y > r.max.y);
+                    if !outside {
+                        f(a, b);
+                    }
+                }
+            }
+            prev = Some((p, d, sp));
+        }
+    }
+
     /// A polyline on screen, split where it leaves the near side.
     pub fn polyline(&self, points: &[V3]) -> Vec<Vec<Pos2>> {
         let mut runs = Vec::new();
@@ -144,6 +176,55 @@ impl View {
             runs.push(run);
         }
         runs
+    }
+}
+
+/// Many thin lines as one mesh: a quad per segment, no joins and no feathering. Thousands of
+/// faint paths drawn as egui paths (each joined, feathered and tessellated on its own) cost
+/// several times more per frame; at a point or two wide and low alpha the difference does not
+/// show. The few paths that stand out (hovered, selected) are still drawn as egui paths.
+#[derive(Default)]
+pub struct LineBatch {
+    mesh: Mesh,
+}
+
+impl LineBatch {
+    /// A batch with room for `segments` segments (no reallocation while it fills).
+    pub fn with_capacity(segments: usize) -> Self {
+        let mut mesh = Mesh::default();
+        mesh.vertices.reserve(4 * segments);
+        mesh.indices.reserve(6 * segments);
+        Self { mesh }
+    }
+
+    pub fn segment(&mut self, a: Pos2, b: Pos2, width: f32, color: Color32) {
+        let d = b - a;
+        // (`Vec2::length` is `hypot`, a libm call: several times slower than this.)
+        let len = (d.x * d.x + d.y * d.y).sqrt();
+        if len < 1e-3 {
+            return;
+        }
+        let n = vec2(-d.y, d.x) * (0.5 * width / len);
+        let i = self.mesh.vertices.len() as u32;
+        self.mesh.colored_vertex(a + n, color);
+        self.mesh.colored_vertex(a - n, color);
+        self.mesh.colored_vertex(b - n, color);
+        self.mesh.colored_vertex(b + n, color);
+        self.mesh.add_triangle(i, i + 1, i + 2);
+        self.mesh.add_triangle(i, i + 2, i + 3);
+    }
+
+    /// Segments drawn so far.
+    pub fn len(&self) -> usize {
+        self.mesh.vertices.len() / 4
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.mesh.vertices.is_empty()
+    }
+
+    pub fn into_shape(self) -> Shape {
+        Shape::mesh(self.mesh)
     }
 }
 
@@ -468,22 +549,32 @@ pub fn scene_shapes(state: &ViewerState, view: &View, overlay: Overlay) -> Vec<S
     let survivor_alpha = (255.0 * (6.0 / n.sqrt()).clamp(0.12, 0.8)) as u8;
     let rejected_alpha = (survivor_alpha / 4).max(10);
     for pass in [false, true] {
-        for w in state.worlds() {
-            if state.survives(w.index) != pass {
-                continue;
-            }
-            let stroke = if pass {
-                Stroke::new(1.2, rgba(palette::SURVIVOR, survivor_alpha))
-            } else {
-                Stroke::new(1.0, rgba(palette::REJECTED, rejected_alpha))
-            };
+        let (width, colour) = if pass {
+            (1.2, rgba(palette::SURVIVOR, survivor_alpha))
+        } else {
+            (1.0, rgba(palette::REJECTED, rejected_alpha))
+        };
+        let drawn = state
+            .worlds()
+            .iter()
+            .filter(|w| state.survives(w.index) == pass);
+        let segments = drawn
+            .clone()
+            .flat_map(|w| chosen.iter().filter_map(|&o| w.paths.get(o as usize)))
+            .map(|p| p.tree.path().len().saturating_sub(1))
+            .sum();
+        let mut batch = LineBatch::with_capacity(segments);
+        for w in drawn {
             for &o in &chosen {
                 if let Some(p) = w.paths.get(o as usize) {
-                    for run in view.polyline(p.tree.path().points()) {
-                        shapes.push(Shape::line(run, stroke));
-                    }
+                    view.for_each_segment(p.tree.path().points(), |a, b| {
+                        batch.segment(a, b, width, colour);
+                    });
                 }
             }
+        }
+        if !batch.is_empty() {
+            shapes.push(batch.into_shape());
         }
     }
     for (w, stroke) in [
@@ -576,14 +667,12 @@ pub fn pick_world(state: &ViewerState, view: &View, p: Pos2, max_px: f32) -> Opt
             let Some(path) = w.paths.get(o as usize) else {
                 continue;
             };
-            for run in view.polyline(path.tree.path().points()) {
-                for s in run.windows(2) {
-                    let d = dist_to_segment(p, s[0], s[1]) + bias;
-                    if d <= max_px && best.is_none_or(|(bd, _)| d < bd) {
-                        best = Some((d, w.index));
-                    }
+            view.for_each_segment(path.tree.path().points(), |a, b| {
+                let d = dist_to_segment(p, a, b) + bias;
+                if d <= max_px && best.is_none_or(|(bd, _)| d < bd) {
+                    best = Some((d, w.index));
                 }
-            }
+            });
         }
     }
     best.map(|(_, w)| w)

@@ -553,7 +553,7 @@ impl ViewerState {
     }
 
     /// What "frame all" frames: a sphere around the bulk of the chosen objects' paths — the
-    /// median point, out to the distance within which 95 % of the path vertices lie — and the
+    /// median point, out to the distance within which 99 % of the path vertices lie — and the
     /// bodies' bounded statics. A few bodies thrown far away would otherwise shrink every other
     /// path to a dot. (At most 20 000 vertices are looked at, evenly spread.)
     pub fn framing(&self) -> Option<(V3, f64)> {
@@ -591,7 +591,7 @@ impl ViewerState {
             .map(|p| crate::math::len(crate::math::sub(*p, centre)))
             .collect();
         d.sort_by(f64::total_cmp);
-        let r = d[((d.len() - 1) as f64 * 0.95).round() as usize];
+        let r = d[((d.len() - 1) as f64 * 0.99).round() as usize];
         Some((centre, r.max(0.5)))
     }
 

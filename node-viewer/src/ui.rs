@@ -185,7 +185,7 @@ impl ViewerApp {
         }
     }
 
-    /// Pumps (see [`pump`](Self::pump)) every 20 ms until `done` holds or `timeout` passes;
+    /// Pumps (see [`pump`](Self::pump)) every 2 ms until `done` holds or `timeout` passes;
     /// returns whether it held. For headless use (screenshots, tests): a window pumps every
     /// frame instead.
     pub async fn pump_until(
@@ -202,7 +202,7 @@ impl ViewerApp {
             if tokio::time::Instant::now() >= deadline {
                 return false;
             }
-            tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+            tokio::time::sleep(std::time::Duration::from_millis(2)).await;
         }
     }
 
@@ -769,7 +769,7 @@ impl ViewerApp {
                 }
                 let end = self.state.duration();
                 let mut t = pb.time;
-                ui.style_mut().spacing.slider_width = (ui.available_width() - 560.0).max(120.0);
+                ui.style_mut().spacing.slider_width = (ui.available_width() - 640.0).max(120.0);
                 let r = ui.add(
                     egui::Slider::new(&mut t, 0.0..=end.max(1e-3))
                         .show_value(false)
