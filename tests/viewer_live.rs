@@ -13,6 +13,7 @@ use egui_kittest::Harness;
 use egui_kittest::kittest::Queryable;
 use mwb::bench::free_port;
 use mwb_core::browse::ScreenRect;
+use mwb_core::browse::api::{EditRecord, Reply, Request};
 use mwb_viewer::draw::viewport_of;
 use mwb_viewer::live::{LiveConfig, LiveLink};
 use mwb_viewer::ui::SortBy;
@@ -159,6 +160,15 @@ fn the_live_viewer_browses_a_running_cluster() {
         Arc::new(|| {}),
     )
     .unwrap_or_else(|e| panic!("{e}"));
+    // node-query publishes every edit it applies (what a recorder keeps of the session).
+    let keys = mwb_core::keys::Keys::new(&space).unwrap_or_else(|e| panic!("{e}"));
+    let edits = rt
+        .block_on(async {
+            session
+                .declare_subscriber(keys.browse_edits("viewer"))
+                .await
+        })
+        .unwrap_or_else(|e| panic!("{e}"));
     let app = ViewerApp::live(ViewerState::live(endpoint.clone()), link);
     let mut h = Harness::builder()
         .with_size(vec2(1100.0, 700.0))
@@ -255,6 +265,35 @@ fn the_live_viewer_browses_a_running_cluster() {
         .map(|w| w.index)
         .collect();
     assert_eq!(here, survivors);
+
+    // The edit as node-query published it: number 1, the frustum drawn, the count shown.
+    let sample = rt
+        .block_on(async { tokio::time::timeout(Duration::from_secs(10), edits.recv_async()).await })
+        .unwrap_or_else(|_| panic!("no edit published"))
+        .unwrap_or_else(|e| panic!("{e}"));
+    let record: EditRecord =
+        serde_json::from_slice(&sample.payload().to_bytes()).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!((record.session.as_str(), record.edit), ("viewer", 1));
+    let Request::Add { constraint: sent } = &record.request else {
+        panic!("expected the Add, got {:?}", record.request);
+    };
+    // (A frustum is checked and rebuilt from its JSON on the way in, which can move its planes
+    // by an ulp: compare to 1e-12.)
+    for (got, want) in sent
+        .frustum
+        .planes()
+        .iter()
+        .zip(constraint.frustum.planes())
+    {
+        let d = (0..3)
+            .map(|k| (got.normal[k] - want.normal[k]).abs())
+            .fold((got.offset - want.offset).abs(), f64::max);
+        assert!(d < 1e-12, "{got:?} vs {want:?}");
+    }
+    let Reply::Status(answered) = &record.reply else {
+        panic!("expected a status, got {:?}", record.reply);
+    };
+    assert_eq!(answered.result, survivors.len() as u64);
 
     // `mwb query list` on the same session reports the same count.
     let list: Value = serde_json::from_str(

@@ -120,6 +120,10 @@ impl Keys {
     pub fn browse(&self, session: &str) -> String {
         format!("{}/browse/{session}", self.prefix)
     }
+    /// Where node-query publishes each edit it applied in a session (`EditRecord`, JSON).
+    pub fn browse_edits(&self, session: &str) -> String {
+        format!("{}/browse/{session}/edit", self.prefix)
+    }
     /// What node-query declares.
     pub fn browse_all(&self) -> String {
         format!("{}/browse/*", self.prefix)

@@ -5,12 +5,17 @@
 //! live store shards (`q/browse/*/<session>`), whose answers are merged with
 //! [`mwb_core::browse::api::merge`] — counts add, world lists unite, top-k lists merge.
 //!
+//! Every edit it applies is published on `browse/<session>/edit` ([`EditRecord`]: the request
+//! and the merged answer), so that a recording of the bus keeps the browsing session.
+//!
 //! Per session it keeps the numbered list of edits (add, remove, undo, redo). A shard that
 //! answers with fewer edits than the list has — it joined late, restarted, or missed a request —
 //! is sent the missing edits in order before its answer is used, so every shard ends up with
 //! the same constraints and merged answers are consistent.
 
-use mwb_core::browse::api::{MergeError, Reply, Request, ShardReply, ShardRequest, merge};
+use mwb_core::browse::api::{
+    EditRecord, MergeError, Reply, Request, ShardReply, ShardRequest, merge,
+};
 use mwb_core::keys::{Keys, check_identifier, last_chunk, role};
 use mwb_node::bus::{self, Queries, Subscription};
 use mwb_node::{Node, NodeError};
@@ -344,6 +349,24 @@ impl Inner {
             // Every shard refused the edit the same way (it is numbered already); keep the
             // log in step with them.
             debug!(%session, "edit refused by the shards");
+        }
+        if is_edit {
+            // Published under the session's lock, so in the session's order: recorders keep
+            // the browsing session this way (queries and their answers are not puts).
+            let record = EditRecord {
+                session: session.to_owned(),
+                edit: expected,
+                request,
+                reply: merged.clone(),
+            };
+            match serde_json::to_vec(&record) {
+                Ok(bytes) => {
+                    self.node
+                        .put(&self.keys().browse_edits(session), bytes)
+                        .await
+                }
+                Err(e) => warn!(error = %e, "serialising an edit record"),
+            }
         }
         Ok(merged)
     }

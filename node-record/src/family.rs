@@ -283,6 +283,7 @@ mod tests {
             ("mwb/demo/q/stats", Family::QStats),
             ("mwb/demo/browse/s1", Family::Browse),
             ("mwb/demo/q/browse/n1/s1", Family::Browse),
+            ("mwb/demo/browse/s1/edit", Family::Browse),
             ("mwb/demo/alive/store/n1", Family::Raw),
             ("mwb/demo/job", Family::Raw),
             ("mwb/demo/job/j1/other", Family::Raw),

@@ -124,10 +124,20 @@ pub enum Msg {
     Zoom {
         factor: f64,
     },
-    /// Frame every path and body (F), for a view of this aspect ratio.
+    /// Frame every path and body (A), for a view of this aspect ratio.
     FrameAll {
         aspect: f64,
     },
+    /// Frame the selected world's paths of the chosen objects (F; every path when no world is
+    /// selected).
+    FrameSelected {
+        aspect: f64,
+    },
+    /// Keep the current camera as a named view.
+    SaveView(String),
+    /// Go back to saved view `i`.
+    RecallView(usize),
+    DeleteView(usize),
     SetCamera(OrbitCamera),
     /// A rectangle drawn on a view of `viewport` pixels through the current camera.
     AddConstraint {
@@ -240,6 +250,8 @@ pub struct ViewerState {
     job_notice: Option<Result<String, String>>,
     /// Axis-aligned box of every path vertex and bounded static, kept as worlds arrive.
     extent: Option<(V3, V3)>,
+    /// Saved cameras, by name, in the order saved.
+    views: Vec<(String, OrbitCamera)>,
 }
 
 fn find(worlds: &[WorldData], w: u32) -> Option<&WorldData> {
@@ -293,6 +305,7 @@ impl ViewerState {
             browse_error: None,
             job_notice: None,
             extent: None,
+            views: Vec::new(),
         };
         s.recompute_extent();
         s
@@ -436,6 +449,11 @@ impl ViewerState {
         self.link.as_ref()
     }
 
+    /// The saved views (name, camera), in the order saved.
+    pub fn views(&self) -> &[(String, OrbitCamera)] {
+        &self.views
+    }
+
     /// What became of the last job submitted or cancelled.
     pub fn job_notice(&self) -> Option<&Result<String, String>> {
         self.job_notice.as_ref()
@@ -552,31 +570,36 @@ impl ViewerState {
         self.extend_extent(statics.into_iter().chain(paths));
     }
 
-    /// What "frame all" frames: a sphere around the bulk of the chosen objects' paths — the
-    /// median point, out to the distance within which 99 % of the path vertices lie — and the
-    /// bodies' bounded statics. A few bodies thrown far away would otherwise shrink every other
-    /// path to a dot. (At most 20 000 vertices are looked at, evenly spread.)
-    pub fn framing(&self) -> Option<(V3, f64)> {
+    /// What "frame all" (`world` `None`) or "frame selected" frames: a sphere around the bulk
+    /// of the chosen objects' paths (of that world, if it is loaded) — the median point, out to
+    /// the distance within which 99 % of the path vertices lie — and, framing all, the bounded
+    /// statics. A few bodies thrown far away would otherwise shrink every other path to a dot.
+    /// (At most 20 000 vertices are looked at, evenly spread.)
+    pub fn framing(&self, world: Option<u32>) -> Option<(V3, f64)> {
+        let worlds: &[WorldData] = match world.and_then(|w| self.world(w)) {
+            Some(w) => std::slice::from_ref(w),
+            None => &self.worlds,
+        };
         let chosen: Vec<usize> = (0..self.chosen.len()).filter(|&o| self.chosen[o]).collect();
-        let total: usize = self
-            .worlds
+        let total: usize = worlds
             .iter()
             .flat_map(|w| chosen.iter().filter_map(move |&o| w.paths.get(o)))
             .map(|p| p.tree.path().len())
             .sum();
         let step = total.div_ceil(20_000).max(1);
-        let mut points: Vec<V3> = self
-            .worlds
+        let mut points: Vec<V3> = worlds
             .iter()
             .flat_map(|w| chosen.iter().filter_map(move |&o| w.paths.get(o)))
             .flat_map(|p| p.tree.path().points().iter().copied())
             .step_by(step)
             .filter(|p| p.iter().all(|c| c.is_finite()))
             .collect();
-        points.extend(self.statics.iter().filter_map(|s| match &s.shape {
-            mwb_core::scene::Shape::Plane { .. } => None,
-            _ => Some(s.position),
-        }));
+        if world.is_none() {
+            points.extend(self.statics.iter().filter_map(|s| match &s.shape {
+                mwb_core::scene::Shape::Plane { .. } => None,
+                _ => Some(s.position),
+            }));
+        }
         if points.is_empty() {
             return None;
         }
@@ -609,8 +632,24 @@ impl ViewerState {
             Msg::Pan { dx, dy, height } => self.camera.pan(dx, dy, height),
             Msg::Zoom { factor } => self.camera.zoom(factor),
             Msg::FrameAll { aspect } => {
-                if let Some((c, r)) = self.framing() {
+                if let Some((c, r)) = self.framing(None) {
                     self.camera.frame(c, r, aspect);
+                }
+            }
+            Msg::FrameSelected { aspect } => {
+                if let Some((c, r)) = self.framing(self.selected) {
+                    self.camera.frame(c, r, aspect);
+                }
+            }
+            Msg::SaveView(name) => self.views.push((name, self.camera)),
+            Msg::RecallView(i) => {
+                if let Some((_, c)) = self.views.get(i) {
+                    self.camera = *c;
+                }
+            }
+            Msg::DeleteView(i) => {
+                if i < self.views.len() {
+                    self.views.remove(i);
                 }
             }
             Msg::SetCamera(c) => self.camera = c,
@@ -1138,6 +1177,36 @@ mod tests {
             .and_then(|w| w.pose_at(0, 0.5))
             .expect("pose");
         assert!((p[0] - 0.0).abs() < 1e-9 && (p[1] - 1.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn views_are_saved_and_recalled_and_f_frames_the_selected_world() {
+        let mut s = state(&[0.0, 0.0, 4.0]);
+        let home = s.camera;
+        s.update(Msg::SaveView("home".into())).expect("save");
+        s.update(Msg::Orbit {
+            d_yaw: 1.0,
+            d_pitch: 0.2,
+        })
+        .expect("orbit");
+        assert_ne!(s.camera, home);
+        s.update(Msg::RecallView(0)).expect("recall");
+        assert_eq!(s.camera, home);
+        assert_eq!(s.views().len(), 1);
+        s.update(Msg::RecallView(5))
+            .expect("an unknown view changes nothing");
+        s.update(Msg::DeleteView(0)).expect("delete");
+        assert!(s.views().is_empty());
+        // World 2 flies at y = 4: framing it targets y = 4; framing all, the bulk (y = 0).
+        s.update(Msg::SelectWorld(Some(2))).expect("select");
+        s.update(Msg::FrameSelected { aspect: 1.5 }).expect("frame");
+        assert!(
+            (s.camera.target[1] - 4.0).abs() < 1e-9,
+            "{:?}",
+            s.camera.target
+        );
+        s.update(Msg::FrameAll { aspect: 1.5 }).expect("frame");
+        assert!(s.camera.target[1].abs() < 1e-9, "{:?}", s.camera.target);
     }
 
     fn metrics(spin: f64) -> Vec<ObjectMetrics> {

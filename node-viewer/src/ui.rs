@@ -4,7 +4,8 @@
 //!
 //! Mouse in the 3D view: left-drag draws a positive box, Shift+left-drag a negative one;
 //! right-drag or Alt+left-drag orbits; middle-drag or Alt+middle-drag pans; wheel or
-//! Alt+right-drag zooms; a click picks the nearest path's world. Keys: F frames everything,
+//! Alt+right-drag zooms; a click picks the nearest path's world. Keys: F frames the selected
+//! world (everything when none is selected), A frames everything,
 //! Ctrl+Z / Ctrl+Shift+Z (or Ctrl+Y) undo and redo, Space plays / pauses, ←/→ step a frame.
 
 use std::collections::VecDeque;
@@ -271,17 +272,18 @@ impl ViewerApp {
         if ui.ctx().text_edit_focused() {
             return;
         }
-        let (redo, undo, frame, play, back, fwd) = ui.input_mut(|i| {
+        let (redo, undo, frame, frame_all, play, back, fwd) = ui.input_mut(|i| {
             let redo = i.consume_shortcut(&KeyboardShortcut::new(
                 Modifiers::COMMAND | Modifiers::SHIFT,
                 Key::Z,
             )) || i.consume_shortcut(&KeyboardShortcut::new(Modifiers::COMMAND, Key::Y));
             let undo = i.consume_shortcut(&KeyboardShortcut::new(Modifiers::COMMAND, Key::Z));
             let frame = i.consume_key(Modifiers::NONE, Key::F);
+            let frame_all = i.consume_key(Modifiers::NONE, Key::A);
             let play = i.consume_key(Modifiers::NONE, Key::Space);
             let back = i.consume_key(Modifiers::NONE, Key::ArrowLeft);
             let fwd = i.consume_key(Modifiers::NONE, Key::ArrowRight);
-            (redo, undo, frame, play, back, fwd)
+            (redo, undo, frame, frame_all, play, back, fwd)
         });
         if redo {
             self.send(Msg::Redo);
@@ -289,6 +291,11 @@ impl ViewerApp {
             self.send(Msg::Undo);
         }
         if frame {
+            self.send(Msg::FrameSelected {
+                aspect: self.aspect(),
+            });
+        }
+        if frame_all {
             self.frame_all();
         }
         if play {
@@ -302,14 +309,20 @@ impl ViewerApp {
         }
     }
 
-    fn frame_all(&mut self) {
+    /// The 3D view's aspect ratio (16:9 before it is laid out).
+    fn aspect(&self) -> f64 {
         let r = self.view_rect;
-        let aspect = if r.is_positive() {
+        if r.is_positive() {
             f64::from(r.width() / r.height())
         } else {
             16.0 / 9.0
-        };
-        self.send(Msg::FrameAll { aspect });
+        }
+    }
+
+    fn frame_all(&mut self) {
+        self.send(Msg::FrameAll {
+            aspect: self.aspect(),
+        });
     }
 
     fn top_bar(&mut self, ui: &mut egui::Ui) {
@@ -358,7 +371,7 @@ impl ViewerApp {
                     ui.colored_label(Color32::from_rgb(240, 90, 90), e);
                 }
                 ui.with_layout(Layout::right_to_left(Align::Center), |ui| {
-                    if ui.button("Frame all (F)").clicked() {
+                    if ui.button("Frame all (A)").clicked() {
                         self.frame_all();
                     }
                     let (can_undo, can_redo) = (self.state.can_undo(), self.state.can_redo());
@@ -471,6 +484,8 @@ impl ViewerApp {
                         self.constraints_section(ui);
                         ui.separator();
                         self.sorter_section(ui);
+                        ui.separator();
+                        self.views_section(ui);
                         ui.separator();
                         self.survivors_section(ui);
                     });
@@ -722,6 +737,43 @@ impl ViewerApp {
         }
     }
 
+    /// Saved cameras: save the current one, go back to one, forget one.
+    fn views_section(&mut self, ui: &mut egui::Ui) {
+        ui.horizontal(|ui| {
+            ui.heading("Views");
+            if ui
+                .small_button("save view")
+                .on_hover_text("keep this camera to come back to")
+                .clicked()
+            {
+                let name = format!("view {}", self.state.views().len() + 1);
+                self.send(Msg::SaveView(name));
+            }
+        });
+        let names: Vec<String> = self.state.views().iter().map(|(n, _)| n.clone()).collect();
+        let (mut recall, mut delete) = (None, None);
+        for (i, name) in names.iter().enumerate() {
+            ui.horizontal(|ui| {
+                if ui.selectable_label(false, name).clicked() {
+                    recall = Some(i);
+                }
+                if ui
+                    .small_button(format!("x {name}"))
+                    .on_hover_text("forget this view")
+                    .clicked()
+                {
+                    delete = Some(i);
+                }
+            });
+        }
+        if let Some(i) = recall {
+            self.send(Msg::RecallView(i));
+        }
+        if let Some(i) = delete {
+            self.send(Msg::DeleteView(i));
+        }
+    }
+
     fn survivors_section(&mut self, ui: &mut egui::Ui) {
         ui.heading(format!("Survivors ({})", self.state.survivor_count()));
         let survivors: Vec<u32> = self.state.survivors().take(500).collect();
@@ -965,7 +1017,7 @@ impl ViewerApp {
             let painter = ui.painter_at(rect);
             painter.extend(draw::scene_shapes(&self.state, &view, overlay));
             let hint = "drag: keep paths through a box · shift+drag: never through · \
-                        right-drag: orbit · middle-drag: pan · wheel: zoom · F: frame all";
+                        right-drag: orbit · middle-drag: pan · wheel: zoom · F: frame selected · A: frame all";
             painter.text(
                 rect.left_bottom() + egui::vec2(8.0, -8.0),
                 egui::Align2::LEFT_BOTTOM,

@@ -69,6 +69,19 @@ impl Request {
     }
 }
 
+/// An edit node-query applied, as it publishes it on `browse/<session>/edit` after the shards
+/// answered, in the session's order: so that a recorder keeps the browsing session (the
+/// requests and answers themselves travel as queries, which no subscriber sees).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EditRecord {
+    pub session: String,
+    /// 1-based number of the edit in the session.
+    pub edit: u64,
+    pub request: Request,
+    /// The merged answer the client got.
+    pub reply: Reply,
+}
+
 /// What node-query sends to a shard: the request, and for edits its number in the session.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ShardRequest {
