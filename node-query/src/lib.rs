@@ -84,8 +84,9 @@ pub enum QueryError {
     Merge(#[from] MergeError),
 }
 
-/// `e` and its sources, for a reply's error message (the client sees no error chain).
-fn message(e: &dyn std::error::Error) -> String {
+/// `e` and its sources on one line, for a reply's error message (the client sees no error
+/// chain) and for clients that show an error in one line (the viewer's status bar).
+pub fn error_chain(e: &dyn std::error::Error) -> String {
     let mut m = e.to_string();
     let mut source = e.source();
     while let Some(s) = source {
@@ -440,7 +441,7 @@ async fn answer(inner: Arc<Inner>, q: zenoh::query::Query) {
         Some(Ok(req)) => match inner.handle(&session, req).await {
             Ok(r) => r,
             Err(e) => Reply::Error {
-                message: message(&e),
+                message: error_chain(&e),
             },
         },
     };

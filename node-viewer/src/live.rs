@@ -259,7 +259,7 @@ impl Bus {
         })
         .await
         .map_err(|e| format!("reading the scene: {e}"))?
-        .map_err(|e| error_chain(&e))?;
+        .map_err(|e| mwb_query::error_chain(&e))?;
         job.quality = quality as i32;
         self.announce(&job).await?;
         let deadline = Instant::now() + Duration::from_secs(15);
@@ -577,18 +577,6 @@ fn unix_ms() -> u64 {
     std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(0, |d| d.as_millis() as u64)
-}
-
-/// An error and its sources, on one line (for the status bar).
-fn error_chain(e: &dyn std::error::Error) -> String {
-    let mut m = e.to_string();
-    let mut source = e.source();
-    while let Some(s) = source {
-        m.push_str(": ");
-        m.push_str(&s.to_string());
-        source = s.source();
-    }
-    m
 }
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
