@@ -287,8 +287,9 @@ pub async fn run_demo_with(
             return Err(e);
         }
     };
-    // Staying, the samplers serve on: `mwb job submit --wait` against the demo gets worlds.
-    let samplers = if opts.stay {
+    // Staying (or viewing), the samplers serve on: `mwb job submit --wait` against the demo,
+    // or the viewer's jobs panel, gets worlds.
+    let samplers = if opts.stay || opts.viewer {
         samplers
     } else {
         for s in samplers {
