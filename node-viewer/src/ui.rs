@@ -888,37 +888,27 @@ impl ViewerApp {
                 .on_hover_text(
                     "a box then keeps worlds whose objects pass through it in this window",
                 );
-            ui.add_enabled(
-                on,
-                egui::DragValue::new(&mut a)
-                    .speed(0.01)
-                    .max_decimals(2)
-                    .range(0.0..=end_max)
-                    .suffix(" s"),
-            );
-            if ui
-                .add_enabled(on, egui::Button::new("now").small())
-                .on_hover_text("start at the playhead")
-                .clicked()
-            {
-                a = now;
-            }
+            // One end of the window: typed, or set from the playhead.
+            let end = |ui: &mut egui::Ui, t: &mut f64, which: &str| {
+                ui.add_enabled(
+                    on,
+                    egui::DragValue::new(t)
+                        .speed(0.01)
+                        .max_decimals(2)
+                        .range(0.0..=end_max)
+                        .suffix(" s"),
+                );
+                if ui
+                    .add_enabled(on, egui::Button::new("now").small())
+                    .on_hover_text(format!("{which} at the playhead"))
+                    .clicked()
+                {
+                    *t = now;
+                }
+            };
+            end(ui, &mut a, "start");
             ui.label("to");
-            ui.add_enabled(
-                on,
-                egui::DragValue::new(&mut b)
-                    .speed(0.01)
-                    .max_decimals(2)
-                    .range(0.0..=end_max)
-                    .suffix(" s"),
-            );
-            if ui
-                .add_enabled(on, egui::Button::new("now").small())
-                .on_hover_text("end at the playhead")
-                .clicked()
-            {
-                b = now;
-            }
+            end(ui, &mut b, "end");
             if (on, a, b) != before {
                 let window = if on {
                     match TimeWindow::new(a.min(b), a.max(b)) {
