@@ -74,8 +74,9 @@ pub const WITH_REVERSE_TABLE: &[(&str, &str)] = &[(
 pub fn load_reverse_scene(arg: &str) -> Result<(String, String)> {
     let path = std::path::Path::new(arg);
     if path.exists() {
-        let text = std::fs::read_to_string(path)
-            .with_context(|| format!("reading scene {}", path.display()))?;
+        let bytes =
+            std::fs::read(path).with_context(|| format!("reading scene {}", path.display()))?;
+        let text = mwb_core::scene::decode_utf8(arg, bytes)?;
         return Ok((arg.to_owned(), text));
     }
     let name = arg.trim_end_matches(".toml");

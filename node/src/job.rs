@@ -26,11 +26,11 @@ pub enum JobError {
 pub fn load_scene(arg: &str) -> Result<(String, String), JobError> {
     let path = std::path::Path::new(arg);
     if path.exists() {
-        let text = std::fs::read_to_string(path).map_err(|source| JobError::Read {
+        let bytes = std::fs::read(path).map_err(|source| JobError::Read {
             path: path.display().to_string(),
             source,
         })?;
-        return Ok((arg.to_owned(), text));
+        return Ok((arg.to_owned(), mwb_core::scene::decode_utf8(arg, bytes)?));
     }
     let name = arg.trim_end_matches(".toml");
     let name = name.rsplit('/').next().unwrap_or(name);
@@ -86,6 +86,7 @@ pub fn sample_job(
         cancelled: false,
         encoding: Encoding::SplineV1 as i32,
         quality: Quality::Standard as i32,
+        refine: None,
     })
 }
 

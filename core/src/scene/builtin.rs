@@ -23,3 +23,23 @@ pub fn get(name: &str) -> Option<&'static str> {
         _ => None,
     }
 }
+
+/// A synthetic scene of `bodies` small boxes, each its own `[[body]]` table (no generator: the
+/// file an exporter from a modelling tool writes), placed 100 × 100 to a layer. For measuring
+/// the parser on big files (`mwb bench scene`) and testing it; at most
+/// [`MAX_INSTANCES`](super::MAX_INSTANCES) bodies make a valid scene. About 120 bytes a body.
+pub fn many_bodies(bodies: usize) -> String {
+    use std::fmt::Write as _;
+    let mut s = String::with_capacity(64 + bodies * 128);
+    s.push_str("name = \"many_bodies\"\n\n[[material]]\nname = \"wood\"\n");
+    for i in 0..bodies {
+        let (x, y, z) = (i % 100, i / 10_000, (i / 100) % 100);
+        // Writing to a String cannot fail.
+        let _ = write!(
+            s,
+            "\n[[body]]\nname = \"b{i}\"\nshape = \"box\"\nsize = [0.1, 0.1, 0.1]\n\
+             material = \"wood\"\nposition = [{x}, {y}, {z}]\n"
+        );
+    }
+    s
+}

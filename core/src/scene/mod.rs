@@ -24,6 +24,7 @@ pub use generators::MAX_INSTANCES;
 pub use model::*;
 pub use parse::{LIMIT, NORMAL_CUT_SIGMAS};
 pub use template::SceneTemplate;
+pub use toml_span::decode_utf8;
 
 #[cfg(test)]
 mod tests;

@@ -6,7 +6,7 @@
 //! neither which body they are in nor, for validation that happens after deserialising, where in
 //! the file the offending value was.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::ops::Range;
 
 use toml::de::{DeTable, DeValue};
@@ -564,7 +564,10 @@ pub(crate) fn parse(src: Source<'_>) -> Result<SceneTemplate, SceneError> {
         });
     }
 
-    let mut names: HashMap<String, usize> = HashMap::new();
+    // Each body's and static's name with the byte offset where it was written: the line of a
+    // duplicate's first use is worked out only when a duplicate is reported (a line per body
+    // would make a big scene quadratic: issue 18).
+    let mut names: HashMap<&str, usize> = HashMap::new();
     let mut instances: u64 = 0;
     let mut statics = Vec::new();
     for (i, (table, span)) in tables(&root, "static")?.into_iter().enumerate() {
@@ -597,18 +600,19 @@ pub(crate) fn parse(src: Source<'_>) -> Result<SceneTemplate, SceneError> {
     {
         body_index.insert(p.name.as_str(), index);
     }
-    let static_names: std::collections::HashSet<&str> = statics
+    let static_names: HashSet<&str> = statics
         .iter()
         .flat_map(|b: &BodyT| &b.placements)
         .map(|p| p.name.as_str())
         .collect();
     let mut joints: Vec<JointT> = Vec::new();
+    let mut joint_names: HashSet<&str> = HashSet::new();
     for (i, (table, span)) in tables(&root, "joint")?.into_iter().enumerate() {
         let mut item = Item::new(src, format!("joint #{}", i + 1), span, table);
         let (name, name_span) = item.required_string("name", "every joint needs a `name`")?;
         item.label = format!("joint \"{name}\"");
         check_name(&item, name, name_span.clone())?;
-        if joints.iter().any(|j| j.name == name) {
+        if !joint_names.insert(name) {
             return Err(item.err("name", name_span, format!("duplicate joint \"{name}\"")));
         }
         joints.push(parse_joint(&item, name, &body_index, &static_names)?);
@@ -692,11 +696,11 @@ fn span_of(item: &Item<'_>, key: &str) -> Range<usize> {
 }
 
 /// A `[[body]]` (dynamic) or `[[static]]` entry, with its generator if it has one.
-fn parse_body(
-    mut item: Item<'_>,
+fn parse_body<'a>(
+    mut item: Item<'a>,
     dynamic: bool,
     materials: &HashMap<String, usize>,
-    names: &mut HashMap<String, usize>,
+    names: &mut HashMap<&'a str, usize>,
     instances: &mut u64,
 ) -> Result<BodyT, SceneError> {
     let kind = if dynamic { "body" } else { "static" };
@@ -714,14 +718,15 @@ fn parse_body(
     };
     item.label = format!("{kind} \"{name}{pattern}\"");
     check_name(&item, name, name_span.clone())?;
-    if let Some(first) = names.get(name) {
+    if let Some(&first) = names.get(name) {
+        let first = item.src.line_of(first);
         return Err(item.err(
             "name",
             name_span,
             format!("duplicate name \"{name}\" (first used on line {first})"),
         ));
     }
-    names.insert(name.to_owned(), item.src.line_of(name_span.start));
+    names.insert(name, name_span.start);
 
     let (shape_name, shape_span) =
         item.required_string("shape", &format!("one of {}", SHAPES.join(", ")))?;
@@ -1143,7 +1148,7 @@ fn parse_joint(
     item: &Item<'_>,
     name: &str,
     bodies: &HashMap<&str, usize>,
-    statics: &std::collections::HashSet<&str>,
+    statics: &HashSet<&str>,
 ) -> Result<JointT, SceneError> {
     item.check_keys(
         &[

@@ -1008,3 +1008,172 @@ fn a_reverse_table_is_ignored_by_the_core_reader() {
     // Other unknown tables are still refused.
     assert!(parse(&format!("{base}[reverso]\nmode = 1\n")).is_err());
 }
+
+// ---------------------------------------------------------------- big scenes, bytes
+
+/// [`builtin::many_bodies`] with a chain of `joints` fixed joints between consecutive bodies.
+fn big_scene(bodies: usize, joints: usize) -> String {
+    use std::fmt::Write as _;
+    let mut s = builtin::many_bodies(bodies);
+    for j in 0..joints {
+        let _ = write!(
+            s,
+            "\n[[joint]]\nname = \"j{j}\"\nkind = \"fixed\"\nbody1 = \"b{j}\"\nbody2 = \"b{}\"\n",
+            j + 1
+        );
+    }
+    s
+}
+
+/// Issue 18: a big scene parses (its speed is measured by `mwb bench scene`, not here), every
+/// body in file order, every joint resolved.
+#[test]
+fn a_scene_of_20k_single_bodies_parses() {
+    let t = parse_ok(&big_scene(20_000, 1_000));
+    assert_eq!(t.body_count(), 20_000);
+    assert!(t.body_names().eq((0..20_000).map(|i| format!("b{i}"))));
+    let s = t.instantiate(0);
+    assert_eq!(s.joints.len(), 1_000);
+    assert_eq!(s.bodies[12_345].position, [45.0, 1.0, 23.0]);
+    assert_eq!(s.joints[999].body2, BodyRef::Body(1_000));
+}
+
+/// One body past the limit, written out one table each, is refused at that body's name.
+#[test]
+fn single_bodies_past_the_instance_limit_are_refused_at_the_first_one_too_many() {
+    let limit = usize::try_from(MAX_INSTANCES).unwrap_or(usize::MAX);
+    assert_eq!(parse_ok(&builtin::many_bodies(limit)).body_count(), limit);
+    let src = builtin::many_bodies(limit + 1);
+    let line = src.lines().count() - 4;
+    let err = parse(&src).err().unwrap_or_else(|| panic!("accepted"));
+    assert_eq!(
+        err.to_string(),
+        format!(
+            "test.toml:{line}: body \"b{limit}\": field `name`: the scene would expand to more \
+             than {MAX_INSTANCES} bodies and statics"
+        )
+    );
+}
+
+/// Lines of names are worked out only for the error (issue 18); the line they name is the
+/// right one however far apart the two uses are.
+#[test]
+fn a_duplicate_far_down_a_big_scene_names_both_lines() {
+    let mut src = big_scene(5_000, 0);
+    let first = 1 + src
+        .lines()
+        .position(|l| l == "name = \"b1234\"")
+        .unwrap_or_else(|| panic!("b1234 not written"));
+    src.push_str(
+        "\n[[body]]\nname = \"b1234\"\nshape = \"sphere\"\nradius = 1\nmaterial = \"wood\"\n",
+    );
+    let again = src.lines().count() - 3;
+    let err = parse(&src).err().unwrap_or_else(|| panic!("accepted"));
+    assert_eq!(
+        err.to_string(),
+        format!(
+            "test.toml:{again}: body \"b1234\": field `name`: duplicate name \"b1234\" (first used on line {first})"
+        )
+    );
+    let mut src = big_scene(10, 3);
+    src.push_str(
+        "\n[[joint]]\nname = \"j1\"\nkind = \"fixed\"\nbody1 = \"b7\"\nbody2 = \"world\"\n",
+    );
+    let err = parse(&src).err().unwrap_or_else(|| panic!("accepted"));
+    assert_eq!(err.line, Some(src.lines().count() - 3), "{err}");
+    assert!(err.message.contains("duplicate joint \"j1\""), "{err}");
+}
+
+#[test]
+fn a_file_that_is_not_utf8_is_refused_with_line_column_and_byte_offset() {
+    use super::decode_utf8;
+    let ok = "name = \"café\" # ünïcode\n".as_bytes().to_vec();
+    assert_eq!(
+        decode_utf8("s.toml", ok).as_deref(),
+        Ok("name = \"café\" # ünïcode\n")
+    );
+
+    // Latin-1 "é" (0xE9) on line 3, after two characters that take three bytes.
+    let latin1 = [
+        b"name = \"x\"\n\n".as_slice(),
+        "ü#".as_bytes(),
+        b"\xe9 = 1\n",
+    ]
+    .concat();
+    let err = decode_utf8("s.toml", latin1)
+        .err()
+        .unwrap_or_else(|| panic!("accepted"));
+    assert_eq!(err.line, Some(3));
+    assert_eq!((err.item.as_deref(), err.field.as_deref()), (None, None));
+    assert_eq!(
+        err.to_string(),
+        "s.toml:3: not UTF-8: byte 0xe9 at column 3 (byte offset 15 of the file); \
+         scene files must be saved as UTF-8"
+    );
+
+    // A character cut off by the end of the file; a file on one line.
+    let cut = [b"name = \"".as_slice(), &"€".as_bytes()[..2]].concat();
+    let err = decode_utf8("s.toml", cut)
+        .err()
+        .unwrap_or_else(|| panic!("accepted"));
+    assert_eq!(
+        err.to_string(),
+        "s.toml:1: not UTF-8: byte 0xe2 at column 9 (byte offset 8 of the file), which starts \
+         a character the file ends in the middle of; scene files must be saved as UTF-8"
+    );
+
+    // UTF-16 (as Windows editors save "Unicode"), refused at its byte-order mark.
+    let utf16: Vec<u8> = [0xff, 0xfe]
+        .into_iter()
+        .chain("name".encode_utf16().flat_map(u16::to_le_bytes))
+        .collect();
+    let err = decode_utf8("s.toml", utf16)
+        .err()
+        .unwrap_or_else(|| panic!("accepted"));
+    assert_eq!(
+        err.to_string(),
+        "s.toml:1: not UTF-8: byte 0xff at column 1 (byte offset 0 of the file); \
+         the file looks like UTF-16; scene files must be saved as UTF-8"
+    );
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 256, ..ProptestConfig::default() })]
+
+    /// `line_of` against a table of line starts (what an editor numbers): the line of an
+    /// offset is the number of line starts at or before it, and offsets past the end are on the
+    /// last line.
+    #[test]
+    fn line_of_agrees_with_a_table_of_line_starts(
+        text in "[a-c\n\r é€]{0,300}",
+        offsets in proptest::collection::vec(0usize..320, 1..16),
+    ) {
+        let src = super::toml_span::Source { text: &text, file: "p.toml" };
+        let starts: Vec<usize> = std::iter::once(0)
+            .chain(text.match_indices('\n').map(|(i, _)| i + 1))
+            .collect();
+        for offset in offsets {
+            let expected = starts.partition_point(|s| *s <= offset.min(text.len()));
+            prop_assert_eq!(src.line_of(offset), expected, "offset {}", offset);
+        }
+    }
+
+    /// Any bytes: decoded unchanged when they are UTF-8; else refused at the first bad byte,
+    /// whose line is the number of newlines before it plus one.
+    #[test]
+    fn decode_utf8_finds_the_first_bad_byte(bytes in proptest::collection::vec(
+        prop_oneof![Just(b'\n'), Just(b'a'), Just(0xc3u8), Just(0xa9u8), Just(0xe9u8)], 0..64,
+    )) {
+        match (super::decode_utf8("p.toml", bytes.clone()), std::str::from_utf8(&bytes)) {
+            (Ok(text), Ok(expected)) => prop_assert_eq!(text, expected),
+            (Err(err), Err(e)) => {
+                let offset = e.valid_up_to();
+                let newlines = bytes[..offset].iter().filter(|b| **b == b'\n').count();
+                prop_assert_eq!(err.line, Some(newlines + 1));
+                let at = format!("(byte offset {offset} of the file)");
+                prop_assert!(err.message.contains(&at), "{}", err);
+            }
+            (got, expected) => prop_assert!(false, "{:?} vs {:?}", got, expected),
+        }
+    }
+}
