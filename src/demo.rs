@@ -419,7 +419,15 @@ async fn open_viewer(session: &zenoh::Session, space: &str, scene: &str) -> Resu
         &tokio::runtime::Handle::current(),
         repaint.waker(),
     )?;
-    let app = mwb_viewer::ViewerApp::live(mwb_viewer::ViewerState::live(endpoint), link);
+    let mut app = mwb_viewer::ViewerApp::live(mwb_viewer::ViewerState::live(endpoint), link);
+    // Saved views kept with the session, as `mwb viewer` keeps them.
+    match mwb_viewer::views::default_path("viewer") {
+        Some(path) => app = app.with_views_file(mwb_viewer::views::ViewsFile::new(path, "viewer")),
+        None => eprintln!(
+            "mwb demo: no configuration directory ($XDG_CONFIG_HOME, $HOME): saved views last \
+             only while the viewer runs"
+        ),
+    }
     eprintln!("mwb demo: opening the viewer (close its window to stop)");
     tokio::task::block_in_place(|| {
         mwb_viewer::ui::run_window(

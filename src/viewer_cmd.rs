@@ -1,7 +1,8 @@
 //! `mwb viewer`: the workstation viewer (mwb-viewer). Live by default — it connects to a running
 //! cluster (`--connect`, `$MWB_CONNECT`, else tcp/127.0.0.1:7447), draws worlds as the stores
 //! index them and browses in a node-query session — or offline with `--scene`, sampling worlds
-//! in this process. `--screenshot` renders the real UI to a PNG without a display.
+//! in this process. `--screenshot` renders the real UI to a PNG without a display. The window
+//! keeps its saved views with the session (`--views-file`).
 
 use std::path::PathBuf;
 use std::time::Duration;
@@ -11,6 +12,7 @@ use mwb_core::browse::{Polarity, ScreenRect};
 use mwb_viewer::live::{LiveConfig, LiveLink};
 use mwb_viewer::screenshot::{parse_size, png_bytes, screenshot};
 use mwb_viewer::ui::RepaintSlot;
+use mwb_viewer::views::{VIEWS_FILE_ENV, ViewsFile};
 use mwb_viewer::{Msg, OrbitCamera, ViewerApp, ViewerState};
 
 use crate::bus::BusArgs;
@@ -68,6 +70,11 @@ pub struct ViewerArgs {
     /// Playback time at start, seconds.
     #[arg(long)]
     pub time: Option<f64>,
+    /// Where the window keeps its saved views [default: manyworlds/views/<session>.json in
+    /// $XDG_CONFIG_HOME, else ~/.config, on Windows %APPDATA%; offline, the session is
+    /// "offline-<scene>"]. Read at start, rewritten whenever a view is saved or deleted.
+    #[arg(long, env = VIEWS_FILE_ENV)]
+    pub views_file: Option<PathBuf>,
 }
 
 /// The sorter's choices on the command line.
@@ -138,6 +145,13 @@ pub async fn run(args: ViewerArgs) -> Result<()> {
         Some(out) => shoot(app, &args, rects, size, out).await,
         None => {
             start_choices(&mut app, &args)?;
+            match views_file(&args, &app) {
+                Some(file) => app = app.with_views_file(file),
+                None => eprintln!(
+                    "mwb viewer: no configuration directory ($XDG_CONFIG_HOME, $HOME): saved \
+                     views last only while the viewer runs (--views-file keeps them)"
+                ),
+            }
             tokio::task::block_in_place(|| {
                 mwb_viewer::ui::run_window(app, &title, size, repaint)
                     .map_err(|e| anyhow!("opening the viewer window: {e}"))
@@ -151,6 +165,21 @@ pub async fn run(args: ViewerArgs) -> Result<()> {
 }
 
 type Started = (ViewerApp, RepaintSlot);
+
+/// The file the window keeps its saved views in: `--views-file`, else the session's file in
+/// the user's configuration directory. Offline there is no browsing session; the views are
+/// kept per scene (session "offline-<scene>").
+fn views_file(args: &ViewerArgs, app: &ViewerApp) -> Option<ViewsFile> {
+    let session = match &args.scene {
+        Some(_) => format!("offline-{}", app.state.scene_name()),
+        None => args.session.clone(),
+    };
+    let path = args
+        .views_file
+        .clone()
+        .or_else(|| mwb_viewer::views::default_path(&session))?;
+    Some(ViewsFile::new(path, session))
+}
 
 /// Offline: samples `--worlds` of the scene here.
 fn offline(args: &ViewerArgs, scene: &str) -> Result<(Started, String)> {

@@ -338,6 +338,33 @@ fn the_live_viewer_browses_a_running_cluster() {
     assert_eq!(w.motion.as_ref().map(|m| m.tracks.len()), Some(5));
     assert!(w.pose_at(0, 0.5).is_some());
 
+    // A goal picked in the playback: the crate's orientation at the top world's last frame.
+    // node-query ranks the survivors by their crates' final orientation to it (the stores'
+    // metric): that world first, at no error.
+    let end = h.state().state.duration();
+    h.state_mut()
+        .state
+        .update(mwb_viewer::Msg::Seek(end))
+        .unwrap_or_else(|e| panic!("{e}"));
+    h.get_by_label("Use this frame's orientation as goal")
+        .click();
+    h.step();
+    settle(&rt, &mut h, "the ranking by the goal", |a| {
+        a.state
+            .ranking()
+            .is_some_and(|r| matches!(r.spec.key, mwb_core::browse::RankKey::OrientationTo { .. }))
+    });
+    let goal = *h.state().state.goal().expect("a goal");
+    assert_eq!((goal.world, goal.object), (top, 0));
+    let by_goal = h.state().state.ranking().cloned().expect("ranked");
+    assert_eq!(by_goal.candidates, survivors.len() as u64);
+    assert_eq!(by_goal.rows[0].world, top, "{by_goal:?}");
+    assert!(
+        by_goal.rows[0].score.is_some_and(|s| s < 1e-6),
+        "{by_goal:?}"
+    );
+    assert!(by_goal.rows.windows(2).all(|w| w[0].score <= w[1].score));
+
     // Undo through the UI: every world survives again, in node-query's session too.
     h.key_press_modifiers(Modifiers::COMMAND, egui::Key::Z);
     h.step();

@@ -463,6 +463,27 @@ fn ground_height(state: &ViewerState) -> f64 {
         .unwrap_or(0.0)
 }
 
+/// Opacity of a static pane ([`is_pane`]).
+const PANE_ALPHA: f32 = 0.3;
+
+/// Whether a static is a pane to look through: a box far thinner (< 1/10) than it is wide,
+/// standing upright (its thin axis within 60° of horizontal) — pachinko's front glass, which
+/// drawn opaque hides the peg board the balls fall through. (The view has no depth buffer:
+/// triangles are painter-sorted, so pegs behind a big opaque pane would show through it in
+/// places anyway.) Floors, ramps and walls of any thickness stay opaque.
+pub fn is_pane(shape: &SceneShape, rotation: [f64; 4]) -> bool {
+    let SceneShape::Box { half_extents: h } = shape else {
+        return false;
+    };
+    let mut order = [0, 1, 2];
+    order.sort_by(|&a, &b| h[a].total_cmp(&h[b]));
+    let (thin, middle) = (h[order[0]], h[order[1]]);
+    let mut axis = [0.0; 3];
+    axis[order[0]] = 1.0;
+    let up = rotate(rotation, axis)[1].abs();
+    thin < 0.1 * middle && up < 0.5
+}
+
 /// Inputs the view needs besides the state.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct Overlay {
@@ -526,16 +547,21 @@ pub fn scene_shapes(state: &ViewerState, view: &View, overlay: Overlay) -> Vec<S
         }
     }
 
-    // Static geometry.
+    // Static geometry; panes see-through.
     let mut tris = Vec::new();
     for s in state.statics() {
+        let alpha = if is_pane(&s.shape, s.rotation) {
+            PANE_ALPHA
+        } else {
+            1.0
+        };
         push_shape(
             &mut tris,
             &s.shape,
             s.position,
             s.rotation,
             palette::STATIC,
-            1.0,
+            alpha,
         );
     }
     if !tris.is_empty() {
@@ -729,5 +755,24 @@ mod tests {
             .map(|t| dot(t[0], cross(t[1], t[2])) / 6.0)
             .sum();
         assert!((vol - 8.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn upright_thin_boxes_are_panes_and_floors_ramps_and_walls_are_not() {
+        let plate = |h: [f64; 3]| SceneShape::Box { half_extents: h };
+        let level = [0.0, 0.0, 0.0, 1.0];
+        // Pachinko's glass (thin along z) is a pane; its side walls and a cup's walls are not.
+        assert!(is_pane(&plate([0.65, 1.0, 0.01]), level));
+        assert!(!is_pane(&plate([0.025, 1.0, 0.1]), level));
+        assert!(!is_pane(&plate([0.02, 0.1, 0.24]), level));
+        // A ramp (thin along y, tilted 15°) and a floor plate are not; the floor plate turned
+        // upright (90° about x) is.
+        let s = (7.5f64).to_radians().sin();
+        let c = (7.5f64).to_radians().cos();
+        assert!(!is_pane(&plate([0.6, 0.02, 0.15]), [0.0, 0.0, -s, c]));
+        assert!(!is_pane(&plate([2.0, 0.01, 2.0]), level));
+        let h = std::f64::consts::FRAC_1_SQRT_2;
+        assert!(is_pane(&plate([2.0, 0.01, 2.0]), [h, 0.0, 0.0, h]));
+        assert!(!is_pane(&SceneShape::Sphere { radius: 1.0 }, level));
     }
 }

@@ -13,6 +13,8 @@
 //!   motion fetched for playback, the cluster's status; never on the UI thread.
 //! * [`draw`] — the 3D view as egui shapes, projected on the CPU.
 //! * [`ui`] — [`ViewerApp`]: panels, the 3D view's mouse and keys, the eframe app.
+//! * [`views`] — saved views kept with the session in a small JSON file (the app reads and
+//!   writes it; the state only holds the views).
 //! * [`softpaint`] — a software rasteriser for egui's tessellated output: headless screenshots
 //!   and image snapshots without a GPU or display.
 
@@ -26,11 +28,12 @@ pub mod session;
 pub mod softpaint;
 pub mod state;
 pub mod ui;
+pub mod views;
 pub mod world;
 
 pub use camera::OrbitCamera;
 pub use session::{Command, ConstraintRow};
-pub use state::{LinkStatus, Msg, Playback, RankSpec, Ranking, ViewerState};
+pub use state::{Goal, LinkStatus, Msg, Playback, RankSpec, Ranking, SavedView, ViewerState};
 pub use ui::ViewerApp;
 pub use world::WorldData;
 
@@ -55,4 +58,6 @@ pub enum ViewerError {
     Offline(&'static str),
     #[error("screenshot size {0}: expected WIDTHxHEIGHT, each 64..=8192")]
     Size(String),
+    #[error("goal orientation: {0}")]
+    Goal(String),
 }

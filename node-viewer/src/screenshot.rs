@@ -55,11 +55,21 @@ pub fn screenshot(
     painter.paint_shapes(&ctx, out.shapes, out.pixels_per_point, size, clear)
 }
 
-/// CPU time of whole UI frames of `app` at `size` pixels, milliseconds each: egui's pass over
+/// What one UI frame cost, milliseconds.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FrameTime {
+    /// CPU time of the thread that built and tessellated the frame (what the frame costs,
+    /// whatever else the machine runs; 0 where the thread clock is unavailable).
+    pub cpu_ms: f64,
+    /// Wall-clock time (longer when other processes take the core).
+    pub wall_ms: f64,
+}
+
+/// The cost of whole UI frames of `app` at `size` pixels: egui's pass over
 /// [`ViewerApp::ui`] (panels, the 3D view's projection into shapes) plus tessellation into
 /// triangles — everything a frame costs before the GPU (or [`SoftPainter`]) draws it. The
 /// camera orbits a little every frame so that nothing is reused between frames.
-pub fn frame_times_ms(app: &mut ViewerApp, size: [u32; 2], frames: usize) -> Vec<f64> {
+pub fn frame_times(app: &mut ViewerApp, size: [u32; 2], frames: usize) -> Vec<FrameTime> {
     let ctx = egui::Context::default();
     ctx.all_styles_mut(|style| {
         style.animation_time = 0.0;
@@ -71,20 +81,26 @@ pub fn frame_times_ms(app: &mut ViewerApp, size: [u32; 2], frames: usize) -> Vec
             screen_rect: Some(Rect::from_min_size(Pos2::ZERO, points)),
             ..Default::default()
         };
-        let start = std::time::Instant::now();
+        let (start, cpu_start) = (std::time::Instant::now(), mwb_node::cpu_time());
         let mut out = ctx.run_ui(input, |ui| app.ui(ui));
         let primitives = ctx.tessellate(std::mem::take(&mut out.shapes), out.pixels_per_point);
-        let ms = start.elapsed().as_secs_f64() * 1e3;
+        let time = FrameTime {
+            cpu_ms: (mwb_node::cpu_time() - cpu_start) * 1e3,
+            wall_ms: start.elapsed().as_secs_f64() * 1e3,
+        };
         std::hint::black_box(primitives);
         out.textures_delta.clear();
         // The first two passes lay the UI out (and build the font atlas): not counted.
         if i >= 2 {
-            times.push(ms);
+            times.push(time);
         }
-        let _ = app.state.update(crate::Msg::Orbit {
-            d_yaw: 0.01,
-            d_pitch: 0.0,
-        });
+        // Orbiting cannot fail.
+        app.state
+            .update(crate::Msg::Orbit {
+                d_yaw: 0.01,
+                d_pitch: 0.0,
+            })
+            .ok();
     }
     times
 }

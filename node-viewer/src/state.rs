@@ -12,8 +12,8 @@ use std::sync::Arc;
 
 use mwb_core::browse::api::{Reply, Request, SessionStatus};
 use mwb_core::browse::{
-    Constraint, ConstraintId, ConstraintSet, Frustum, Order, Polarity, RankKey, Ranked, ScreenRect,
-    TimeWindow, Viewport, WorldSet, top_k_counted,
+    Constraint, ConstraintId, ConstraintSet, Frustum, Order, Polarity, Quat, RankKey, Ranked,
+    ScreenRect, TimeWindow, Viewport, WorldSet, top_k_counted,
 };
 use mwb_core::scene::StaticBody;
 
@@ -72,6 +72,29 @@ impl RankSpec {
             all_worlds: self.all_worlds,
         }
     }
+}
+
+/// A camera kept to come back to (the Views panel), by name. Saved views are kept with the
+/// session on disk by the app ([`crate::views`]); the state only holds them.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SavedView {
+    pub name: String,
+    pub camera: OrbitCamera,
+}
+
+/// A goal orientation picked in the view (§4.4.3: rank by "orientation error to a goal"): one
+/// object's decoded orientation at one frame of a world being played back. Rankings by
+/// [`RankKey::OrientationTo`] measure each chosen object's final orientation against it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Goal {
+    /// Unit quaternion `[x, y, z, w]`, world frame: the decoded frame's, normalised.
+    pub rotation: Quat,
+    pub world: u32,
+    pub object: u32,
+    /// The decoded frame it was taken from (the playback time rounded to a frame).
+    pub frame: usize,
+    /// That frame's time, seconds.
+    pub time: f64,
 }
 
 /// The sorter's current answer.
@@ -135,6 +158,9 @@ pub enum Msg {
     },
     /// Keep the current camera as a named view.
     SaveView(String),
+    /// The views kept with the session, read at start (replaces the list; not an edit, so
+    /// [`ViewerState::views_edits`] does not move).
+    LoadViews(Vec<SavedView>),
     /// Go back to saved view `i`.
     RecallView(usize),
     DeleteView(usize),
@@ -150,6 +176,8 @@ pub enum Msg {
     Redo,
     /// Show / hide an object's paths and include / exclude it from new constraints.
     ToggleObject(u32),
+    /// Choose exactly these objects (unknown ones are ignored).
+    ChooseObjects(Vec<u32>),
     /// Limit new constraints to a time window (`None`: any time).
     SetWindow(Option<TimeWindow>),
     SelectWorld(Option<u32>),
@@ -166,6 +194,11 @@ pub enum Msg {
     SetLoop(bool),
     /// Rank by this (`None`: no ranking).
     Rank(Option<RankSpec>),
+    /// Take the goal orientation from the playback: the first chosen object's decoded
+    /// orientation in the shown world at the frame nearest the playback time. A ranking by
+    /// orientation to a goal is redone with it.
+    GoalFromPlayback,
+    ClearGoal,
 
     // What a live viewer's bus task reports.
     /// The scene the worlds are of: its name, body names and static geometry.
@@ -237,6 +270,7 @@ pub struct ViewerState {
     playback: Playback,
     ranking: Option<Ranking>,
     rank_spec: Option<RankSpec>,
+    goal: Option<Goal>,
     /// Requests for the bus task, oldest first.
     outbox: Vec<Command>,
     /// Live: worlds whose motion was asked for and has not come back.
@@ -251,7 +285,28 @@ pub struct ViewerState {
     /// Axis-aligned box of every path vertex and bounded static, kept as worlds arrive.
     extent: Option<(V3, V3)>,
     /// Saved cameras, by name, in the order saved.
-    views: Vec<(String, OrbitCamera)>,
+    views: Vec<SavedView>,
+    /// Changes the user made to `views` (the app writes them to disk when this moves).
+    views_edits: u64,
+}
+
+/// The smallest sphere about the line through both centres that holds `sphere` and the ball
+/// (`p`, `radius`) (one step of Ritter's bounding sphere). Non-finite points change nothing.
+fn grow_sphere(sphere: (V3, f64), p: V3, radius: f64) -> (V3, f64) {
+    let (c, r) = sphere;
+    if !(p.iter().all(|v| v.is_finite()) && radius.is_finite()) {
+        return sphere;
+    }
+    let d = crate::math::len(crate::math::sub(p, c));
+    if d + radius <= r {
+        return sphere;
+    }
+    if d < 1e-12 {
+        return (c, radius);
+    }
+    let grown = 0.5 * (r + d + radius);
+    let shift = crate::math::scale(crate::math::sub(p, c), (grown - r) / d);
+    (crate::math::add(c, shift), grown)
 }
 
 fn find(worlds: &[WorldData], w: u32) -> Option<&WorldData> {
@@ -298,6 +353,7 @@ impl ViewerState {
             playback: Playback::default(),
             ranking: None,
             rank_spec: None,
+            goal: None,
             outbox: Vec::new(),
             fetching: Vec::new(),
             loaded: VecDeque::new(),
@@ -306,6 +362,7 @@ impl ViewerState {
             job_notice: None,
             extent: None,
             views: Vec::new(),
+            views_edits: 0,
         };
         s.recompute_extent();
         s
@@ -449,9 +506,23 @@ impl ViewerState {
         self.link.as_ref()
     }
 
-    /// The saved views (name, camera), in the order saved.
-    pub fn views(&self) -> &[(String, OrbitCamera)] {
+    /// The saved views, in the order saved.
+    pub fn views(&self) -> &[SavedView] {
         &self.views
+    }
+
+    /// How many times the user saved or deleted a view: the app keeps the views on disk and
+    /// writes them when this moves (loading them does not count).
+    pub fn views_edits(&self) -> u64 {
+        self.views_edits
+    }
+
+    /// The first free name "view N" (N from 1), for the next view saved.
+    pub fn next_view_name(&self) -> String {
+        (1..)
+            .map(|n| format!("view {n}"))
+            .find(|name| !self.views.iter().any(|v| v.name == *name))
+            .unwrap_or_default()
     }
 
     /// What became of the last job submitted or cancelled.
@@ -469,6 +540,11 @@ impl ViewerState {
 
     pub fn rank_spec(&self) -> Option<&RankSpec> {
         self.rank_spec.as_ref()
+    }
+
+    /// The goal orientation picked in the view, if any.
+    pub fn goal(&self) -> Option<&Goal> {
+        self.goal.as_ref()
     }
 
     /// Takes the requests queued for the bus task.
@@ -574,7 +650,10 @@ impl ViewerState {
     /// of the chosen objects' paths (of that world, if it is loaded) — the median point, out to
     /// the distance within which 99 % of the path vertices lie — and, framing all, the bounded
     /// statics. A few bodies thrown far away would otherwise shrink every other path to a dot.
-    /// (At most 20 000 vertices are looked at, evenly spread.)
+    /// (At most 20 000 vertices are looked at, evenly spread.) Framing all, the sphere then
+    /// grows to hold what the scene is made of: every bounded static whole (unless it is far
+    /// larger than the paths, like a floor box) and where each chosen body starts — the tower's
+    /// projectile and backstop, which few path vertices are near.
     pub fn framing(&self, world: Option<u32>) -> Option<(V3, f64)> {
         let worlds: &[WorldData] = match world.and_then(|w| self.world(w)) {
             Some(w) => std::slice::from_ref(w),
@@ -614,8 +693,39 @@ impl ViewerState {
             .map(|p| crate::math::len(crate::math::sub(*p, centre)))
             .collect();
         d.sort_by(f64::total_cmp);
-        let r = d[((d.len() - 1) as f64 * 0.99).round() as usize];
-        Some((centre, r.max(0.5)))
+        let r = d[((d.len() - 1) as f64 * 0.99).round() as usize].max(0.5);
+        let mut sphere = (centre, r);
+        if world.is_none() {
+            for s in &self.statics {
+                let reach = s.shape.bounding_radius();
+                if !(reach.is_finite() && reach <= 4.0 * r) {
+                    continue;
+                }
+                match &s.shape {
+                    mwb_core::scene::Shape::Box { half_extents: h } => {
+                        for i in 0..8 {
+                            let local =
+                                [0, 1, 2].map(|k| if i >> k & 1 == 0 { -h[k] } else { h[k] });
+                            let corner = crate::math::add(
+                                s.position,
+                                crate::camera::rotate(s.rotation, local),
+                            );
+                            sphere = grow_sphere(sphere, corner, 0.0);
+                        }
+                    }
+                    _ => sphere = grow_sphere(sphere, s.position, reach),
+                }
+            }
+            for w in &self.worlds {
+                for &o in &chosen {
+                    if let Some(start) = w.paths.get(o).and_then(|p| p.tree.path().points().first())
+                    {
+                        sphere = grow_sphere(sphere, *start, 0.0);
+                    }
+                }
+            }
+        }
+        Some(sphere)
     }
 
     /// Applies one message. Errors (a degenerate rectangle, an unknown constraint) leave the
@@ -641,15 +751,23 @@ impl ViewerState {
                     self.camera.frame(c, r, aspect);
                 }
             }
-            Msg::SaveView(name) => self.views.push((name, self.camera)),
+            Msg::SaveView(name) => {
+                self.views.push(SavedView {
+                    name,
+                    camera: self.camera,
+                });
+                self.views_edits += 1;
+            }
+            Msg::LoadViews(views) => self.views = views,
             Msg::RecallView(i) => {
-                if let Some((_, c)) = self.views.get(i) {
-                    self.camera = *c;
+                if let Some(v) = self.views.get(i) {
+                    self.camera = v.camera;
                 }
             }
             Msg::DeleteView(i) => {
                 if i < self.views.len() {
                     self.views.remove(i);
+                    self.views_edits += 1;
                 }
             }
             Msg::SetCamera(c) => self.camera = c,
@@ -703,6 +821,14 @@ impl ViewerState {
                     *c = !*c;
                 }
             }
+            Msg::ChooseObjects(objects) => {
+                self.chosen.fill(false);
+                for o in objects {
+                    if let Some(c) = self.chosen.get_mut(o as usize) {
+                        *c = true;
+                    }
+                }
+            }
             Msg::SetWindow(w) => self.window = w,
             Msg::SelectWorld(w) => {
                 self.selected = w.filter(|&w| self.world(w).is_some());
@@ -748,6 +874,30 @@ impl ViewerState {
                 self.rank_spec = spec;
                 self.ranking = None;
                 self.rerank();
+            }
+            Msg::GoalFromPlayback => {
+                let goal = self.goal_from_playback()?;
+                self.goal = Some(goal);
+                if let Some(RankSpec {
+                    key: RankKey::OrientationTo { goal: g, .. },
+                    ..
+                }) = &mut self.rank_spec
+                {
+                    *g = goal.rotation;
+                    self.ranking = None;
+                    self.rerank();
+                }
+            }
+            Msg::ClearGoal => {
+                self.goal = None;
+                if let Some(RankSpec {
+                    key: RankKey::OrientationTo { .. },
+                    ..
+                }) = &self.rank_spec
+                {
+                    self.rank_spec = None;
+                    self.ranking = None;
+                }
             }
             Msg::Scene {
                 name,
@@ -813,6 +963,48 @@ impl ViewerState {
             Msg::JobNotice(n) => self.job_notice = Some(n),
         }
         Ok(())
+    }
+
+    /// The goal [`Msg::GoalFromPlayback`] takes: the first chosen object's orientation in the
+    /// shown world's decoded motion at the frame nearest the playback time.
+    fn goal_from_playback(&self) -> Result<Goal, ViewerError> {
+        let object = *self
+            .chosen_objects()
+            .first()
+            .ok_or(ViewerError::Goal("no object is chosen".into()))?;
+        let world = self
+            .shown_world()
+            .ok_or(ViewerError::Goal("no world is being played back".into()))?;
+        let motion = world.motion.as_ref().ok_or_else(|| {
+            ViewerError::Goal(format!("world {}'s motion is not loaded yet", world.index))
+        })?;
+        let rotations = motion
+            .tracks
+            .get(object as usize)
+            .map(|t| &t.rotations[..])
+            .unwrap_or_default();
+        let last = rotations.len().checked_sub(1).ok_or_else(|| {
+            ViewerError::Goal(format!(
+                "world {} has no motion of object {object}",
+                world.index
+            ))
+        })?;
+        let frame = ((self.playback.time / motion.frame_dt).round().max(0.0) as usize).min(last);
+        let q = rotations[frame];
+        let norm = q.iter().map(|c| c * c).sum::<f64>().sqrt();
+        if !(norm.is_finite() && norm > 1e-12) {
+            return Err(ViewerError::Goal(format!(
+                "world {} frame {frame}: object {object}'s orientation {q:?} is not a rotation",
+                world.index
+            )));
+        }
+        Ok(Goal {
+            rotation: q.map(|c| c / norm),
+            world: world.index,
+            object,
+            frame,
+            time: frame as f64 * motion.frame_dt,
+        })
     }
 
     fn tick(&mut self, dt: f64) {
@@ -1017,17 +1209,7 @@ mod tests {
 
     /// World `i` of a one-body scene whose body flies along x at height `y`.
     fn world(i: u32, y: f64) -> WorldData {
-        let positions: Vec<V3> = (0..61).map(|f| [-3.0 + 0.1 * f as f64, y, 0.0]).collect();
-        let track = Track {
-            rotations: vec![[0.0, 0.0, 0.0, 1.0]; positions.len()],
-            positions,
-        };
-        let motion = Motion {
-            scene: scene(),
-            frame_dt: 1.0 / 60.0,
-            tracks: vec![track],
-        };
-        WorldData::from_exact_motion(i, u64::from(i), motion).expect("indexes")
+        world_along(i, |f| [-3.0 + 0.1 * f, y, 0.0])
     }
 
     fn state(heights: &[f64]) -> ViewerState {
@@ -1128,6 +1310,10 @@ mod tests {
         let viewport = front(&mut s);
         s.update(Msg::ToggleObject(0)).expect("toggle");
         assert!(s.chosen_objects().is_empty());
+        s.update(Msg::ChooseObjects(vec![3, 0])).expect("choose");
+        assert_eq!(s.chosen_objects(), vec![0], "object 3 does not exist");
+        s.update(Msg::ChooseObjects(Vec::new())).expect("choose");
+        assert!(s.chosen_objects().is_empty());
         s.update(Msg::ToggleObject(0)).expect("toggle");
         s.update(Msg::AddConstraint {
             viewport,
@@ -1183,6 +1369,7 @@ mod tests {
     fn views_are_saved_and_recalled_and_f_frames_the_selected_world() {
         let mut s = state(&[0.0, 0.0, 4.0]);
         let home = s.camera;
+        assert_eq!(s.next_view_name(), "view 1");
         s.update(Msg::SaveView("home".into())).expect("save");
         s.update(Msg::Orbit {
             d_yaw: 1.0,
@@ -1195,9 +1382,29 @@ mod tests {
         assert_eq!(s.views().len(), 1);
         s.update(Msg::RecallView(5))
             .expect("an unknown view changes nothing");
+        assert_eq!(s.views_edits(), 1, "recalling is not an edit");
+        s.update(Msg::DeleteView(3))
+            .expect("an unknown view changes nothing");
         s.update(Msg::DeleteView(0)).expect("delete");
         assert!(s.views().is_empty());
-        // World 2 flies at y = 4: framing it targets y = 4; framing all, the bulk (y = 0).
+        assert_eq!(s.views_edits(), 2);
+        // Views read at start replace the list and are not edits (nothing to write back).
+        let kept = vec![
+            SavedView {
+                name: "view 1".into(),
+                camera: home,
+            },
+            SavedView {
+                name: "view 3".into(),
+                camera: home,
+            },
+        ];
+        s.update(Msg::LoadViews(kept.clone())).expect("load");
+        assert_eq!((s.views(), s.views_edits()), (&kept[..], 2));
+        assert_eq!(s.next_view_name(), "view 2", "the first free name");
+        s.update(Msg::DeleteView(0)).expect("delete");
+        s.update(Msg::DeleteView(0)).expect("delete");
+        // World 2 flies at y = 4: framing it targets y = 4; framing all, what all hold.
         s.update(Msg::SelectWorld(Some(2))).expect("select");
         s.update(Msg::FrameSelected { aspect: 1.5 }).expect("frame");
         assert!(
@@ -1206,7 +1413,73 @@ mod tests {
             s.camera.target
         );
         s.update(Msg::FrameAll { aspect: 1.5 }).expect("frame");
-        assert!(s.camera.target[1].abs() < 1e-9, "{:?}", s.camera.target);
+        let (c, r) = s.framing(None).expect("framed");
+        assert_eq!(s.camera.target, c);
+        for start in [[-3.0, 0.0, 0.0], [-3.0, 4.0, 0.0]] {
+            assert!(crate::math::len(crate::math::sub(start, c)) <= r + 1e-9);
+        }
+    }
+
+    /// World `i` of the one-body scene whose body goes through `at(frame)`, frames 0..=60.
+    fn world_along(i: u32, at: impl Fn(f64) -> V3) -> WorldData {
+        let positions: Vec<V3> = (0..61).map(|f| at(f as f64)).collect();
+        let track = Track {
+            rotations: vec![[0.0, 0.0, 0.0, 1.0]; positions.len()],
+            positions,
+        };
+        let motion = Motion {
+            scene: scene(),
+            frame_dt: 1.0 / 60.0,
+            tracks: vec![track],
+        };
+        WorldData::from_exact_motion(i, u64::from(i), motion).expect("indexes")
+    }
+
+    #[test]
+    fn framing_all_holds_the_bulk_of_the_paths_every_start_and_the_statics() {
+        let wall = StaticBody {
+            name: "backstop".into(),
+            shape: mwb_core::scene::Shape::Box {
+                half_extents: [0.15, 0.5, 2.5],
+            },
+            material: 0,
+            position: [6.0, 0.5, 0.0],
+            rotation: [0.0, 0.0, 0.0, 1.0],
+        };
+        let floor = StaticBody {
+            name: "floor".into(),
+            shape: mwb_core::scene::Shape::Box {
+                half_extents: [100.0, 0.1, 100.0],
+            },
+            position: [0.0, -0.1, 0.0],
+            ..wall.clone()
+        };
+        let mut s = ViewerState::new("t", vec!["ball".into()], vec![wall.clone(), floor]);
+        // 199 worlds roll along x at y = 0; one is thrown 60 m up from the same start.
+        for i in 0..199 {
+            s.add_world(world_along(i, |f| [-3.0 + 0.1 * f, 0.0, 0.0]))
+                .expect("adds");
+        }
+        s.add_world(world_along(199, |f| [-3.0, f, 0.0]))
+            .expect("adds");
+        // A projectile: one world starts far to the left (few vertices, but it is the scene).
+        s.add_world(world_along(200, |f| [-9.0 + 0.1 * f, 0.0, 0.0]))
+            .expect("adds");
+        let (c, r) = s.framing(None).expect("framed");
+        let inside = |p: V3| crate::math::len(crate::math::sub(p, c)) <= r + 1e-9;
+        // The thrown world does not pull the view up; the projectile's start and the whole
+        // backstop are in; the floor box, far larger than the paths, is left out.
+        assert!(c[1].abs() < 0.6, "centre {c:?}");
+        assert!(inside([-9.0, 0.0, 0.0]), "{c:?} {r}");
+        for x in [5.85, 6.15] {
+            for y in [0.0, 1.0] {
+                for z in [-2.5, 2.5] {
+                    assert!(inside([x, y, z]), "backstop corner {:?}", [x, y, z]);
+                }
+            }
+        }
+        assert!(r < 10.0, "radius {r}");
+        assert!(!inside([0.0, 60.0, 0.0]));
     }
 
     fn metrics(spin: f64) -> Vec<ObjectMetrics> {
@@ -1265,6 +1538,160 @@ mod tests {
         s.update(Msg::Undo).expect("undo");
         s.update(Msg::Rank(None)).expect("clear");
         assert!(s.ranking().is_none());
+    }
+
+    /// World `i` of the one-body scene whose body turns about +y by `turn` radians over its
+    /// second (evenly, 61 frames), with its metrics as a store computes them.
+    fn turning_world(i: u32, turn: f64) -> WorldData {
+        let rotations: Vec<[f64; 4]> = (0..61)
+            .map(|f| {
+                let half = 0.5 * turn * f as f64 / 60.0;
+                [0.0, half.sin(), 0.0, half.cos()]
+            })
+            .collect();
+        let track = Track {
+            positions: vec![[0.0, 0.0, 0.0]; rotations.len()],
+            rotations,
+        };
+        let metrics = ObjectMetrics::compute(
+            &mwb_core::browse::Track {
+                frame_dt: 1.0 / 60.0,
+                positions: &track.positions,
+                rotations: &track.rotations,
+            },
+            0,
+            mwb_core::browse::RestThresholds {
+                linear: 0.01,
+                angular: 0.01,
+            },
+            None,
+        )
+        .expect("metrics");
+        let motion = Motion {
+            scene: scene(),
+            frame_dt: 1.0 / 60.0,
+            tracks: vec![track],
+        };
+        let mut w = WorldData::from_exact_motion(i, u64::from(i), motion).expect("indexes");
+        w.metrics = vec![metrics];
+        w
+    }
+
+    #[test]
+    fn a_goal_picked_in_playback_ranks_the_worlds_by_their_error_to_it() {
+        let mut s = ViewerState::new("t", vec!["ball".into()], Vec::new());
+        for (i, turn) in [0.0, 1.0, 2.0, 3.0].into_iter().enumerate() {
+            s.add_world(turning_world(i as u32, turn)).expect("adds");
+        }
+        // Nothing chosen: no object to take the goal from.
+        s.update(Msg::ToggleObject(0)).expect("toggle");
+        assert!(matches!(
+            s.update(Msg::GoalFromPlayback),
+            Err(ViewerError::Goal(_))
+        ));
+        s.update(Msg::ToggleObject(0)).expect("toggle");
+        // World 2 at 0.5 s: frame 30, turned by 1 rad, exactly the decoded frame's quaternion.
+        s.update(Msg::SelectWorld(Some(2))).expect("select");
+        s.update(Msg::Seek(0.5 + 0.3 / 60.0)).expect("seek");
+        s.update(Msg::GoalFromPlayback).expect("goal");
+        let goal = *s.goal().expect("a goal");
+        let decoded = s
+            .world(2)
+            .and_then(|w| w.motion.clone())
+            .expect("motion")
+            .tracks[0]
+            .rotations[30];
+        assert_eq!((goal.world, goal.object, goal.frame), (2, 0, 30));
+        assert_eq!(goal.rotation, decoded);
+        assert!((goal.time - 0.5).abs() < 1e-12);
+        // Closest to the goal first: world 1 ends turned by 1 rad (error 0), then worlds 0 and
+        // 2 (1 rad either way; the lower index first), then world 3 (2 rad).
+        let spec = RankSpec {
+            key: RankKey::OrientationTo {
+                goal: goal.rotation,
+                objects: vec![0],
+                aggregate: Aggregate::Sum,
+            },
+            order: Order::Ascending,
+            k: 10,
+            all_worlds: false,
+        };
+        s.update(Msg::Rank(Some(spec))).expect("rank");
+        let rows = |s: &ViewerState| -> Vec<(u32, f64)> {
+            s.ranking()
+                .expect("ranked")
+                .rows
+                .iter()
+                .map(|r| (r.world, r.score.expect("scored")))
+                .collect()
+        };
+        let want = [(1, 0.0), (0, 1.0), (2, 1.0), (3, 2.0)];
+        for ((w, v), (ww, wv)) in rows(&s).into_iter().zip(want) {
+            assert_eq!(w, ww);
+            assert!((v - wv).abs() < 1e-6, "world {w}: {v} vs {wv}");
+        }
+        // A new goal (world 3's last frame, turned 3 rad) re-ranks at once.
+        s.update(Msg::SelectWorld(Some(3))).expect("select");
+        s.update(Msg::Seek(1.0)).expect("seek");
+        s.update(Msg::GoalFromPlayback).expect("goal");
+        assert_eq!(s.goal().map(|g| (g.world, g.frame)), Some((3, 60)));
+        assert_eq!(
+            rows(&s).iter().map(|r| r.0).collect::<Vec<_>>(),
+            vec![3, 2, 1, 0]
+        );
+        assert!(rows(&s)[0].1 < 1e-6);
+        // Clearing the goal ends a ranking by it.
+        s.update(Msg::ClearGoal).expect("clear");
+        assert!(s.goal().is_none() && s.rank_spec().is_none() && s.ranking().is_none());
+    }
+
+    #[test]
+    fn a_live_goal_needs_the_motion_and_its_ranking_is_asked_of_node_query() {
+        let mut s = ViewerState::live("tcp/127.0.0.1:7447");
+        s.update(Msg::Scene {
+            name: "t".into(),
+            bodies: vec!["ball".into()],
+            statics: Vec::new(),
+        })
+        .expect("scene");
+        let mut w = turning_world(0, 1.0);
+        let motion = w.motion.take().expect("motion");
+        s.update(Msg::Worlds(vec![w])).expect("worlds");
+        s.update(Msg::SelectWorld(Some(0))).expect("select");
+        let e = s.update(Msg::GoalFromPlayback).expect_err("not loaded yet");
+        assert!(e.to_string().contains("not loaded yet"), "{e}");
+        s.update(Msg::MotionLoaded {
+            world: 0,
+            motion: Ok(motion),
+        })
+        .expect("loaded");
+        let spec = RankSpec {
+            key: RankKey::OrientationTo {
+                goal: [0.0, 0.0, 0.0, 1.0],
+                objects: vec![0],
+                aggregate: Aggregate::Sum,
+            },
+            order: Order::Ascending,
+            k: 5,
+            all_worlds: false,
+        };
+        s.update(Msg::Rank(Some(spec))).expect("rank");
+        s.take_commands();
+        s.update(Msg::Seek(1.0)).expect("seek");
+        s.update(Msg::GoalFromPlayback).expect("goal");
+        let goal = s.goal().expect("goal").rotation;
+        let cmds = s.take_commands();
+        let [
+            Command::Rank(RankSpec {
+                key: RankKey::OrientationTo { goal: sent, .. },
+                ..
+            }),
+        ] = cmds.as_slice()
+        else {
+            panic!("expected one ranking request, got {cmds:?}");
+        };
+        assert_eq!(*sent, goal);
+        assert!((goal[1] - 0.5f64.sin()).abs() < 1e-12);
     }
 
     fn status(worlds: u64, result: u64, edits: u64, ids: &[u64]) -> SessionStatus {

@@ -15,12 +15,13 @@ use egui::{
     Align, Color32, Key, KeyboardShortcut, Layout, Modifiers, PointerButton, Pos2, Rect, RichText,
     Sense,
 };
-use mwb_core::browse::{Aggregate, Metric, Order, Polarity, RankKey, ScreenRect, TimeWindow};
+use mwb_core::browse::{Aggregate, Metric, Order, Polarity, Quat, RankKey, ScreenRect, TimeWindow};
 
 use crate::draw::{self, Overlay, View};
 use crate::live::LiveLink;
 use crate::session::Command;
 use crate::state::{MAX_SPEED, MIN_SPEED, Msg, RankSpec, ViewerState};
+use crate::views::ViewsFile;
 
 /// Radians of orbit per point of mouse travel.
 const ORBIT_PER_PT: f64 = 0.008;
@@ -42,15 +43,18 @@ pub enum SortBy {
     TimeToRest,
     Impacts,
     OrientationError,
+    /// Orientation error to the goal picked in the view ([`crate::state::Goal`]).
+    OrientationToGoal,
     ConstraintsSatisfied,
 }
 
 impl SortBy {
-    pub const ALL: [SortBy; 5] = [
+    pub const ALL: [SortBy; 6] = [
         SortBy::Spin,
         SortBy::TimeToRest,
         SortBy::Impacts,
         SortBy::OrientationError,
+        SortBy::OrientationToGoal,
         SortBy::ConstraintsSatisfied,
     ];
 
@@ -60,13 +64,20 @@ impl SortBy {
             SortBy::TimeToRest => "rests soonest",
             SortBy::Impacts => "most impacts",
             SortBy::OrientationError => "turned most from start",
+            SortBy::OrientationToGoal => "closest to the goal orientation",
             SortBy::ConstraintsSatisfied => "constraints satisfied (all worlds)",
         }
     }
 
     /// The ranking over `objects` (the chosen ones), with the aggregate and order an animator
-    /// means by the label.
-    pub fn spec(self, objects: Vec<u32>, aggregate: Option<Aggregate>, k: usize) -> RankSpec {
+    /// means by the label; `None` for [`SortBy::OrientationToGoal`] without a `goal`.
+    pub fn spec(
+        self,
+        objects: Vec<u32>,
+        aggregate: Option<Aggregate>,
+        k: usize,
+        goal: Option<Quat>,
+    ) -> Option<RankSpec> {
         let metric = |metric: Metric, order| RankSpec {
             key: RankKey::Metric {
                 metric,
@@ -77,24 +88,35 @@ impl SortBy {
             k,
             all_worlds: false,
         };
-        match self {
+        Some(match self {
             SortBy::Spin => metric(Metric::AngularTravel, Order::Descending),
             SortBy::TimeToRest => metric(Metric::TimeToRest, Order::Ascending),
             SortBy::Impacts => metric(Metric::Impacts, Order::Descending),
             SortBy::OrientationError => metric(Metric::OrientationError, Order::Descending),
+            // Summed like the error to the start (§4.4.3: total error), least first.
+            SortBy::OrientationToGoal => RankSpec {
+                key: RankKey::OrientationTo {
+                    goal: goal?,
+                    aggregate: aggregate.unwrap_or(Metric::OrientationError.default_aggregate()),
+                    objects,
+                },
+                order: Order::Ascending,
+                k,
+                all_worlds: false,
+            },
             SortBy::ConstraintsSatisfied => RankSpec {
                 key: RankKey::ConstraintsSatisfied,
                 order: Order::Descending,
                 k,
                 all_worlds: true,
             },
-        }
+        })
     }
 
     /// The unit of its values.
     pub fn unit(self) -> &'static str {
         match self {
-            SortBy::Spin | SortBy::OrientationError => "rad",
+            SortBy::Spin | SortBy::OrientationError | SortBy::OrientationToGoal => "rad",
             SortBy::TimeToRest => "s",
             SortBy::Impacts | SortBy::ConstraintsSatisfied => "",
         }
@@ -103,6 +125,8 @@ impl SortBy {
 
 /// Rows the sorter lists.
 pub const SORTER_ROWS: usize = 20;
+/// Objects listed before the list scrolls (and gets "all" / "none" buttons).
+const OBJECT_ROWS: usize = 8;
 
 /// The jobs panel's form: what the next job samples.
 #[derive(Debug, Clone)]
@@ -139,6 +163,19 @@ pub struct ViewerApp {
     /// Commands the bus task could not take yet (its queue was full), oldest first.
     unsent: VecDeque<Command>,
     job_form: JobForm,
+    /// Where the saved views are kept with the session (`None`: only while the viewer runs).
+    views_file: Option<ViewsFile>,
+    /// The state's [`ViewerState::views_edits`] the file last had.
+    views_written: u64,
+    /// What became of reading or writing the views file (shown in the status bar).
+    views_notice: Option<Notice>,
+}
+
+/// A line for the status bar: news, or a problem that needs the user's attention.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Notice {
+    Info(String),
+    Problem(String),
 }
 
 impl ViewerApp {
@@ -155,7 +192,55 @@ impl ViewerApp {
             link: None,
             unsent: VecDeque::new(),
             job_form: JobForm::default(),
+            views_file: None,
+            views_written: 0,
+            views_notice: None,
         }
+    }
+
+    /// Keeps the saved views in `file`: reads them now (a file that cannot be read is shown in
+    /// the status bar and replaced, kept aside, when a view is next saved) and writes them
+    /// whenever the user saves or deletes one.
+    pub fn with_views_file(mut self, mut file: ViewsFile) -> Self {
+        self.views_notice = match file.load() {
+            Ok(views) => {
+                let n = views.len();
+                self.send(Msg::LoadViews(views));
+                Some(Notice::Info(format!(
+                    "{n} saved view{} from {}",
+                    if n == 1 { "" } else { "s" },
+                    file.path().display()
+                )))
+            }
+            Err(e) => Some(Notice::Problem(format!(
+                "{e} (saving a view replaces it; the old file is kept as .bad)"
+            ))),
+        };
+        self.views_written = self.state.views_edits();
+        self.views_file = Some(file);
+        self
+    }
+
+    /// What became of reading or writing the views file.
+    pub fn views_notice(&self) -> Option<&Notice> {
+        self.views_notice.as_ref()
+    }
+
+    /// Writes the saved views when the user changed them since the last write. A failed write
+    /// is shown and tried again at the next change.
+    fn keep_views(&mut self) {
+        let edits = self.state.views_edits();
+        let Some(file) = &mut self.views_file else {
+            return;
+        };
+        if edits == self.views_written {
+            return;
+        }
+        self.views_written = edits;
+        self.views_notice = Some(match file.save(self.state.views()) {
+            Ok(()) => Notice::Info(format!("views kept in {}", file.path().display())),
+            Err(e) => Notice::Problem(e.to_string()),
+        });
     }
 
     /// A live viewer: `state` should be [`ViewerState::live`]; `link` its bus task.
@@ -207,11 +292,22 @@ impl ViewerApp {
         }
     }
 
-    /// Ranks by `by` over the chosen objects (what choosing it in the sorter does).
+    /// Ranks by `by` over the chosen objects (what choosing it in the sorter does; by the
+    /// goal orientation, nothing is ranked until a goal is picked).
     pub fn set_sort(&mut self, by: SortBy) {
         self.sort_by = by;
-        let spec = by.spec(self.state.chosen_objects(), None, SORTER_ROWS);
-        self.send(Msg::Rank(Some(spec)));
+        self.send(Msg::Rank(self.sort_spec(by)));
+    }
+
+    /// The ranking `by` means now: over the chosen objects, to the current goal.
+    fn sort_spec(&self, by: SortBy) -> Option<RankSpec> {
+        let goal = self.state.goal().map(|g| g.rotation);
+        by.spec(self.state.chosen_objects(), None, SORTER_ROWS, goal)
+    }
+
+    /// The sorter's choice.
+    pub fn sort_by(&self) -> SortBy {
+        self.sort_by
     }
 
     /// Commands waiting for room in the bus task's queue.
@@ -266,6 +362,7 @@ impl ViewerApp {
         egui::CentralPanel::no_frame().show(ui, |ui| self.view(ui));
         // What the frame's gestures asked for leaves now, not a frame later.
         self.pump();
+        self.keep_views();
     }
 
     fn keys(&mut self, ui: &egui::Ui) {
@@ -398,74 +495,90 @@ impl ViewerApp {
     fn status_bar(&mut self, ui: &mut egui::Ui) {
         egui::Panel::bottom("mwb-status").show(ui, |ui| {
             ui.horizontal(|ui| {
-                let Some(link) = self.state.link() else {
-                    ui.label(
-                        RichText::new(format!(
-                            "offline: {} worlds sampled in this process",
-                            self.state.worlds().len()
-                        ))
-                        .weak(),
-                    );
-                    return;
-                };
-                let (colour, what) = if link.connected {
-                    (Color32::from_rgb(90, 200, 110), "connected")
-                } else {
-                    (Color32::from_rgb(230, 90, 80), "not connected")
-                };
-                let (r, _) = ui.allocate_exact_size(egui::vec2(10.0, 10.0), Sense::hover());
-                ui.painter().circle_filled(r.center(), 4.5, colour);
-                ui.label(format!("{what} to {}", link.endpoint))
-                    .on_hover_text(link.error.as_deref().unwrap_or("every request answered"));
-                if let Some(e) = &link.error {
-                    ui.colored_label(Color32::from_rgb(240, 170, 60), e);
-                }
-                ui.separator();
-                ui.label(format!(
-                    "{} store{} · {} sampler{}",
-                    link.stores,
-                    if link.stores == 1 { "" } else { "s" },
-                    link.samplers,
-                    if link.samplers == 1 { "" } else { "s" }
-                ));
-                ui.separator();
-                ui.label(format!(
-                    "{} stored · {} loaded here · {:.1} worlds/s",
-                    link.store_worlds,
-                    self.state.worlds().len(),
-                    link.worlds_per_s
-                ));
-                if link.memory_cap_bytes > 0 {
-                    ui.separator();
-                    ui.label(format!(
-                        "store memory {:.0} / {:.0} MiB",
-                        link.memory_bytes as f64 / 1048576.0,
-                        link.memory_cap_bytes as f64 / 1048576.0
-                    ));
-                }
-                for (job, done, target) in &link.jobs {
-                    ui.separator();
-                    let frac = if *target > 0 {
-                        *done as f32 / *target as f32
-                    } else {
-                        0.0
-                    };
-                    ui.label(format!("job {job}"));
-                    ui.add(
-                        egui::ProgressBar::new(frac)
-                            .desired_width(90.0)
-                            .text(format!("{done}/{target}")),
-                    );
-                }
-                if !self.unsent.is_empty() {
-                    ui.separator();
-                    ui.colored_label(
-                        Color32::from_rgb(240, 170, 60),
-                        format!("{} edits waiting for the bus", self.unsent.len()),
-                    );
+                self.link_status(ui);
+                match &self.views_notice {
+                    Some(Notice::Info(n)) => {
+                        ui.separator();
+                        ui.label(RichText::new(n).weak());
+                    }
+                    Some(Notice::Problem(p)) => {
+                        ui.separator();
+                        ui.colored_label(Color32::from_rgb(240, 170, 60), p);
+                    }
+                    None => {}
                 }
             });
         });
+    }
+
+    /// The status bar's account of the bus (or of the offline worlds).
+    fn link_status(&self, ui: &mut egui::Ui) {
+        let Some(link) = self.state.link() else {
+            ui.label(
+                RichText::new(format!(
+                    "offline: {} worlds sampled in this process",
+                    self.state.worlds().len()
+                ))
+                .weak(),
+            );
+            return;
+        };
+        let (colour, what) = if link.connected {
+            (Color32::from_rgb(90, 200, 110), "connected")
+        } else {
+            (Color32::from_rgb(230, 90, 80), "not connected")
+        };
+        let (r, _) = ui.allocate_exact_size(egui::vec2(10.0, 10.0), Sense::hover());
+        ui.painter().circle_filled(r.center(), 4.5, colour);
+        ui.label(format!("{what} to {}", link.endpoint))
+            .on_hover_text(link.error.as_deref().unwrap_or("every request answered"));
+        if let Some(e) = &link.error {
+            ui.colored_label(Color32::from_rgb(240, 170, 60), e);
+        }
+        ui.separator();
+        ui.label(format!(
+            "{} store{} · {} sampler{}",
+            link.stores,
+            if link.stores == 1 { "" } else { "s" },
+            link.samplers,
+            if link.samplers == 1 { "" } else { "s" }
+        ));
+        ui.separator();
+        ui.label(format!(
+            "{} stored · {} loaded here · {:.1} worlds/s",
+            link.store_worlds,
+            self.state.worlds().len(),
+            link.worlds_per_s
+        ));
+        if link.memory_cap_bytes > 0 {
+            ui.separator();
+            ui.label(format!(
+                "store memory {:.0} / {:.0} MiB",
+                link.memory_bytes as f64 / 1048576.0,
+                link.memory_cap_bytes as f64 / 1048576.0
+            ));
+        }
+        for (job, done, target) in &link.jobs {
+            ui.separator();
+            let frac = if *target > 0 {
+                *done as f32 / *target as f32
+            } else {
+                0.0
+            };
+            ui.label(format!("job {job}"));
+            ui.add(
+                egui::ProgressBar::new(frac)
+                    .desired_width(90.0)
+                    .text(format!("{done}/{target}")),
+            );
+        }
+        if !self.unsent.is_empty() {
+            ui.separator();
+            ui.colored_label(
+                Color32::from_rgb(240, 170, 60),
+                format!("{} edits waiting for the bus", self.unsent.len()),
+            );
+        }
     }
 
     fn side_panel(&mut self, ui: &mut egui::Ui) {
@@ -588,11 +701,47 @@ impl ViewerApp {
 
     fn objects_section(&mut self, ui: &mut egui::Ui) {
         ui.add_space(4.0);
-        ui.heading("Objects");
         let names: Vec<String> = self.state.body_names().to_vec();
+        let many = names.len() > OBJECT_ROWS;
+        ui.horizontal(|ui| {
+            ui.heading("Objects");
+            if many {
+                // Scenes of many bodies (tower: 193) are browsed an object or two at a time.
+                let n = names.len() as u32;
+                if ui
+                    .small_button("all")
+                    .on_hover_text("choose every object")
+                    .clicked()
+                {
+                    self.send(Msg::ChooseObjects((0..n).collect()));
+                }
+                if ui
+                    .small_button("none")
+                    .on_hover_text("choose no object (then tick the ones to browse)")
+                    .clicked()
+                {
+                    self.send(Msg::ChooseObjects(Vec::new()));
+                }
+                let chosen = self.state.chosen_objects().len();
+                ui.label(RichText::new(format!("{chosen} of {n}")).weak());
+            }
+        });
         if names.is_empty() {
             ui.label(RichText::new("waiting for the first world …").weak());
         }
+        if many {
+            egui::ScrollArea::vertical()
+                .id_salt("mwb-objects")
+                .max_height(OBJECT_ROWS as f32 * 23.0)
+                .auto_shrink([false, true])
+                .show(ui, |ui| self.object_rows(ui, &names));
+        } else {
+            self.object_rows(ui, &names);
+        }
+    }
+
+    /// One checkbox per object, with its colour.
+    fn object_rows(&mut self, ui: &mut egui::Ui, names: &[String]) {
         for (i, name) in names.iter().enumerate() {
             let mut on = self.state.is_chosen(i as u32);
             ui.horizontal(|ui| {
@@ -690,7 +839,9 @@ impl ViewerApp {
         // A new choice of objects re-ranks over them.
         let objects = self.state.chosen_objects();
         let stale = self.state.rank_spec().is_some_and(|s| match &s.key {
-            RankKey::Metric { objects: o, .. } => *o != objects,
+            RankKey::Metric { objects: o, .. } | RankKey::OrientationTo { objects: o, .. } => {
+                *o != objects
+            }
             _ => false,
         });
         if (by, on) != before || (on && stale) {
@@ -698,9 +849,10 @@ impl ViewerApp {
             if by != before.0 {
                 on = true;
             }
-            let spec = on.then(|| by.spec(objects, None, SORTER_ROWS));
+            let spec = if on { self.sort_spec(by) } else { None };
             self.send(Msg::Rank(spec));
         }
+        self.goal_rows(ui);
         let Some(ranking) = self.state.ranking() else {
             if self.state.rank_spec().is_some() {
                 ui.label(RichText::new("ranking …").weak());
@@ -737,6 +889,65 @@ impl ViewerApp {
         }
     }
 
+    /// The goal orientation for "closest to the goal orientation": taken from the playback
+    /// (the first chosen object, in the world shown, at the frame shown), and what it is.
+    fn goal_rows(&mut self, ui: &mut egui::Ui) {
+        let names = self.state.body_names().to_vec();
+        let name = |o: u32| {
+            names
+                .get(o as usize)
+                .cloned()
+                .unwrap_or_else(|| format!("#{o}"))
+        };
+        let object = self.state.chosen_objects().first().copied();
+        let shown = self
+            .state
+            .shown_world()
+            .filter(|w| w.motion.is_some())
+            .map(|w| w.index);
+        let why_not = match (object, shown) {
+            (None, _) => "choose an object first".to_owned(),
+            (Some(_), None) => "play a world first (pick one; its motion must be loaded)".into(),
+            (Some(o), Some(w)) => format!(
+                "{}'s orientation in world {w} at the frame shown (the first chosen object)",
+                name(o)
+            ),
+        };
+        let pick = ui
+            .add_enabled(
+                object.is_some() && shown.is_some(),
+                egui::Button::new("Use this frame's orientation as goal").small(),
+            )
+            .on_hover_text(&why_not)
+            .on_disabled_hover_text(&why_not)
+            .clicked();
+        let goal = self.state.goal().copied();
+        if let Some(g) = goal {
+            ui.horizontal(|ui| {
+                ui.label(
+                    RichText::new(format!(
+                        "goal: {} in world {} at {:.2} s",
+                        name(g.object),
+                        g.world,
+                        g.time
+                    ))
+                    .weak(),
+                );
+                if ui.small_button("clear goal").clicked() {
+                    self.send(Msg::ClearGoal);
+                }
+            });
+        } else if self.sort_by == SortBy::OrientationToGoal {
+            ui.label(RichText::new("no goal yet: play a world, stop at a frame, use it").weak());
+        }
+        if pick {
+            self.send(Msg::GoalFromPlayback);
+            if self.last_error.is_none() {
+                self.set_sort(SortBy::OrientationToGoal);
+            }
+        }
+    }
+
     /// Saved cameras: save the current one, go back to one, forget one.
     fn views_section(&mut self, ui: &mut egui::Ui) {
         ui.horizontal(|ui| {
@@ -746,11 +957,11 @@ impl ViewerApp {
                 .on_hover_text("keep this camera to come back to")
                 .clicked()
             {
-                let name = format!("view {}", self.state.views().len() + 1);
+                let name = self.state.next_view_name();
                 self.send(Msg::SaveView(name));
             }
         });
-        let names: Vec<String> = self.state.views().iter().map(|(n, _)| n.clone()).collect();
+        let names: Vec<String> = self.state.views().iter().map(|v| v.name.clone()).collect();
         let (mut recall, mut delete) = (None, None);
         for (i, name) in names.iter().enumerate() {
             ui.horizontal(|ui| {

@@ -12,6 +12,8 @@ use mwb_core::browse::{Constraint, ConstraintId, Polarity, ScreenRect};
 use mwb_core::scene::SceneTemplate;
 use mwb_viewer::draw::viewport_of;
 use mwb_viewer::softpaint::SoftPainter;
+use mwb_viewer::ui::{Notice, SortBy};
+use mwb_viewer::views::{ViewsFile, decode};
 use mwb_viewer::{Msg, OrbitCamera, ViewerApp, ViewerState, WorldData};
 
 const WORLDS: u32 = 12;
@@ -72,9 +74,14 @@ impl TestRenderer for Soft {
 }
 
 fn harness() -> Harness<'static, ViewerApp> {
+    harness_of(|app| app)
+}
+
+/// [`harness`] with the app changed by `setup` before the first frame.
+fn harness_of(setup: impl FnOnce(ViewerApp) -> ViewerApp) -> Harness<'static, ViewerApp> {
     let mut state = worlds().0.clone();
     state.update(Msg::SetCamera(camera())).expect("camera");
-    let app = ViewerApp::new(state).with_camera_placed(true);
+    let app = setup(ViewerApp::new(state).with_camera_placed(true));
     let mut h = Harness::builder()
         .with_size(vec2(1100.0, 700.0))
         .renderer(Soft::default())
@@ -358,4 +365,157 @@ fn snapshot_of_tumble_with_a_box_and_a_selected_world() {
         "crate pixel {px:?} (sky {sky_top:?}..{sky_bottom:?})"
     );
     h.snapshot("viewer_tumble");
+}
+
+/// A fresh scratch directory under the system's temporary directory: tests never read or write
+/// the user's configuration directory.
+fn scratch(name: &str) -> std::path::PathBuf {
+    let dir = std::env::temp_dir().join(format!("mwb-viewer-ui-{}-{name}", std::process::id()));
+    std::fs::remove_dir_all(&dir).ok();
+    dir
+}
+
+#[test]
+fn saved_views_are_kept_with_the_session_and_a_bad_file_is_shown_not_fatal() {
+    let dir = scratch("views");
+    let path = dir.join("views").join("viewer.json");
+    let on_disk = || {
+        let text = std::fs::read_to_string(&path).expect("the views file is written");
+        decode(&text, "viewer.json").expect("and reads back")
+    };
+    let mut h = harness_of(|app| app.with_views_file(ViewsFile::new(&path, "viewer")));
+    assert!(h.state().state.views().is_empty());
+    assert!(!path.exists(), "nothing is written until a view is saved");
+    h.get_by_label("save view").click();
+    h.run();
+    assert_eq!(on_disk(), h.state().state.views());
+    h.state_mut()
+        .state
+        .update(Msg::Orbit {
+            d_yaw: 0.7,
+            d_pitch: -0.2,
+        })
+        .expect("orbit");
+    h.get_by_label("save view").click();
+    h.run();
+    let saved = h.state().state.views().to_vec();
+    assert_eq!(saved.len(), 2);
+    assert_eq!(on_disk(), saved);
+    assert!(
+        h.query_by_label_contains("views kept in").is_some(),
+        "the status bar says where"
+    );
+    drop(h);
+
+    // The viewer opened again on the session: the views are back and recall their cameras.
+    let mut h = harness_of(|app| app.with_views_file(ViewsFile::new(&path, "viewer")));
+    assert_eq!(h.state().state.views(), &saved[..]);
+    assert!(h.query_by_label_contains("2 saved views from").is_some());
+    assert_ne!(h.state().state.camera, saved[1].camera);
+    h.get_by_label("view 2").click();
+    h.run();
+    assert_eq!(h.state().state.camera, saved[1].camera);
+    h.get_by_label("x view 1").click();
+    h.run();
+    assert_eq!(on_disk(), saved[1..].to_vec());
+    drop(h);
+
+    // A corrupt file: the viewer starts without views and says why in the status bar.
+    std::fs::write(&path, "{\"version\": 1, \"views\": [tru").expect("write");
+    let mut h = harness_of(|app| app.with_views_file(ViewsFile::new(&path, "viewer")));
+    assert!(h.state().state.views().is_empty());
+    let shown = format!("views file {}:1:", path.display());
+    assert!(
+        matches!(h.state().views_notice(), Some(Notice::Problem(p)) if p.starts_with(&shown)),
+        "{:?}",
+        h.state().views_notice()
+    );
+    assert!(h.query_by_label_contains(&shown).is_some(), "shown");
+    // Saving a view replaces it; the unreadable one is kept aside.
+    h.get_by_label("save view").click();
+    h.run();
+    assert_eq!(on_disk(), h.state().state.views());
+    assert!(dir.join("views").join("viewer.json.bad").exists());
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn a_goal_taken_from_the_playback_frame_ranks_the_worlds_by_their_error_to_it() {
+    let mut h = harness();
+    // The goal is the first chosen object's orientation: choose the crate only.
+    for name in ["plank", "brick", "die", "slab"] {
+        h.get_by_label(name).click();
+        h.run();
+    }
+    h.get_by_label("world 5  (seed 0x5)").click();
+    h.run();
+    let end = h.state().state.duration();
+    h.state_mut().state.update(Msg::Seek(end)).expect("seek");
+    h.run();
+    h.get_by_label("Use this frame's orientation as goal")
+        .click();
+    h.run();
+    let app = h.state();
+    assert_eq!(app.last_error(), None);
+    let goal = *app.state.goal().expect("a goal");
+    let motion = app
+        .state
+        .world(5)
+        .and_then(|w| w.motion.clone())
+        .expect("motion");
+    let last = motion.tracks[0].rotations.len() - 1;
+    assert_eq!((goal.world, goal.object, goal.frame), (5, 0, last));
+    assert_eq!(goal.rotation, motion.tracks[0].rotations[last]);
+    assert!(
+        h.query_by_label_contains("goal: crate in world 5 at")
+            .is_some(),
+        "the goal is shown"
+    );
+    // The sorter switched to the goal: least error first, world 5 itself (its final pose)
+    // first, each score the angle to its crate's final orientation (the store's metric).
+    let app = h.state();
+    assert_eq!(app.sort_by(), SortBy::OrientationToGoal);
+    let ranking = app
+        .state
+        .ranking()
+        .cloned()
+        .expect("ranked at once offline");
+    assert_eq!(ranking.rows[0].world, 5);
+    assert!(
+        ranking.rows[0].score.is_some_and(|s| s < 1e-6),
+        "{ranking:?}"
+    );
+    for r in &ranking.rows {
+        let final_rotation = app.state.world(r.world).expect("world").metrics[0].final_rotation;
+        let want = mwb_core::browse::quat_angle_between(goal.rotation, final_rotation);
+        assert!(r.score.is_some_and(|s| (s - want).abs() < 1e-12), "{r:?}");
+    }
+    assert!(ranking.rows.windows(2).all(|w| w[0].score <= w[1].score));
+    h.get_by_label("clear goal").click();
+    h.run();
+    assert!(h.state().state.goal().is_none() && h.state().state.ranking().is_none());
+}
+
+#[test]
+fn a_scene_of_many_bodies_lists_them_in_a_short_scrolled_list_with_all_and_none() {
+    let names: Vec<String> = (0..40).map(|i| format!("block{i}")).collect();
+    let app = ViewerApp::new(ViewerState::new("many", names, Vec::new()));
+    let mut h = Harness::builder()
+        .with_size(vec2(1100.0, 700.0))
+        .build_ui_state(|ui, app: &mut ViewerApp| app.ui(ui), app);
+    h.run();
+    assert!(h.query_by_label("40 of 40").is_some());
+    // The list scrolls: the sorter stays in reach below it, not under 40 rows.
+    let sort = h.get_by_label("Sort").rect();
+    assert!(sort.min.y < 400.0, "the Sort heading is at {sort:?}");
+    h.get_by_label("none").click();
+    h.run();
+    assert!(h.state().state.chosen_objects().is_empty());
+    h.get_by_label("block2").click();
+    h.run();
+    assert_eq!(h.state().state.chosen_objects(), vec![2]);
+    assert!(h.query_by_label("1 of 40").is_some());
+    h.get_by_label("all").click();
+    h.run();
+    assert_eq!(h.state().state.chosen_objects().len(), 40);
 }

@@ -1,11 +1,14 @@
 //! `mwb bench viewer`: what the live viewer costs with many worlds.
 //!
 //! A store (router, running node-query) and samplers in one process fill a store with
-//! `--worlds` worlds of `--scene` over TCP loopback; the viewer connects as its own zenoh
-//! client, exactly as `mwb viewer --connect` does, and loads every world's indexed paths. Then:
+//! `--worlds` worlds of `--scene` (by default [`TUMBLE10`], the issue's "10-body scene") over
+//! TCP loopback; the viewer connects as its own zenoh client, exactly as `mwb viewer --connect`
+//! does, and loads every world's indexed paths. Then:
 //!
-//! * `frame_ms_p50/p95`: CPU time of one whole UI frame (egui pass over the real `ViewerApp::ui`
-//!   plus tessellation) with every world's path of one object drawn;
+//! * `frame_ms_p50/p95`: CPU time (the thread's clock) of one whole UI frame (egui pass over
+//!   the real `ViewerApp::ui` plus tessellation) with every world's path of one object drawn,
+//!   and the shown world's bodies; `frame_wall_ms_p50/p95` the same frames' wall-clock time,
+//!   longer when other processes share the cores;
 //! * `constraint_roundtrip_ms_p95`: a box added in the view until its survivor count is shown
 //!   (request to node-query, evaluation in the store, status and survivors back, applied);
 //! * `world_open_ms_p95`: a world picked until its motion is fetched, decoded and drawable.
@@ -24,11 +27,141 @@ use mwb_viewer::{Msg, ViewerApp, ViewerState};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+/// The default scene's name as the JSON line reports it.
+pub const TUMBLE10_NAME: &str = "tumble10 (built in)";
+
+/// The default scene: the issue measures the viewer on "a 10-body scene", and the shipped
+/// scenes have 1 (chute), 5 (tumble), 8 (pachinko) or 193 (tower) bodies. This is tumble's
+/// five boxes and five more thrown from a second ring, 45° round from the first.
+pub const TUMBLE10: &str = r#"
+name = "tumble10"
+description = "Ten boxes of mixed sizes thrown onto the ground from two rings (mwb bench viewer)."
+
+[settings]
+end_time = 6.0
+
+[[material]]
+name = "ground"
+friction = 0.8
+restitution = 0.2
+
+[[material]]
+name = "wood"
+friction = 0.6
+restitution = 0.3
+density = 600.0
+
+[[static]]
+name = "ground"
+shape = "plane"
+normal = [0, 1, 0]
+material = "ground"
+
+[[body]]
+name = "crate"
+shape = "box"
+size = [0.5, 0.5, 0.5]
+material = "wood"
+position = [-1.5, 1.0, 0.0]
+rotation_deg = [0, { uniform = [0, 90] }, 0]
+linvel = [{ uniform = [1.5, 3.0] }, { uniform = [1.0, 3.0] }, { uniform = [-0.5, 0.5] }]
+angvel = [{ uniform = [-4, 4] }, { uniform = [-4, 4] }, { uniform = [-4, 4] }]
+
+[[body]]
+name = "plank"
+shape = "box"
+size = [0.9, 0.1, 0.3]
+material = "wood"
+position = [1.5, 1.2, 0.3]
+rotation_deg = [{ uniform = [-20, 20] }, { uniform = [0, 180] }, { uniform = [-20, 20] }]
+linvel = [{ uniform = [-3.0, -1.5] }, { uniform = [1.0, 3.0] }, { uniform = [-0.5, 0.5] }]
+angvel = [{ uniform = [-6, 6] }, { uniform = [-6, 6] }, { uniform = [-6, 6] }]
+
+[[body]]
+name = "brick"
+shape = "box"
+size = [0.3, 0.15, 0.15]
+material = "wood"
+position = [0.0, 1.0, -1.5]
+linvel = [{ uniform = [-0.5, 0.5] }, { uniform = [1.0, 3.0] }, { uniform = [1.5, 3.0] }]
+angvel = [{ uniform = [-8, 8] }, { uniform = [-8, 8] }, { uniform = [-8, 8] }]
+
+[[body]]
+name = "die"
+shape = "box"
+size = [0.2, 0.2, 0.2]
+material = "wood"
+position = [0.0, 1.4, 1.5]
+rotation_deg = [{ uniform = [0, 90] }, { uniform = [0, 90] }, { uniform = [0, 90] }]
+linvel = [{ uniform = [-0.5, 0.5] }, { uniform = [1.0, 3.0] }, { uniform = [-3.0, -1.5] }]
+angvel = [{ uniform = [-10, 10] }, { uniform = [-10, 10] }, { uniform = [-10, 10] }]
+
+[[body]]
+name = "slab"
+shape = "box"
+size = [0.6, 0.2, 0.6]
+material = "wood"
+position = [0.0, 2.5, 0.0]
+rotation_deg = [{ normal = [0, 10] }, { uniform = [0, 90] }, { normal = [0, 10] }]
+linvel = [0, { uniform = [0.0, 1.0] }, 0]
+angvel = [{ uniform = [-2, 2] }, { uniform = [-2, 2] }, { uniform = [-2, 2] }]
+
+[[body]]
+name = "crate2"
+shape = "box"
+size = [0.4, 0.4, 0.4]
+material = "wood"
+position = [-1.06, 1.1, -1.06]
+rotation_deg = [0, { uniform = [0, 90] }, 0]
+linvel = [{ uniform = [1.0, 2.1] }, { uniform = [1.0, 3.0] }, { uniform = [1.0, 2.1] }]
+angvel = [{ uniform = [-4, 4] }, { uniform = [-4, 4] }, { uniform = [-4, 4] }]
+
+[[body]]
+name = "plank2"
+shape = "box"
+size = [0.8, 0.1, 0.25]
+material = "wood"
+position = [1.06, 1.3, -1.06]
+rotation_deg = [{ uniform = [-20, 20] }, { uniform = [0, 180] }, { uniform = [-20, 20] }]
+linvel = [{ uniform = [-2.1, -1.0] }, { uniform = [1.0, 3.0] }, { uniform = [1.0, 2.1] }]
+angvel = [{ uniform = [-6, 6] }, { uniform = [-6, 6] }, { uniform = [-6, 6] }]
+
+[[body]]
+name = "brick2"
+shape = "box"
+size = [0.3, 0.15, 0.15]
+material = "wood"
+position = [1.06, 1.0, 1.06]
+linvel = [{ uniform = [-2.1, -1.0] }, { uniform = [1.0, 3.0] }, { uniform = [-2.1, -1.0] }]
+angvel = [{ uniform = [-8, 8] }, { uniform = [-8, 8] }, { uniform = [-8, 8] }]
+
+[[body]]
+name = "die2"
+shape = "box"
+size = [0.2, 0.2, 0.2]
+material = "wood"
+position = [-1.06, 1.4, 1.06]
+rotation_deg = [{ uniform = [0, 90] }, { uniform = [0, 90] }, { uniform = [0, 90] }]
+linvel = [{ uniform = [1.0, 2.1] }, { uniform = [1.0, 3.0] }, { uniform = [-2.1, -1.0] }]
+angvel = [{ uniform = [-10, 10] }, { uniform = [-10, 10] }, { uniform = [-10, 10] }]
+
+[[body]]
+name = "slab2"
+shape = "box"
+size = [0.5, 0.15, 0.5]
+material = "wood"
+position = [0.0, 3.2, 0.0]
+rotation_deg = [{ normal = [0, 10] }, { uniform = [0, 90] }, { normal = [0, 10] }]
+linvel = [0, { uniform = [0.0, 1.0] }, 0]
+angvel = [{ uniform = [-2, 2] }, { uniform = [-2, 2] }, { uniform = [-2, 2] }]
+"#;
+
 /// Arguments of `mwb bench viewer`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct ViewerArgs {
-    #[arg(long, default_value = "tumble")]
-    pub scene: String,
+    /// A scene file or shipped scene's name [default: the built-in 10-body tumble10].
+    #[arg(long)]
+    pub scene: Option<String>,
     #[arg(long, default_value_t = 10_000)]
     pub worlds: u32,
     /// Sampler nodes (one worker each) filling the store.
@@ -55,8 +188,12 @@ pub struct ViewerBench {
     pub bodies: usize,
     /// Vertices of the drawn paths (one object, every world).
     pub path_vertices: usize,
+    /// CPU time of a frame (the thread's clock).
     pub frame_ms_p50: f64,
     pub frame_ms_p95: f64,
+    /// Wall-clock time of a frame.
+    pub frame_wall_ms_p50: f64,
+    pub frame_wall_ms_p95: f64,
     pub constraint_roundtrip_ms_p50: f64,
     pub constraint_roundtrip_ms_p95: f64,
     pub world_open_ms_p50: f64,
@@ -89,7 +226,10 @@ pub async fn run(args: ViewerArgs) -> Result<()> {
 pub async fn bench_viewer(args: &ViewerArgs) -> Result<ViewerBench> {
     let size = mwb_viewer::screenshot::parse_size(&args.size)
         .map_err(|e| anyhow::anyhow!("--size: {e}"))?;
-    let (file, text) = client::load_scene(&args.scene)?;
+    let (file, text) = match &args.scene {
+        Some(scene) => client::load_scene(scene)?,
+        None => (TUMBLE10_NAME.to_owned(), TUMBLE10.to_owned()),
+    };
     let port = free_port()?;
     let endpoint = format!("tcp/127.0.0.1:{port}");
     let space = format!("vbench{}", std::process::id());
@@ -185,11 +325,9 @@ pub async fn bench_viewer(args: &ViewerArgs) -> Result<ViewerBench> {
         );
     }
     // One object drawn (the first), as an animator browsing one object would.
-    for o in 1..app.state.body_names().len() as u32 {
-        app.state
-            .update(Msg::ToggleObject(o))
-            .map_err(|e| anyhow::anyhow!("{e}"))?;
-    }
+    app.state
+        .update(Msg::ChooseObjects(vec![0]))
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
     let path_vertices = app
         .state
         .worlds()
@@ -197,9 +335,11 @@ pub async fn bench_viewer(args: &ViewerArgs) -> Result<ViewerBench> {
         .filter_map(|w| w.paths.first())
         .map(|p| p.tree.path().len())
         .sum();
-    let mut frames = tokio::task::block_in_place(|| {
-        mwb_viewer::screenshot::frame_times_ms(&mut app, size, args.frames)
+    let frames = tokio::task::block_in_place(|| {
+        mwb_viewer::screenshot::frame_times(&mut app, size, args.frames)
     });
+    let mut frame_cpu: Vec<f64> = frames.iter().map(|f| f.cpu_ms).collect();
+    let mut frame_wall: Vec<f64> = frames.iter().map(|f| f.wall_ms).collect();
 
     // Boxes around the middle of the view, a different size each time; each undone after.
     let vr = app.view_rect();
@@ -263,8 +403,10 @@ pub async fn bench_viewer(args: &ViewerArgs) -> Result<ViewerBench> {
         worlds: want,
         bodies,
         path_vertices,
-        frame_ms_p50: percentile(&mut frames, 0.5),
-        frame_ms_p95: percentile(&mut frames, 0.95),
+        frame_ms_p50: percentile(&mut frame_cpu, 0.5),
+        frame_ms_p95: percentile(&mut frame_cpu, 0.95),
+        frame_wall_ms_p50: percentile(&mut frame_wall, 0.5),
+        frame_wall_ms_p95: percentile(&mut frame_wall, 0.95),
         constraint_roundtrip_ms_p50: percentile(&mut roundtrips, 0.5),
         constraint_roundtrip_ms_p95: percentile(&mut roundtrips, 0.95),
         world_open_ms_p50: percentile(&mut opens, 0.5),
@@ -272,4 +414,26 @@ pub async fn bench_viewer(args: &ViewerArgs) -> Result<ViewerBench> {
         load_s,
         fill_s,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_default_scene_has_ten_bodies_and_samples() {
+        let template = mwb_core::scene::SceneTemplate::parse(TUMBLE10, TUMBLE10_NAME)
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(template.body_names().count(), 10);
+        let world = mwb_viewer::offline::sample_one(&template, 0).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(world.paths.len(), 10);
+        // Every body is thrown in and lands: its path ends near the ground, in the middle.
+        for p in &world.paths {
+            let end = p.tree.path().points().last().copied().unwrap_or([9.0; 3]);
+            assert!(
+                end[1] < 1.0 && end[0].abs() < 4.0 && end[2].abs() < 4.0,
+                "{end:?}"
+            );
+        }
+    }
 }
