@@ -577,3 +577,23 @@ impl From<QualityArg> for Quality {
         }
     }
 }
+
+/// The job's announcement from the stores that hold its worlds (open or closed jobs).
+pub async fn held_job(session: &zenoh::Session, keys: &Keys, job: &str) -> Result<Option<Job>> {
+    let replies = session
+        .get(keys.held_job(job))
+        .timeout(Duration::from_secs(2))
+        .await
+        .map_err(|e| anyhow::anyhow!("job query: {e}"))?;
+    let mut best: Option<Job> = None;
+    while let Ok(reply) = replies.recv_async().await {
+        if let Ok(s) = reply.result()
+            && let Ok(j) = Job::decode(s.payload().to_bytes().as_ref())
+            && j.id == job
+            && best.as_ref().is_none_or(|b| j.revision > b.revision)
+        {
+            best = Some(j);
+        }
+    }
+    Ok(best)
+}

@@ -12,6 +12,7 @@ pub mod job;
 pub mod output;
 pub mod query;
 pub mod record_cmd;
+pub mod refine_cmd;
 pub mod reverse_cmd;
 pub mod sampler;
 pub mod scene;

@@ -48,6 +48,9 @@ enum Command {
     /// Regenerate one world from its scene and seed alone: its summary and digest (--check N:
     /// compare with stored world N).
     World(mwb::world_cmd::WorldArgs),
+    /// Refine a stored world (§4.5): re-simulate the picked bodies from the first frame one of
+    /// them enters a box, keeping the rest of the world; submits a REFINE job.
+    Refine(mwb::refine_cmd::RefineArgs),
     /// Export worlds (from a store, a recording, or a seed) as glTF 2.0 .glb, Foxglove MCAP, CSV
     /// or JSON.
     Export(mwb::export_cmd::ExportArgs),
@@ -135,6 +138,7 @@ async fn run(command: Command) -> Result<()> {
         Command::Scene(args) => mwb::scene::run(args),
         Command::Viewer(args) => mwb::viewer_cmd::run(args).await,
         Command::World(args) => mwb::world_cmd::run(args).await,
+        Command::Refine(args) => mwb::refine_cmd::run(args).await,
         Command::Export(args) => mwb::export_cmd::run(args).await,
         Command::Record(args) => mwb::record_cmd::record(args).await,
         Command::Replay(args) => mwb::record_cmd::replay(args).await,

@@ -172,7 +172,8 @@ struct AabbFile {
     max: [f64; 3],
 }
 
-fn numbers(field: &str, text: &str, n: usize) -> Result<Vec<f64>> {
+/// `n` comma-separated numbers of flag `--field`, or an error naming the flag.
+pub(crate) fn numbers(field: &str, text: &str, n: usize) -> Result<Vec<f64>> {
     let v: Vec<f64> = text
         .split(',')
         .map(|t| {
@@ -730,6 +731,37 @@ fn print_reply(
                     "not in the result"
                 }
             );
+            if let Some(r) = &w.refined {
+                let label = |o: &u32| mwb_core::browse::object_label(&w.bodies, *o);
+                println!(
+                    "refined (§4.5) from world seed {:#018x} of job {}:",
+                    r.root_seed, r.root_job
+                );
+                for s in &r.steps {
+                    let objects: Vec<String> = s.objects.iter().map(label).collect();
+                    println!(
+                        "  from frame {} (t = {:.3} s): {} re-simulated, seed {:#018x}",
+                        s.frame,
+                        f64::from(s.frame) * w.frame_dt,
+                        objects.join(", "),
+                        s.seed
+                    );
+                }
+                let new: Vec<String> = r
+                    .active_from
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(i, f)| f.map(|f| format!("{} from {f}", label(&(i as u32)))))
+                    .collect();
+                const SHOWN: usize = 8;
+                println!(
+                    "  new motion ({} of {} bodies): {}{}",
+                    new.len(),
+                    r.active_from.len(),
+                    new[..new.len().min(SHOWN)].join(", "),
+                    if new.len() > SHOWN { ", …" } else { "" }
+                );
+            }
             if let Some(e) = w.world_metrics.energy_growth {
                 println!("energy growth going back: {e:.3} m of drop height (§5.3.1)");
             }

@@ -3,7 +3,8 @@
 //! the same bytes. It prints the world's summary and its digest ([`mwb_node::world_digest`],
 //! which covers everything the scene and seed determine and nothing that says where the world
 //! was computed), so the digest equals the stored world's; `--check N` fetches stored world `N`
-//! and compares the two.
+//! and compares the two. A refined world (§4.5) is regenerated from the lineage it was stored
+//! with: its parent from the root seed and the earlier refinements, then the world itself.
 
 use crate::bus::BusArgs;
 use crate::client::{self, EncodingArg, QualityArg};
@@ -11,7 +12,7 @@ use crate::output::Summary;
 use anyhow::{Context, Result, bail};
 use mwb_core::keys::Keys;
 use mwb_core::scene::SceneTemplate;
-use mwb_proto::v1::{Encoding, MotionSegment, World, WorldDone};
+use mwb_proto::v1::{Encoding, Lineage, MotionSegment, World, WorldDone};
 use mwb_sampler::{PayloadEncoding, RunOptions, Segment, run_world};
 use std::ops::ControlFlow;
 
@@ -102,13 +103,15 @@ impl WorldBytes {
 }
 
 /// Regenerates the forward world `seed` of the scene `text` (named `file` in errors) with the
-/// job's encoding and quality. Pure: no bus, no clock.
+/// job's encoding and quality; a refined world (§4.5) from its `lineage` (its last step is the
+/// world itself, whose seed is `seed`). Pure: no bus, no clock.
 pub fn regenerate(
     file: &str,
     text: &str,
     seed: u64,
     encoding: EncodingArg,
     quality: QualityArg,
+    lineage: Option<&Lineage>,
 ) -> Result<WorldBytes> {
     let template = SceneTemplate::parse(text, file)?;
     let opts = RunOptions {
@@ -124,12 +127,55 @@ pub fn regenerate(
         segments.push(mwb_sampler::segment_message("", "", 0, seed, seg));
         ControlFlow::Continue(())
     };
-    let summary = run_world(&template, seed, opts, &mut emit)
-        .with_context(|| format!("regenerating world {seed:#x} of {file}"))?;
+    let refined = match lineage.and_then(|l| l.steps.split_last().map(|s| (l, s))) {
+        None => None,
+        Some((l, (last, before))) => {
+            if last.seed != seed {
+                bail!(
+                    "--seed {seed:#x}: the world's lineage ends with seed {:#x} (a refined \
+                     world's seed is its own)",
+                    last.seed
+                );
+            }
+            let parent = mwb_sampler::node::lineage_from_wire(&Lineage {
+                steps: before.to_vec(),
+                ..l.clone()
+            });
+            let parent = mwb_sampler::refine::regenerate(
+                &template,
+                &parent,
+                &mwb_sampler::refine::BranchAt::Frame(last.frame),
+            )
+            .with_context(|| format!("regenerating the parent of world {seed:#x} of {file}"))?;
+            let child = parent
+                .refine_whole(&last.objects, seed, opts, &mut emit)
+                .with_context(|| format!("regenerating refined world {seed:#x} of {file}"))?;
+            Some((l, child))
+        }
+    };
+    let done = match refined {
+        None => {
+            let summary = run_world(&template, seed, opts, &mut emit)
+                .with_context(|| format!("regenerating world {seed:#x} of {file}"))?;
+            mwb_sampler::world_done("", "", 0, &summary)
+        }
+        Some((l, child)) => WorldDone {
+            lineage: Some(mwb_sampler::node::lineage_to_wire(
+                &l.root_job,
+                &child.lineage,
+            )),
+            active_from: child
+                .active_from
+                .iter()
+                .map(|a| a.map_or(-1, i64::from))
+                .collect(),
+            ..mwb_sampler::world_done("", "", 0, &child.summary)
+        },
+    };
     let done = WorldDone {
         // What the worker skeleton adds to every summary and the digest covers.
         scene_hash: mwb_core::content_hash(text),
-        ..mwb_sampler::world_done("", "", 0, &summary)
+        ..done
     };
     Ok(WorldBytes { segments, done })
 }
@@ -240,11 +286,17 @@ pub async fn run(args: WorldArgs) -> Result<()> {
     let encoding = args.encoding.or(stored_encoding).unwrap_or_default();
     let quality = args.quality.or(stored_quality).unwrap_or_default();
     let seed = args.seed;
+    let lineage = stored
+        .as_ref()
+        .and_then(|w| w.done.as_ref())
+        .and_then(|d| d.lineage.clone());
     let world = {
         let (file, text) = (file.clone(), text.clone());
-        tokio::task::spawn_blocking(move || regenerate(&file, &text, seed, encoding, quality))
-            .await
-            .context("the regenerating thread failed")??
+        tokio::task::spawn_blocking(move || {
+            regenerate(&file, &text, seed, encoding, quality, lineage.as_ref())
+        })
+        .await
+        .context("the regenerating thread failed")??
     };
     let digest = world.digest();
     let done = &world.done;
@@ -323,8 +375,15 @@ mod tests {
     fn a_world_regenerates_to_the_same_digest_and_its_seed_matters() {
         let text = mwb_core::scene::builtin::TUMBLE;
         let run = |seed| {
-            regenerate("tumble", text, seed, EncodingArg::Spline, QualityArg::Draft)
-                .unwrap_or_else(|e| panic!("{e:#}"))
+            regenerate(
+                "tumble",
+                text,
+                seed,
+                EncodingArg::Spline,
+                QualityArg::Draft,
+                None,
+            )
+            .unwrap_or_else(|e| panic!("{e:#}"))
         };
         let a = run(7);
         assert_eq!(a.digest(), run(7).digest());

@@ -28,11 +28,21 @@ fn bus(endpoint: &str, space: &str) -> BusArgs {
     }
 }
 
+/// A client session, retried for up to 30 s: a store that has just started listening may still
+/// be reading its journal, and on a loaded machine its first handshakes can fail.
 async fn open(b: &BusArgs) -> zenoh::Session {
-    tokio::time::timeout(Duration::from_secs(30), b.open(Mode::Client))
-        .await
-        .unwrap_or_else(|_| panic!("open timed out"))
-        .unwrap_or_else(|e| panic!("{e}"))
+    let deadline = std::time::Instant::now() + Duration::from_secs(30);
+    loop {
+        match tokio::time::timeout(Duration::from_secs(30), b.open(Mode::Client)).await {
+            Ok(Ok(s)) => return s,
+            Ok(Err(e)) if std::time::Instant::now() < deadline => {
+                eprintln!("retrying the client session: {e}");
+                tokio::time::sleep(Duration::from_millis(250)).await;
+            }
+            Ok(Err(e)) => panic!("{e}"),
+            Err(_) => panic!("open timed out"),
+        }
+    }
 }
 
 async fn fetch(session: &zenoh::Session, keys: &Keys, i: u32) -> Option<World> {

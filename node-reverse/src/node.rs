@@ -97,6 +97,7 @@ pub fn segment_message(
     seg: Segment,
 ) -> MotionSegment {
     let body = SegmentBody {
+        bodies: Vec::new(),
         seq: seg.seq,
         first_frame: seg.first_frame,
         frame_count: seg.frame_count,

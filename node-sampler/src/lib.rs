@@ -2,11 +2,17 @@
 //! the bus as they are computed.
 //!
 //! * [`world`] — pure computation: one `(scene, seed)` → motion segments + summary.
+//! * [`refine`] — pure computation: §4.5 refinement, a parent regenerated exactly from its
+//!   lineage and children that re-simulate only the bodies they must.
+//! * [`request`] — a refinement request (stored world, picked bodies, box) checked and turned
+//!   into a REFINE job, for `mwb refine` and the viewer.
 //! * [`node`] — the bus node: the [`Forward`] kind of `mwb-node`'s worker node (it takes sample
 //!   and refine jobs; the skeleton picks them, runs the workers, publishes segments and
 //!   `WorldDone`).
 
 pub mod node;
+pub mod refine;
+pub mod request;
 pub mod world;
 
 pub use node::{

@@ -3,6 +3,7 @@
 //! belong to reverse nodes); joining, leaving, the job board and the publisher are the
 //! skeleton's.
 
+use crate::refine::{Branch, BranchAt, Lineage, Parent, RefineError, regenerate};
 use crate::world::{PayloadEncoding, RunError, RunOptions, Segment, provenance, run_world};
 use mwb_core::keys::role;
 use mwb_core::scene::{SceneError, SceneTemplate};
@@ -24,29 +25,135 @@ pub type SamplerError = mwb_node::NodeError;
 #[derive(Debug, Clone, Copy, Default)]
 pub struct Forward;
 
+/// A job as a sampler runs it: the validated scene, and for a REFINE job its parent world
+/// regenerated once and forked at the branch frame (every child of the job starts from it).
+pub struct Prepared {
+    pub template: SceneTemplate,
+    pub refine: Option<RefineJob>,
+}
+
+/// What a REFINE job's worlds share.
+pub struct RefineJob {
+    pub parent: Parent,
+    pub objects: Vec<u32>,
+    pub root_job: String,
+}
+
+/// Why a sampler cannot run a job.
+#[derive(Debug, thiserror::Error)]
+pub enum PrepareError {
+    #[error(transparent)]
+    Scene(#[from] SceneError),
+    #[error("job {job}: a REFINE job without its `refine` (parent, objects, branch frame)")]
+    NoRefinement { job: String },
+    #[error("job {job}: parent world {world}: {source}")]
+    Refine {
+        job: String,
+        world: u32,
+        #[source]
+        source: RefineError,
+    },
+}
+
+/// Why one world failed.
+#[derive(Debug, thiserror::Error)]
+pub enum WorldError {
+    #[error(transparent)]
+    Run(#[from] RunError),
+    #[error(transparent)]
+    Refine(#[from] RefineError),
+}
+
+/// A lineage from the wire (the root job's name is kept apart).
+pub fn lineage_from_wire(l: &mwb_proto::v1::Lineage) -> Lineage {
+    Lineage {
+        root_seed: l.root_seed,
+        steps: l
+            .steps
+            .iter()
+            .map(|s| Branch {
+                frame: s.frame,
+                objects: s.objects.clone(),
+                seed: s.seed,
+                kicks: Vec::new(),
+            })
+            .collect(),
+    }
+}
+
+/// A lineage on the wire.
+pub fn lineage_to_wire(root_job: &str, l: &Lineage) -> mwb_proto::v1::Lineage {
+    mwb_proto::v1::Lineage {
+        root_job: root_job.to_owned(),
+        root_seed: l.root_seed,
+        steps: l
+            .steps
+            .iter()
+            .map(|s| mwb_proto::v1::RefineStep {
+                frame: s.frame,
+                objects: s.objects.clone(),
+                seed: s.seed,
+            })
+            .collect(),
+    }
+}
+
 impl WorkerKind for Forward {
     const ROLE: &'static str = role::SAMPLER;
     /// A forward world fails only when the scene cannot be built or encoded, which no other
     /// seed will mend.
     const GIVE_UP_AFTER: u32 = 1;
-    type Scene = SceneTemplate;
-    type SceneError = SceneError;
-    type WorldError = RunError;
+    type Scene = Prepared;
+    type SceneError = PrepareError;
+    type WorldError = WorldError;
 
     fn takes(kind: JobKind) -> bool {
         kind != JobKind::Reverse
     }
 
-    fn prepare(&self, job: &Job, scene: &Scene) -> Result<SceneTemplate, SceneError> {
-        SceneTemplate::parse(&scene.toml, &format!("job {} scene", job.id))
+    /// Parses the scene; for a REFINE job also regenerates the parent world from its lineage
+    /// and forks it at the branch frame (§4.5), once for all the job's worlds.
+    fn prepare(&self, job: &Job, scene: &Scene) -> Result<Prepared, PrepareError> {
+        let template = SceneTemplate::parse(&scene.toml, &format!("job {} scene", job.id))?;
+        if job.kind() != JobKind::Refine {
+            return Ok(Prepared {
+                template,
+                refine: None,
+            });
+        }
+        let Some(r) = job.refine.as_ref() else {
+            return Err(PrepareError::NoRefinement {
+                job: job.id.clone(),
+            });
+        };
+        let lineage = r.parent.as_ref().map(lineage_from_wire).unwrap_or_default();
+        let parent = regenerate(&template, &lineage, &BranchAt::Frame(r.branch_frame)).map_err(
+            |source| PrepareError::Refine {
+                job: job.id.clone(),
+                world: r.parent_world,
+                source,
+            },
+        )?;
+        let root_job = r
+            .parent
+            .as_ref()
+            .map_or_else(|| r.parent_job.clone(), |l| l.root_job.clone());
+        Ok(Prepared {
+            template,
+            refine: Some(RefineJob {
+                parent,
+                objects: r.objects.clone(),
+                root_job,
+            }),
+        })
     }
 
     fn run(
         &self,
         w: &WorldTask<'_>,
-        template: &SceneTemplate,
+        prepared: &Prepared,
         emit: &mut dyn FnMut(MotionSegment) -> ControlFlow<()>,
-    ) -> Result<WorldDone, RunError> {
+    ) -> Result<WorldDone, WorldError> {
         let opts = RunOptions {
             quality: codec_quality(w.job.quality()),
             encoding: match w.job.encoding() {
@@ -57,12 +164,30 @@ impl WorkerKind for Forward {
         };
         let mut emit =
             |seg: Segment| emit(segment_message(&w.job.id, w.node, w.counter, w.seed, seg));
-        let summary = run_world(template, w.seed, opts, &mut emit)?;
-        Ok(world_done(&w.job.id, w.node, w.counter, &summary))
+        let Some(r) = &prepared.refine else {
+            let summary = run_world(&prepared.template, w.seed, opts, &mut emit)?;
+            return Ok(world_done(&w.job.id, w.node, w.counter, &summary));
+        };
+        // The store keeps whole worlds: the child is recorded whole (its parent's frames
+        // before the branch, encoded again), so it browses, fetches and exports like any world.
+        let child = r.parent.refine_whole(&r.objects, w.seed, opts, &mut emit)?;
+        Ok(WorldDone {
+            lineage: Some(lineage_to_wire(&r.root_job, &child.lineage)),
+            active_from: child
+                .active_from
+                .iter()
+                .map(|a| a.map_or(-1, i64::from))
+                .collect(),
+            ..world_done(&w.job.id, w.node, w.counter, &child.summary)
+        })
     }
 
-    fn stopped(e: &RunError) -> bool {
-        matches!(e, RunError::Stopped)
+    fn stopped(e: &WorldError) -> bool {
+        matches!(
+            e,
+            WorldError::Run(RunError::Stopped)
+                | WorldError::Refine(crate::refine::RefineError::Run(RunError::Stopped))
+        )
     }
 
     fn provenance(&self) -> String {
@@ -118,6 +243,7 @@ pub fn segment_message(
         first_frame,
         frame_count,
         body_count,
+        bodies,
         payload,
         lowres,
         encoding,
@@ -127,6 +253,7 @@ pub fn segment_message(
         PayloadEncoding::QuantisedFrames => Encoding::QuantisedFramesV1,
     };
     let body = SegmentBody {
+        bodies,
         seq,
         first_frame,
         frame_count,
@@ -175,6 +302,67 @@ mod tests {
     }
 
     #[test]
+    fn a_refine_job_regenerates_its_parent_once_and_its_worlds_carry_their_lineage() {
+        let mut j = job(JobKind::Refine, TUMBLE);
+        let scene = j.scene.clone().unwrap_or_default();
+        let err = Forward.prepare(&j, &scene).err().map(|e| e.to_string());
+        assert!(
+            err.as_deref()
+                .is_some_and(|e| e.contains("without its `refine`")),
+            "{err:?}"
+        );
+        j.refine = Some(mwb_proto::v1::Refinement {
+            parent_job: "root".into(),
+            parent_world: 3,
+            parent: Some(mwb_proto::v1::Lineage {
+                root_job: "root".into(),
+                root_seed: 5,
+                steps: Vec::new(),
+            }),
+            objects: vec![1],
+            branch_frame: 30,
+        });
+        let prepared = Forward
+            .prepare(&j, &scene)
+            .unwrap_or_else(|e| panic!("{e}"));
+        let w = WorldTask {
+            job: &j,
+            node: "n",
+            counter: 0,
+            seed: 99,
+        };
+        let mut segs = Vec::new();
+        let done = Forward
+            .run(&w, &prepared, &mut |s| {
+                segs.push(s);
+                ControlFlow::Continue(())
+            })
+            .unwrap_or_else(|e| panic!("{e}"));
+        let lineage = done.lineage.clone().unwrap_or_default();
+        assert_eq!((lineage.root_job.as_str(), lineage.root_seed), ("root", 5));
+        assert_eq!(lineage.steps.len(), 1);
+        assert_eq!((lineage.steps[0].frame, lineage.steps[0].seed), (30, 99));
+        assert_eq!(done.active_from[1], 30);
+        // The whole world, from its first segment, every body.
+        assert_eq!(segs[0].first_frame, 0);
+        assert!(
+            segs.iter()
+                .all(|s| s.bodies.is_empty() && s.body_count == 5)
+        );
+        assert_eq!(done.segment_count as usize, segs.len());
+        // A parent frame past its end is refused when the job is prepared.
+        if let Some(r) = j.refine.as_mut() {
+            r.branch_frame = 1_000_000;
+        }
+        let err = Forward.prepare(&j, &scene).err().map(|e| e.to_string());
+        assert!(
+            err.as_deref()
+                .is_some_and(|e| e.contains("parent world 3: frame: 1000000")),
+            "{err:?}"
+        );
+    }
+
+    #[test]
     fn a_world_runs_to_its_summary_and_stops_when_emit_breaks() {
         let j = job(JobKind::Sample, TUMBLE);
         let scene = j.scene.clone().unwrap_or_default();
@@ -200,7 +388,7 @@ mod tests {
         assert!(segs.iter().all(|s| s.node_id == "n" && s.seed == 17));
         assert!(matches!(
             Forward.run(&w, &template, &mut |_| ControlFlow::Break(())),
-            Err(RunError::Stopped)
+            Err(WorldError::Run(RunError::Stopped))
         ));
     }
 }

@@ -85,6 +85,9 @@ pub struct Segment {
     pub first_frame: u32,
     pub frame_count: u32,
     pub body_count: u32,
+    /// The scene indices of the bodies whose tracks the payload holds, in order; empty when it
+    /// holds every body (a refined world's segments carry only the bodies it re-simulated).
+    pub bodies: Vec<u32>,
     /// An `mwb-codec` world stream of this segment's frames, one object per body in scene order
     /// (`ENCODING_SPLINE_V1` on the wire).
     pub payload: Vec<u8>,
@@ -406,38 +409,421 @@ impl SimWorld {
         })
     }
 
-    /// Appends every body's current pose to its track.
-    fn record(&self, tracks: &mut [Track]) {
-        for (i, t) in tracks.iter_mut().enumerate() {
-            let p = self.pose(i);
-            t.positions.push(p.position);
-            t.rotations.push(p.rotation);
+    /// A copy of this world that steps exactly as this one would from here: every set rapier
+    /// keeps between steps (bodies, colliders, joints, islands, broad and narrow phase with
+    /// their warm-start impulses) is cloned; the pipelines hold only scratch memory and start
+    /// empty. Refinement forks its parent at the branch frame with it.
+    pub fn fork(&self) -> Self {
+        let w = &self.world;
+        Self {
+            world: PhysicsWorld {
+                gravity: w.gravity,
+                integration_parameters: w.integration_parameters,
+                physics_pipeline: PhysicsPipeline::new(),
+                collision_pipeline: CollisionPipeline::new(),
+                islands: w.islands.clone(),
+                broad_phase: w.broad_phase.clone(),
+                narrow_phase: w.narrow_phase.clone(),
+                bodies: w.bodies.clone(),
+                colliders: w.colliders.clone(),
+                impulse_joints: w.impulse_joints.clone(),
+                multibody_joints: w.multibody_joints.clone(),
+                soft_bodies: w.soft_bodies.clone(),
+                ccd_solver: w.ccd_solver.clone(),
+            },
+            bodies: self.bodies.clone(),
+            gravity: self.gravity,
+            dt: self.dt,
         }
     }
 
-    fn pose(&self, i: usize) -> FramePose {
+    /// Body `i`'s pose as recorded (the simulator's `f32` values, widened exactly).
+    pub fn pose(&self, i: usize) -> FramePose {
+        frame_pose(self.world.bodies[self.bodies[i]].position())
+    }
+
+    /// Body `i`'s exact state.
+    pub(crate) fn state(&self, i: usize) -> BodyState {
         let rb = &self.world.bodies[self.bodies[i]];
-        let p = rb.position();
-        let q = p.rotation;
-        FramePose {
-            position: to_v3(p.translation),
-            rotation: [
-                f64::from(q.x),
-                f64::from(q.y),
-                f64::from(q.z),
-                f64::from(q.w),
-            ],
+        BodyState {
+            pose: *rb.position(),
+            linvel: rb.linvel(),
+            angvel: rb.angvel(),
+            sleeping: rb.is_sleeping(),
         }
     }
 }
 
+/// A rapier pose as a recorded frame pose (`f32` → `f64` is exact).
+pub(crate) fn frame_pose(p: &Pose) -> FramePose {
+    let q = p.rotation;
+    FramePose {
+        position: to_v3(p.translation),
+        rotation: [
+            f64::from(q.x),
+            f64::from(q.y),
+            f64::from(q.z),
+            f64::from(q.w),
+        ],
+    }
+}
+
+/// One body's state at one frame exactly as the simulator holds it (`f32`): what refinement
+/// needs of a parent world to fork it and to move its inactive bodies.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BodyState {
+    pub pose: Pose,
+    pub linvel: Vector,
+    pub angvel: Vector,
+    pub sleeping: bool,
+}
+
 /// Per-body state the stepper carries between steps.
-struct Tracker {
+#[derive(Debug, Clone, Copy, Default)]
+pub(crate) struct Tracker {
     in_impact: bool,
-    impacts: u32,
+    pub(crate) impacts: u32,
     /// The last step after which the body was above the rest thresholds.
     last_moving_step: Option<u64>,
     resting: bool,
+}
+
+/// A world being stepped: the simulator and everything the stepper carries from one step to the
+/// next, so that a world can be continued from any frame ([`Progress::fork`]).
+pub(crate) struct Progress {
+    pub sim: SimWorld,
+    pub trackers: Vec<Tracker>,
+    /// Steps taken, which is the index of the frame the simulator holds.
+    pub steps: u64,
+    pub perturbations: u32,
+    /// How long every body has been resting.
+    pub rest_time: f64,
+    pub rested: bool,
+}
+
+impl Progress {
+    pub fn new(sim: SimWorld) -> Self {
+        let n = sim.bodies.len();
+        Self {
+            sim,
+            trackers: vec![Tracker::default(); n],
+            steps: 0,
+            perturbations: 0,
+            rest_time: 0.0,
+            rested: false,
+        }
+    }
+
+    pub fn fork(&self) -> Self {
+        Self {
+            sim: self.sim.fork(),
+            trackers: self.trackers.clone(),
+            steps: self.steps,
+            perturbations: self.perturbations,
+            rest_time: self.rest_time,
+            rested: self.rested,
+        }
+    }
+
+    /// Per body, the time of the first frame from which it stayed resting (see
+    /// [`WorldSummary::rest_time_s`]).
+    fn rest_times(&self, dt: f64) -> Vec<f64> {
+        // Frame k is recorded after step k: a body last moving after step k rests from frame
+        // k + 1.
+        self.trackers
+            .iter()
+            .map(|t| match t.last_moving_step {
+                None => 0.0,
+                Some(k) if t.resting => (k + 1) as f64 * dt,
+                Some(_) => self.steps as f64 * dt,
+            })
+            .collect()
+    }
+}
+
+/// A body the simulator does not move itself at a step: it follows a parent world's motion
+/// (refinement's inactive set). Its velocities and sleep state are the parent's.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Followed {
+    pub before: BodyState,
+    pub after: BodyState,
+}
+
+/// What distinguishes one kind of run from another inside the one stepping loop, so that a
+/// refined world and its parent step through the same code.
+pub(crate) trait StepHooks {
+    /// Just before the step from frame `p.steps`.
+    fn before_step(&mut self, _p: &mut Progress) {}
+    /// `Some` when body `i` follows a parent's motion into frame `frame` instead of being
+    /// simulated (then it is neither perturbed nor counted from the simulator's velocities).
+    fn followed(&self, _i: usize, _frame: u64) -> Option<Followed> {
+        None
+    }
+    /// Frame `p.steps` is complete (recorded by the hook, if it records).
+    fn frame(&mut self, p: &Progress) -> Result<(), RunError>;
+}
+
+/// The stepping loop (§4.1.2): step, count impacts from the contact part of each body's velocity
+/// change, perturb the simulated bodies, track rest; until every body has rested for
+/// `rest_hold` or the scene's end time.
+pub(crate) fn advance(
+    scene: &Scene,
+    p: &mut Progress,
+    rng: &mut WorldRng,
+    perturb_on: bool,
+    hooks: &mut dyn StepHooks,
+) -> Result<(), RunError> {
+    let s = &scene.settings;
+    let n = p.sim.bodies.len();
+    let dt = s.dt;
+    let max_steps = (s.end_time / dt).ceil() as u64;
+    let mut before: Vec<(V3, V3)> = vec![([0.0; 3], [0.0; 3]); n];
+    let zero = [0.0; 3];
+    while p.steps < max_steps && !p.rested {
+        hooks.before_step(p);
+        for (i, h) in p.sim.bodies.iter().enumerate() {
+            let rb = &p.sim.world.bodies[*h];
+            before[i] = (to_v3(rb.linvel()), to_v3(rb.angvel()));
+        }
+        p.sim.world.step();
+        p.steps += 1;
+
+        let mut all_rest = true;
+        for (i, before) in before.iter_mut().enumerate() {
+            let tracker = &mut p.trackers[i];
+            let (v, w, sleeping) = match hooks.followed(i, p.steps) {
+                Some(f) => {
+                    // The parent's own velocity change: the same impacts as the parent counted.
+                    let (v0, w0) = (to_v3(f.before.linvel), to_v3(f.before.angvel));
+                    let (v, w) = (to_v3(f.after.linvel), to_v3(f.after.angvel));
+                    if !f.after.sleeping {
+                        let rate_v = perturb::impact_rate(v0, v, p.sim.gravity, dt);
+                        let rate_w = perturb::impact_rate(w0, w, zero, dt);
+                        let hit =
+                            perturb::norm(rate_v) > s.c_v || perturb::norm(rate_w) > s.c_omega;
+                        if hit && !tracker.in_impact {
+                            tracker.impacts += 1;
+                        }
+                        tracker.in_impact = hit;
+                    } else {
+                        tracker.in_impact = false;
+                    }
+                    (v, w, f.after.sleeping)
+                }
+                None => {
+                    let rb = &mut p.sim.world.bodies[p.sim.bodies[i]];
+                    let v = to_v3(rb.linvel());
+                    let w = to_v3(rb.angvel());
+                    if !rb.is_sleeping() {
+                        // §4.1.2: the contact part of the velocity change, compared with C_v / C_ω.
+                        let rate_v = perturb::impact_rate(before.0, v, p.sim.gravity, dt);
+                        let rate_w = perturb::impact_rate(before.1, w, zero, dt);
+                        let hit =
+                            perturb::norm(rate_v) > s.c_v || perturb::norm(rate_w) > s.c_omega;
+                        if hit && !tracker.in_impact {
+                            tracker.impacts += 1;
+                        }
+                        tracker.in_impact = hit;
+                        if perturb_on {
+                            let dv = perturb::perturbation(
+                                rate_v,
+                                s.c_v,
+                                dt,
+                                s.alpha,
+                                s.cos_exponent,
+                                rng,
+                            );
+                            let dw = perturb::perturbation(
+                                rate_w,
+                                s.c_omega,
+                                dt,
+                                s.alpha,
+                                s.cos_exponent,
+                                rng,
+                            );
+                            if let Some(d) = dv {
+                                rb.set_linvel(v3([v[0] + d[0], v[1] + d[1], v[2] + d[2]]), true);
+                                p.perturbations += 1;
+                            }
+                            if let Some(d) = dw {
+                                rb.set_angvel(v3([w[0] + d[0], w[1] + d[1], w[2] + d[2]]), true);
+                                p.perturbations += 1;
+                            }
+                        }
+                    } else {
+                        tracker.in_impact = false;
+                    }
+                    (v, w, rb.is_sleeping())
+                }
+            };
+            let resting =
+                sleeping || (perturb::norm(v) < s.rest_linear && perturb::norm(w) < s.rest_angular);
+            if !resting {
+                tracker.last_moving_step = Some(p.steps);
+            }
+            tracker.resting = resting;
+            all_rest &= resting;
+        }
+
+        hooks.frame(p)?;
+        p.rest_time = if all_rest { p.rest_time + dt } else { 0.0 };
+        if p.rest_time >= s.rest_hold - 1e-9 {
+            p.rested = true;
+        }
+    }
+    Ok(())
+}
+
+/// Turns recorded frames into [`Segment`]s: every `segment_seconds` of frames of the chosen
+/// bodies become one self-contained codec world (or quantised frames), emitted at once.
+pub(crate) struct Recorder<'a> {
+    opts: RunOptions,
+    dt: f64,
+    frames_per_segment: usize,
+    params: EncodeParams,
+    dynamics: Option<RotationDynamics>,
+    /// The frames of the segment being recorded, one track per body.
+    pub pending: Vec<Track>,
+    /// Frames recorded so far (the next frame's index).
+    pub frame_count: u32,
+    pub segment_count: u32,
+    pub payload_bytes: u64,
+    /// The bodies a segment carries (all, unless a refinement chooses).
+    pub keep: Vec<bool>,
+    emit: &'a mut dyn FnMut(Segment) -> ControlFlow<()>,
+    observe: &'a mut dyn FnMut(&[Track]),
+}
+
+impl<'a> Recorder<'a> {
+    pub fn new(
+        scene: &Scene,
+        sim: &SimWorld,
+        opts: RunOptions,
+        emit: &'a mut dyn FnMut(Segment) -> ControlFlow<()>,
+        observe: &'a mut dyn FnMut(&[Track]),
+    ) -> Self {
+        let s = &scene.settings;
+        let frames_per_segment = frames_per_segment(scene);
+        Self {
+            opts,
+            dt: s.dt,
+            frames_per_segment,
+            params: EncodeParams::from_quality(opts.quality, s.dt, motion_model(scene)),
+            dynamics: rotation_dynamics(scene, sim),
+            pending: (0..sim.bodies.len())
+                .map(|_| Track {
+                    positions: Vec::with_capacity(frames_per_segment),
+                    rotations: Vec::with_capacity(frames_per_segment),
+                })
+                .collect(),
+            frame_count: 0,
+            segment_count: 0,
+            payload_bytes: 0,
+            keep: vec![true; sim.bodies.len()],
+            emit,
+            observe,
+        }
+    }
+
+    /// Appends one frame (one pose per body); a full segment is emitted at once.
+    pub fn push(&mut self, poses: impl Iterator<Item = FramePose>) -> Result<(), RunError> {
+        for (t, p) in self.pending.iter_mut().zip(poses) {
+            t.positions.push(p.position);
+            t.rotations.push(p.rotation);
+        }
+        self.frame_count += 1;
+        if self.pending.first().map_or(0, Track::len) >= self.frames_per_segment {
+            self.flush()?;
+        }
+        Ok(())
+    }
+
+    /// Emits the frames recorded since the last segment (nothing if there are none), with the
+    /// bodies [`Recorder::keep`] selects; the segment lists them in [`Segment::bodies`] unless it
+    /// has them all.
+    pub fn flush(&mut self) -> Result<(), RunError> {
+        let frame_count = self.pending.first().map_or(0, Track::len) as u32;
+        if frame_count == 0 {
+            return Ok(());
+        }
+        let chosen: Vec<usize> = (0..self.pending.len()).filter(|&b| self.keep[b]).collect();
+        let all = chosen.len() == self.pending.len();
+        let tracks: Vec<Track>;
+        let (selected, dynamics): (&[Track], Option<RotationDynamics>) = if all {
+            (&self.pending, self.dynamics.clone())
+        } else {
+            tracks = chosen.iter().map(|&b| self.pending[b].clone()).collect();
+            let dynamics = self.dynamics.as_ref().map(|d| RotationDynamics {
+                inertia: chosen
+                    .iter()
+                    .map(|&b| d.inertia.get(b).copied().flatten())
+                    .collect(),
+                ..d.clone()
+            });
+            (&tracks, dynamics)
+        };
+        let n = selected.len();
+        let (payload, lowres) = match self.opts.encoding {
+            // Each segment is its own codec world, so it decodes without its neighbours.
+            PayloadEncoding::Spline => {
+                let encoded =
+                    encode_world_with_dynamics(selected, &self.params, dynamics.as_ref())?;
+                (encoded.bytes, encoded.lowres)
+            }
+            PayloadEncoding::QuantisedFrames => {
+                let frames = frame_count as usize;
+                let poses: Vec<FramePose> = (0..frames)
+                    .flat_map(|f| {
+                        selected.iter().map(move |t| FramePose {
+                            position: t.positions[f],
+                            rotation: t.rotations[f],
+                        })
+                    })
+                    .collect();
+                let lowres = selected
+                    .iter()
+                    .map(|t| {
+                        LowResPath::from_positions(
+                            &t.positions,
+                            self.dt,
+                            mwb_codec::DEFAULT_LOWRES_HZ,
+                        )
+                    })
+                    .collect();
+                (mwb_core::frames::encode(&poses, n)?, lowres)
+            }
+        };
+        (self.observe)(selected);
+        self.payload_bytes += payload.len() as u64;
+        let seg = Segment {
+            seq: self.segment_count,
+            first_frame: self.frame_count - frame_count,
+            frame_count,
+            body_count: n as u32,
+            bodies: if all {
+                Vec::new()
+            } else {
+                chosen.iter().map(|&b| b as u32).collect()
+            },
+            payload,
+            lowres,
+            encoding: self.opts.encoding,
+        };
+        for t in self.pending.iter_mut() {
+            t.positions.clear();
+            t.rotations.clear();
+        }
+        self.segment_count += 1;
+        match (self.emit)(seg) {
+            ControlFlow::Continue(()) => Ok(()),
+            ControlFlow::Break(()) => Err(RunError::Stopped),
+        }
+    }
+}
+
+/// Frames per recorded segment: `segment_seconds` of them, at least one.
+pub fn frames_per_segment(scene: &Scene) -> usize {
+    ((scene.settings.segment_seconds / scene.settings.dt).round() as usize).max(1)
 }
 
 /// Runs one world of `template` from `seed`: instantiate, build, step with perturbations until
@@ -455,6 +841,20 @@ pub fn run_world(
     run_world_observed(template, seed, opts, emit, &mut |_| {})
 }
 
+/// Records every frame of a root world.
+struct RootHooks<'r, 'a> {
+    rec: Option<&'r mut Recorder<'a>>,
+}
+
+impl StepHooks for RootHooks<'_, '_> {
+    fn frame(&mut self, p: &Progress) -> Result<(), RunError> {
+        match self.rec.as_deref_mut() {
+            Some(rec) => rec.push((0..p.sim.bodies.len()).map(|i| p.sim.pose(i))),
+            None => Ok(()),
+        }
+    }
+}
+
 /// [`run_world`], also handing `observe` the simulated poses of every segment (one [`Track`] per
 /// body, full rate, before encoding), just before the segment is emitted. For tests and the codec
 /// benchmark, which compare them with what the payload decodes to; the segments are the same.
@@ -466,184 +866,38 @@ pub fn run_world_observed(
     observe: &mut dyn FnMut(&[Track]),
 ) -> Result<WorldSummary, RunError> {
     let scene = template.instantiate(seed);
-    let mut sim = SimWorld::build(&scene)?;
-    let s = &scene.settings;
-    let n = sim.bodies.len();
-    let dt = s.dt;
+    let sim = SimWorld::build(&scene)?;
+    let mut p = Progress::new(sim);
     let mut rng = WorldRng::new(seed, Stream::Perturbation);
-    let frames_per_segment = ((s.segment_seconds / dt).round() as usize).max(1);
-    let max_steps = (s.end_time / dt).ceil() as u64;
-
-    let mut trackers: Vec<Tracker> = (0..n)
-        .map(|_| Tracker {
-            in_impact: false,
-            impacts: 0,
-            last_moving_step: None,
-            resting: false,
-        })
-        .collect();
-    let params = EncodeParams::from_quality(opts.quality, dt, motion_model(&scene));
-    let dynamics = rotation_dynamics(&scene, &sim);
-    // The frames of the segment being recorded, one track per body.
-    let mut pending: Vec<Track> = (0..n)
-        .map(|_| Track {
-            positions: Vec::with_capacity(frames_per_segment),
-            rotations: Vec::with_capacity(frames_per_segment),
-        })
-        .collect();
-    let mut summary = WorldSummary {
-        seed,
-        frame_count: 0,
-        segment_count: 0,
-        frame_dt: dt,
-        rested: false,
-        impacts: Vec::new(),
-        rest_time_s: Vec::new(),
-        body_rested: Vec::new(),
-        perturbations: 0,
-        steps: 0,
-        payload_bytes: 0,
-    };
-    let mut flush = |pending: &mut [Track], summary: &mut WorldSummary| {
-        let frame_count = pending.first().map_or(0, Track::len) as u32;
-        if frame_count == 0 {
-            return Ok(());
-        }
-        let (payload, lowres) = match opts.encoding {
-            // Each segment is its own codec world, so it decodes without its neighbours.
-            PayloadEncoding::Spline => {
-                let encoded = encode_world_with_dynamics(pending, &params, dynamics.as_ref())?;
-                (encoded.bytes, encoded.lowres)
-            }
-            PayloadEncoding::QuantisedFrames => {
-                let frames = frame_count as usize;
-                let poses: Vec<FramePose> = (0..frames)
-                    .flat_map(|f| {
-                        pending.iter().map(move |t| FramePose {
-                            position: t.positions[f],
-                            rotation: t.rotations[f],
-                        })
-                    })
-                    .collect();
-                let lowres = pending
-                    .iter()
-                    .map(|t| {
-                        LowResPath::from_positions(&t.positions, dt, mwb_codec::DEFAULT_LOWRES_HZ)
-                    })
-                    .collect();
-                (mwb_core::frames::encode(&poses, n)?, lowres)
-            }
-        };
-        observe(pending);
-        summary.payload_bytes += payload.len() as u64;
-        let seg = Segment {
-            seq: summary.segment_count,
-            first_frame: summary.frame_count - frame_count,
-            frame_count,
-            body_count: n as u32,
-            payload,
-            lowres,
-            encoding: opts.encoding,
-        };
-        for t in pending.iter_mut() {
-            t.positions.clear();
-            t.rotations.clear();
-        }
-        summary.segment_count += 1;
-        match emit(seg) {
-            ControlFlow::Continue(()) => Ok(()),
-            ControlFlow::Break(()) => Err(RunError::Stopped),
-        }
-    };
-
+    let mut rec = Recorder::new(&scene, &p.sim, opts, emit, observe);
+    let n = p.sim.bodies.len();
     // Frame 0: the initial state.
     if opts.record {
-        sim.record(&mut pending);
-        summary.frame_count += 1;
+        rec.push((0..n).map(|i| p.sim.pose(i)))?;
     }
-    let mut before: Vec<(V3, V3)> = vec![([0.0; 3], [0.0; 3]); n];
-    let mut rest_time = 0.0;
-    let zero = [0.0; 3];
-    while summary.steps < max_steps {
-        for (i, h) in sim.bodies.iter().enumerate() {
-            let rb = &sim.world.bodies[*h];
-            before[i] = (to_v3(rb.linvel()), to_v3(rb.angvel()));
-        }
-        sim.world.step();
-        summary.steps += 1;
-
-        let mut all_rest = true;
-        for (i, h) in sim.bodies.iter().enumerate() {
-            let rb = &mut sim.world.bodies[*h];
-            let v = to_v3(rb.linvel());
-            let w = to_v3(rb.angvel());
-            if !rb.is_sleeping() {
-                // §4.1.2: the contact part of the velocity change, compared with C_v / C_ω.
-                let rate_v = perturb::impact_rate(before[i].0, v, sim.gravity, dt);
-                let rate_w = perturb::impact_rate(before[i].1, w, zero, dt);
-                let hit = perturb::norm(rate_v) > s.c_v || perturb::norm(rate_w) > s.c_omega;
-                if hit && !trackers[i].in_impact {
-                    trackers[i].impacts += 1;
-                }
-                trackers[i].in_impact = hit;
-                if opts.perturb {
-                    let dv =
-                        perturb::perturbation(rate_v, s.c_v, dt, s.alpha, s.cos_exponent, &mut rng);
-                    let dw = perturb::perturbation(
-                        rate_w,
-                        s.c_omega,
-                        dt,
-                        s.alpha,
-                        s.cos_exponent,
-                        &mut rng,
-                    );
-                    if let Some(d) = dv {
-                        rb.set_linvel(v3([v[0] + d[0], v[1] + d[1], v[2] + d[2]]), true);
-                        summary.perturbations += 1;
-                    }
-                    if let Some(d) = dw {
-                        rb.set_angvel(v3([w[0] + d[0], w[1] + d[1], w[2] + d[2]]), true);
-                        summary.perturbations += 1;
-                    }
-                }
-            } else {
-                trackers[i].in_impact = false;
-            }
-            let resting = rb.is_sleeping()
-                || (perturb::norm(v) < s.rest_linear && perturb::norm(w) < s.rest_angular);
-            if !resting {
-                trackers[i].last_moving_step = Some(summary.steps);
-            }
-            trackers[i].resting = resting;
-            all_rest &= resting;
-        }
-
-        if opts.record {
-            sim.record(&mut pending);
-            summary.frame_count += 1;
-            if pending.first().map_or(0, Track::len) >= frames_per_segment {
-                flush(&mut pending, &mut summary)?;
-            }
-        }
-        rest_time = if all_rest { rest_time + dt } else { 0.0 };
-        if rest_time >= s.rest_hold - 1e-9 {
-            summary.rested = true;
-            break;
-        }
-    }
+    let mut hooks = RootHooks {
+        rec: opts.record.then_some(&mut rec),
+    };
+    advance(&scene, &mut p, &mut rng, opts.perturb, &mut hooks)?;
     if opts.record {
-        flush(&mut pending, &mut summary)?;
+        rec.flush()?;
     }
-    summary.impacts = trackers.iter().map(|t| t.impacts).collect();
-    // Frame k is recorded after step k: a body last moving after step k rests from frame k + 1.
-    summary.rest_time_s = trackers
-        .iter()
-        .map(|t| match t.last_moving_step {
-            None => 0.0,
-            Some(k) if t.resting => (k + 1) as f64 * dt,
-            Some(_) => summary.steps as f64 * dt,
-        })
-        .collect();
-    summary.body_rested = trackers.iter().map(|t| t.resting).collect();
-    Ok(summary)
+    Ok(summary_of(&p, &rec, seed, scene.settings.dt))
+}
+
+/// The summary of a finished world.
+pub(crate) fn summary_of(p: &Progress, rec: &Recorder<'_>, seed: u64, dt: f64) -> WorldSummary {
+    WorldSummary {
+        seed,
+        frame_count: rec.frame_count,
+        segment_count: rec.segment_count,
+        frame_dt: dt,
+        rested: p.rested,
+        impacts: p.trackers.iter().map(|t| t.impacts).collect(),
+        rest_time_s: p.rest_times(dt),
+        body_rested: p.trackers.iter().map(|t| t.resting).collect(),
+        perturbations: p.perturbations,
+        steps: p.steps,
+        payload_bytes: rec.payload_bytes,
+    }
 }

@@ -549,6 +549,7 @@ impl Shard {
                     constraints_satisfied: set.satisfied_count(w.world),
                     in_result: set.result().contains(w.world),
                     shard: self.name.clone(),
+                    refined: w.refined.as_deref().cloned(),
                 })),
             },
             Request::Bodies => Reply::Bodies {
@@ -660,6 +661,7 @@ mod tests {
                 final_rotation: [0.0, 0.0, 0.0, 1.0],
             }],
             world_metrics: Default::default(),
+            refined: None,
         }
     }
 

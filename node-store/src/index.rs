@@ -4,6 +4,7 @@
 
 use crate::assembly::StoredWorld;
 use mwb_codec::WorldReader;
+use mwb_core::browse::api::{RefineStep, Refined};
 use mwb_core::browse::{ObjectMetrics, PathTree, Polyline, RestThresholds, Track, WorldMetrics};
 use mwb_proto::v1::{Encoding, IndexedPaths, Job, MotionSegment, ObjectPath};
 use std::sync::Arc;
@@ -79,6 +80,8 @@ pub struct IndexedWorld {
     pub metrics: Vec<ObjectMetrics>,
     /// Per-world measurements from the world's summary (plausibility of backward worlds).
     pub world_metrics: WorldMetrics,
+    /// A refined world's lineage (§4.5); `None` for sampled worlds.
+    pub refined: Option<Box<Refined>>,
 }
 
 impl IndexedWorld {
@@ -312,5 +315,25 @@ pub fn index_world(
             energy_growth: done.energy_growth.filter(|v| !v.is_nan()),
             angular_speed_growth: done.angular_speed_growth.filter(|v| !v.is_nan()),
         },
+        refined: done.lineage.as_ref().map(|l| {
+            Box::new(Refined {
+                root_job: l.root_job.clone(),
+                root_seed: l.root_seed,
+                steps: l
+                    .steps
+                    .iter()
+                    .map(|s| RefineStep {
+                        frame: s.frame,
+                        objects: s.objects.clone(),
+                        seed: s.seed,
+                    })
+                    .collect(),
+                active_from: done
+                    .active_from
+                    .iter()
+                    .map(|&f| u32::try_from(f).ok())
+                    .collect(),
+            })
+        }),
     })
 }

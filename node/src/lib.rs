@@ -48,6 +48,7 @@
 //!         emit: &mut dyn FnMut(MotionSegment) -> ControlFlow<()>,
 //!     ) -> Result<WorldDone, Stopped> {
 //!         let body = SegmentBody {
+//!             bodies: Vec::new(),
 //!             seq: 0,
 //!             first_frame: 0,
 //!             frame_count: 1,

@@ -21,6 +21,8 @@ pub struct SegmentBody {
     pub first_frame: u32,
     pub frame_count: u32,
     pub body_count: u32,
+    /// The scene indices of the bodies the payload holds, in order; empty: every body.
+    pub bodies: Vec<u32>,
     /// How `payload` is encoded.
     pub encoding: Encoding,
     pub payload: Vec<u8>,
@@ -46,6 +48,7 @@ pub fn segment_message(
         first_frame: body.first_frame,
         frame_count: body.frame_count,
         body_count: body.body_count,
+        bodies: body.bodies,
         encoding: body.encoding as i32,
         crc32: crc32fast::hash(&body.payload),
         lowres: Some(lowres_message(&body.lowres, mwb_codec::DEFAULT_LOWRES_HZ)),
@@ -101,11 +104,14 @@ pub fn world_digest(segments: &[MotionSegment], done: &WorldDone) -> u32 {
             payload,
             crc32: _,
             lowres,
+            bodies,
         } = s;
         h.update(&seed.to_le_bytes());
         for x in [seq, first_frame, frame_count, body_count] {
             h.update(&x.to_le_bytes());
         }
+        // Nothing for a segment with every body, so sampled worlds keep their digests.
+        bodies.iter().for_each(|b| h.update(&b.to_le_bytes()));
         h.update(&encoding.to_le_bytes());
         h.update(&(payload.len() as u64).to_le_bytes());
         h.update(payload);
@@ -144,7 +150,20 @@ pub fn world_digest(segments: &[MotionSegment], done: &WorldDone) -> u32 {
         body_rested,
         energy_growth,
         angular_speed_growth,
+        lineage,
+        active_from,
     } = done;
+    // Nothing for a sampled world (no lineage, no active_from), so their digests stay.
+    if let Some(l) = lineage {
+        h.update(l.root_job.as_bytes());
+        h.update(&l.root_seed.to_le_bytes());
+        for step in &l.steps {
+            h.update(&step.frame.to_le_bytes());
+            h.update(&step.seed.to_le_bytes());
+            step.objects.iter().for_each(|o| h.update(&o.to_le_bytes()));
+        }
+    }
+    active_from.iter().for_each(|x| h.update(&x.to_le_bytes()));
     for x in [seed, sim_steps, scene_hash] {
         h.update(&x.to_le_bytes());
     }
@@ -188,6 +207,7 @@ mod tests {
             3,
             9,
             SegmentBody {
+                bodies: Vec::new(),
                 seq: 1,
                 first_frame: 10,
                 frame_count: 5,
@@ -215,6 +235,7 @@ mod tests {
             3,
             9,
             SegmentBody {
+                bodies: Vec::new(),
                 seq: 0,
                 first_frame: 0,
                 frame_count: 5,

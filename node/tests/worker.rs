@@ -55,6 +55,7 @@ impl WorkerKind for Trivial {
         }
         for seq in 0..2 {
             let body = SegmentBody {
+                bodies: Vec::new(),
                 seq,
                 first_frame: seq * 10,
                 frame_count: 10,

@@ -7,8 +7,10 @@ use clap::Subcommand;
 pub mod codec;
 pub mod query;
 pub mod record;
+pub mod refine;
 pub mod reverse;
 pub mod sampler;
+pub mod scene;
 pub mod stepper;
 pub mod viewer;
 
@@ -31,6 +33,11 @@ pub enum BenchCommand {
     /// The live viewer over a store of many worlds: UI frame CPU time, box → survivor count
     /// round trip, world pick → playback.
     Viewer(viewer::ViewerArgs),
+    /// Refinement (§4.5) against fresh worlds: CPU per world, active fraction, stored bytes,
+    /// parent regeneration.
+    Refine(refine::RefineArgs),
+    /// Validating big scene files: parse and instantiate time by body count.
+    Scene(scene::SceneArgs),
 }
 
 /// Runs `mwb bench …`.
@@ -42,7 +49,9 @@ pub async fn run(command: BenchCommand) -> Result<()> {
         BenchCommand::Query(args) => query::run(args).await,
         BenchCommand::Codec(args) => codec::run(args),
         BenchCommand::Record(args) => record::run(args).await,
+        BenchCommand::Refine(args) => refine::run(args).await,
         BenchCommand::Viewer(args) => viewer::run(args).await,
+        BenchCommand::Scene(args) => scene::run(args),
     }
 }
 

@@ -379,6 +379,7 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
             objects: objs,
             metrics,
             world_metrics: Default::default(),
+            refined: None,
         };
         synthetic.push(w);
     }

@@ -153,6 +153,28 @@ pub struct WorldSummary {
     pub in_result: bool,
     /// The shard (store node) holding it.
     pub shard: String,
+    /// A refined world (§4.5): how it came to be. Absent for sampled worlds.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refined: Option<Refined>,
+}
+
+/// How a refined world came to be: its root world, then each refinement in order (the last is
+/// the world's own), and from which frame each body's motion is new in it.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Refined {
+    pub root_job: String,
+    pub root_seed: u64,
+    pub steps: Vec<RefineStep>,
+    /// Per body, the first frame of new motion; `None`: the parent's motion throughout.
+    pub active_from: Vec<Option<u32>>,
+}
+
+/// One refinement: from frame `frame` of its parent, `objects` re-simulated with seed `seed`.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RefineStep {
+    pub frame: u32,
+    pub objects: Vec<u32>,
+    pub seed: u64,
 }
 
 /// A shard's (or, merged, node-query's) answer.

@@ -1,0 +1,935 @@
+//! Refinement (Twigg and James, SIGGRAPH 2007, §4.5): re-simulate only the part of an
+//! almost-right world that goes wrong.
+//!
+//! The animator picks objects and a screen box over the part of their path that must change.
+//! The branch frame `t_min` is the first frame at which any picked object's centre of mass is
+//! inside the box's frustum, on the parent's own motion. From there a *child* world is stepped
+//! with three sets of objects (the paper's Figure 4.12):
+//!
+//! * **active** bodies are simulated and perturbed (§4.1.2) — at first only the picked ones;
+//! * **inactive** bodies are kinematic and replay the parent's motion exactly;
+//! * every active body has a **ghost** that replays its parent motion.
+//!
+//! An inactive body that an active body is about to touch becomes active (Figure 4.11a: it must
+//! respond to the new motion), and so does one that an active body's ghost is about to touch
+//! (Figure 4.11b: the parent's version of the active body hit it, the new one may not). Bodies
+//! joined by a joint change sets together. We activate *before* the step in which the contact
+//! could happen, by a conservative distance test (parry's exact distance between the shapes
+//! against the distance both can cover in one step plus the contact prediction distance). The
+//! paper reads interactions from the simulator's callbacks instead; rapier reports contacts after
+//! the step has solved them, so an inactive body would act as an immovable wall for one step.
+//! Interactions between two inactive bodies change nothing (both replay one physically valid
+//! motion), so unlike a literal reading of Figure 4.12 they do not activate anything.
+//!
+//! Neither does an active body that still follows its parent motion: until it is further than
+//! 1 mm from it ([`FOLLOW_TOLERANCE_M`], the standard codec bound; position, rotation at its
+//! bounding radius, and what its velocity difference makes of one step), it does to its
+//! neighbours what its parent
+//! version did, which their replayed motion already contains. Without this gate every refinement
+//! of a body in a stack would activate the whole stack through resting contacts (the paper's
+//! rule), and refining the projectile of `scenes/tower.toml` would cost a full world; with it
+//! the refined world is physically consistent to within the precision its parent is stored at.
+//!
+//! **Exact parents.** A world is regenerated from its [`Lineage`] (root seed, then each
+//! refinement's branch frame, objects and seed): the sampler is deterministic, so the
+//! regenerated parent is the stored world bit for bit, the child starts from the parent's exact
+//! simulator state at the branch frame (bodies, contacts and their warm-start impulses — a fork of
+//! rapier's sets), and inactive bodies replay the parent's exact `f32` poses rather than the
+//! stored, lossy ones (the paper replayed stored motion). One regenerated [`Parent`] serves any
+//! number of children.
+//!
+//! **What a child records.** Only the bodies that became active, as segments on the parent's
+//! segment grid from the one holding the branch frame on ([`Segment::bodies`] names them); the
+//! rest of the world is the parent's. [`RefinedWorld::active_from`] says from which frame each
+//! body's motion is new. [`Parent::refine_whole`] records the whole world instead, which is what
+//! samplers send today (the store does not yet compose a refined world from its parent).
+//! Whatever is recorded, the simulation is the same: a refined world regenerates from its
+//! lineage alone.
+
+use crate::world::{
+    BodyState, Followed, Progress, Recorder, RunError, RunOptions, Segment, SimWorld, StepHooks,
+    WorldSummary, advance, frame_pose, frames_per_segment, summary_of,
+};
+use mwb_core::browse::Frustum;
+use mwb_core::rng::{Stream, WorldRng};
+use mwb_core::scene::{BodyRef, Scene, SceneTemplate};
+use rapier3d::parry::bounding_volume::{Aabb, BoundingVolume};
+use rapier3d::prelude::*;
+use std::ops::ControlFlow;
+
+/// How far (metres) an active body may be from its parent motion and still count as following
+/// it (see the module docs): the standard codec bound. A constant, not the job's codec quality,
+/// so that a world regenerates to the same motion whatever quality it was recorded at.
+pub const FOLLOW_TOLERANCE_M: f32 = 1e-3;
+
+/// How a world came to be: a root world of the job's scene from `root_seed`, then each
+/// refinement in order. Regenerating a world means replaying its lineage.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct Lineage {
+    pub root_seed: u64,
+    pub steps: Vec<Branch>,
+}
+
+/// One refinement: from frame `frame` of its parent, the bodies `objects` were re-simulated with
+/// perturbation seed `seed`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Branch {
+    pub frame: u32,
+    pub objects: Vec<u32>,
+    pub seed: u64,
+    /// Picked bodies that start with other velocities than the parent's there.
+    pub kicks: Vec<Kick>,
+}
+
+/// A picked body's velocities replaced at the branch frame: a scene edit that changes an
+/// object's motion, and the way tests force a child to diverge.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Kick {
+    pub body: u32,
+    pub linvel: [f64; 3],
+    pub angvel: [f64; 3],
+}
+
+impl Eq for Kick {}
+
+impl Lineage {
+    /// A root world.
+    pub fn root(seed: u64) -> Self {
+        Self {
+            root_seed: seed,
+            steps: Vec::new(),
+        }
+    }
+
+    /// This world's child by `branch`.
+    pub fn child(&self, branch: Branch) -> Self {
+        let mut out = self.clone();
+        out.steps.push(branch);
+        out
+    }
+}
+
+/// Where to fork the regenerated parent.
+#[derive(Debug, Clone)]
+pub enum BranchAt {
+    /// At this frame.
+    Frame(u32),
+    /// §4.5's `t_min`: the first frame at which the centre of any of these bodies is inside
+    /// the frustum.
+    FirstInside {
+        objects: Vec<u32>,
+        frustum: Box<Frustum>,
+    },
+}
+
+/// Refinements that cannot be done, each naming what is wrong.
+#[derive(Debug, thiserror::Error)]
+pub enum RefineError {
+    #[error(transparent)]
+    Run(#[from] RunError),
+    #[error("objects: none picked")]
+    NoObjects,
+    #[error("objects: body {object} out of range (the scene has {bodies} bodies)")]
+    ObjectOutOfRange { object: u32, bodies: usize },
+    #[error(
+        "frustum: the centre of {objects:?} is never inside it in the parent's {frames} frames"
+    )]
+    NeverInside { objects: Vec<u32>, frames: u32 },
+    #[error("frame: {frame} is past the parent's last frame {last}")]
+    FramePastEnd { frame: u32, last: u32 },
+    #[error("kicks: body {body} is not one of the picked objects")]
+    KickNotPicked { body: u32 },
+    #[error("lineage step {step}: {source}")]
+    Lineage {
+        step: usize,
+        #[source]
+        source: Box<RefineError>,
+    },
+}
+
+/// A world's exact motion: every body's simulator state at every frame.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct ExactMotion {
+    bodies: usize,
+    /// Frame-major: `frames × bodies`.
+    states: Vec<BodyState>,
+}
+
+impl ExactMotion {
+    /// Frames held.
+    pub fn frame_count(&self) -> u32 {
+        (self.states.len() / self.bodies.max(1)) as u32
+    }
+
+    /// Bodies per frame.
+    pub fn body_count(&self) -> usize {
+        self.bodies
+    }
+
+    /// Body `body`'s state at `frame`; after the last frame, its last pose at rest. `None` for
+    /// a body out of range or a world without frames.
+    pub fn state(&self, frame: u32, body: usize) -> Option<BodyState> {
+        if body >= self.bodies {
+            return None;
+        }
+        let frames = self.frame_count();
+        if frame < frames {
+            self.states
+                .get(frame as usize * self.bodies + body)
+                .copied()
+        } else {
+            let last = *self
+                .states
+                .get((frames as usize).checked_sub(1)? * self.bodies + body)?;
+            Some(BodyState {
+                linvel: Vector::ZERO,
+                angvel: Vector::ZERO,
+                sleeping: true,
+                ..last
+            })
+        }
+    }
+
+    /// Body `body`'s linear and angular velocity at `frame` (after that frame's step and its
+    /// perturbation), widened exactly.
+    pub fn velocities(&self, frame: u32, body: usize) -> Option<([f64; 3], [f64; 3])> {
+        let v = |x: Vector| [x.x, x.y, x.z].map(f64::from);
+        self.state(frame, body).map(|s| (v(s.linvel), v(s.angvel)))
+    }
+
+    /// Body `body`'s pose at `frame` as a recorded frame pose.
+    pub fn pose(&self, frame: u32, body: usize) -> Option<mwb_core::frames::Pose> {
+        self.state(frame, body).map(|s| frame_pose(&s.pose))
+    }
+}
+
+/// A parent world regenerated exactly, forked at its branch frame.
+pub struct Parent {
+    scene: Scene,
+    lineage: Lineage,
+    motion: ExactMotion,
+    bodies: usize,
+    fork: Progress,
+    branch_frame: u32,
+}
+
+/// A refined world.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RefinedWorld {
+    pub lineage: Lineage,
+    /// Over the whole world (the parent's frames before the branch included); `payload_bytes`
+    /// counts only the segments this child emitted.
+    pub summary: WorldSummary,
+    pub branch_frame: u32,
+    /// The first segment the child emitted (the one holding the branch frame).
+    pub first_segment: u32,
+    /// Per body, the frame from which its motion is new (`None`: the parent's throughout).
+    pub active_from: Vec<Option<u32>>,
+}
+
+impl RefinedWorld {
+    /// Bodies re-simulated ÷ bodies.
+    pub fn active_fraction(&self) -> f64 {
+        let n = self.active_from.len().max(1);
+        self.active_from.iter().filter(|a| a.is_some()).count() as f64 / n as f64
+    }
+}
+
+/// The bodies joined to each body by joints, transitively (itself included): they change sets
+/// together, since a joint to a kinematic body would drag an active one along the parent's path.
+fn joint_groups(scene: &Scene) -> Vec<Vec<usize>> {
+    let n = scene.bodies.len();
+    let mut root: Vec<usize> = (0..n).collect();
+    fn find(root: &mut [usize], mut i: usize) -> usize {
+        while root[i] != i {
+            root[i] = root[root[i]];
+            i = root[i];
+        }
+        i
+    }
+    for j in &scene.joints {
+        if let (BodyRef::Body(a), BodyRef::Body(b)) = (j.body1, j.body2) {
+            let (ra, rb) = (find(&mut root, a), find(&mut root, b));
+            root[ra] = rb;
+        }
+    }
+    let mut groups = vec![Vec::new(); n];
+    for i in 0..n {
+        let r = find(&mut root, i);
+        groups[r].push(i);
+    }
+    (0..n)
+        .map(|i| {
+            let r = find(&mut root, i);
+            groups[r].clone()
+        })
+        .collect()
+}
+
+fn check_objects(objects: &[u32], bodies: usize) -> Result<(), RefineError> {
+    if objects.is_empty() {
+        return Err(RefineError::NoObjects);
+    }
+    match objects.iter().find(|&&o| o as usize >= bodies) {
+        Some(&object) => Err(RefineError::ObjectOutOfRange { object, bodies }),
+        None => Ok(()),
+    }
+}
+
+/// What one generation (the root world or a child) leaves for the next: its exact motion from
+/// its first frame on, and forks at the frames later generations start from.
+struct Capture<'a> {
+    /// Fork at these frames.
+    frames: Vec<u32>,
+    /// Also fork at the first frame at which the centre of any of these bodies is inside the
+    /// frustum.
+    inside: Option<(&'a [u32], &'a Frustum)>,
+    first_inside: Option<u32>,
+    motion: Vec<BodyState>,
+    forks: Vec<(u32, Progress)>,
+}
+
+impl<'a> Capture<'a> {
+    fn new(frames: Vec<u32>, inside: Option<(&'a [u32], &'a Frustum)>) -> Self {
+        Self {
+            frames,
+            inside,
+            first_inside: None,
+            motion: Vec::new(),
+            forks: Vec::new(),
+        }
+    }
+
+    fn frame(&mut self, p: &Progress, states: impl Iterator<Item = BodyState>) {
+        let start = self.motion.len();
+        self.motion.extend(states);
+        let frame = p.steps as u32;
+        let mut fork = self.frames.contains(&frame);
+        if let Some((objects, frustum)) = self.inside
+            && self.first_inside.is_none()
+            && inside(objects, frustum, &self.motion[start..])
+        {
+            self.first_inside = Some(frame);
+            fork = true;
+        }
+        if fork {
+            self.forks.push((frame, p.fork()));
+        }
+    }
+
+    fn take_fork(&mut self, frame: u32) -> Option<Progress> {
+        let i = self.forks.iter().position(|(f, _)| *f == frame)?;
+        Some(self.forks.swap_remove(i).1)
+    }
+}
+
+/// Whether the centre of any of `objects` is inside `frustum` in one frame's states.
+fn inside(objects: &[u32], frustum: &Frustum, states: &[BodyState]) -> bool {
+    objects.iter().any(|&o| {
+        states
+            .get(o as usize)
+            .is_some_and(|s| frustum.contains(frame_pose(&s.pose).position))
+    })
+}
+
+struct RootHooks<'c, 'a> {
+    capture: &'c mut Capture<'a>,
+}
+
+impl StepHooks for RootHooks<'_, '_> {
+    fn frame(&mut self, p: &Progress) -> Result<(), RunError> {
+        let n = p.sim.bodies.len();
+        self.capture.frame(p, (0..n).map(|i| p.sim.state(i)));
+        Ok(())
+    }
+}
+
+/// Regenerates the world `lineage` names (exactly, encoding nothing) and forks it at `at`. The
+/// regenerated world is the stored one bit for bit (same binary, scene and lineage).
+pub fn regenerate(
+    template: &SceneTemplate,
+    lineage: &Lineage,
+    at: &BranchAt,
+) -> Result<Parent, RefineError> {
+    let (frame, rule) = match at {
+        BranchAt::Frame(f) => (*f, None),
+        BranchAt::FirstInside { objects, frustum } => {
+            (u32::MAX, Some((objects.as_slice(), &**frustum)))
+        }
+    };
+    match regenerate_at(template, lineage, frame, rule)? {
+        Regen::Parent(p) => Ok(*p),
+        // t_min falls before the last refinement's branch: fork the ancestor that holds it.
+        Regen::Earlier(t_min) => match regenerate_at(template, lineage, t_min, None)? {
+            Regen::Parent(p) => Ok(*p),
+            Regen::Earlier(frame) => Err(RefineError::FramePastEnd { frame, last: frame }),
+        },
+    }
+}
+
+enum Regen {
+    Parent(Box<Parent>),
+    /// t_min lies before the last refinement's branch, where no fork was kept.
+    Earlier(u32),
+}
+
+/// [`regenerate`] forking at `frame`, or at the first frame inside.
+fn regenerate_at(
+    template: &SceneTemplate,
+    lineage: &Lineage,
+    frame: u32,
+    inside_rule: Option<(&[u32], &Frustum)>,
+) -> Result<Regen, RefineError> {
+    let scene = template.instantiate(lineage.root_seed);
+    let n = scene.bodies.len();
+    if let Some((objects, _)) = inside_rule {
+        check_objects(objects, n)?;
+    }
+    // Generation 0 is the root, generation g ≥ 1 the child of step g − 1, starting at frame
+    // start[g]. Generation m + 1 forks from the generation whose frames hold its branch frame
+    // in generation m's history: the latest one that started at or before it.
+    let generations = lineage.steps.len() + 1;
+    let start: Vec<u32> = std::iter::once(0)
+        .chain(lineage.steps.iter().map(|b| b.frame))
+        .collect();
+    let owner = |history: usize, f: u32| (0..=history).rev().find(|&j| start[j] <= f).unwrap_or(0);
+    // The frames each generation forks at.
+    let mut wanted: Vec<Vec<u32>> = vec![Vec::new(); generations];
+    for (m, b) in lineage.steps.iter().enumerate() {
+        wanted[owner(m, b.frame)].push(b.frame);
+    }
+    if inside_rule.is_none() {
+        wanted[owner(generations - 1, frame)].push(frame);
+    }
+    let mut captures: Vec<Capture<'_>> = Vec::with_capacity(generations);
+    let mut history: Vec<BodyState> = Vec::new();
+    for g in 0..generations {
+        let last = g + 1 == generations;
+        let mut capture = Capture::new(
+            std::mem::take(&mut wanted[g]),
+            if last { inside_rule } else { None },
+        );
+        if g == 0 {
+            let sim = SimWorld::build(&scene).map_err(RunError::from)?;
+            let mut p = Progress::new(sim);
+            let mut rng = WorldRng::new(lineage.root_seed, Stream::Perturbation);
+            capture.frame(&p, (0..n).map(|i| p.sim.state(i)));
+            advance(
+                &scene,
+                &mut p,
+                &mut rng,
+                true,
+                &mut RootHooks {
+                    capture: &mut capture,
+                },
+            )?;
+            history = std::mem::take(&mut capture.motion);
+        } else {
+            let branch = &lineage.steps[g - 1];
+            let frames = (history.len() / n.max(1)) as u32;
+            let Some(fork) = captures[owner(g - 1, branch.frame)].take_fork(branch.frame) else {
+                return Err(RefineError::Lineage {
+                    step: g - 1,
+                    source: Box::new(RefineError::FramePastEnd {
+                        frame: branch.frame,
+                        last: frames.saturating_sub(1),
+                    }),
+                });
+            };
+            let parent = Parent {
+                scene: scene.clone(),
+                lineage: Lineage {
+                    root_seed: lineage.root_seed,
+                    steps: lineage.steps[..g - 1].to_vec(),
+                },
+                motion: ExactMotion {
+                    bodies: n,
+                    states: std::mem::take(&mut history),
+                },
+                bodies: n,
+                fork,
+                branch_frame: branch.frame,
+            };
+            parent
+                .child(
+                    branch,
+                    RunOptions {
+                        record: false,
+                        ..RunOptions::default()
+                    },
+                    Some(&mut capture),
+                    &mut |_| ControlFlow::Continue(()),
+                )
+                .map_err(|e| RefineError::Lineage {
+                    step: g - 1,
+                    source: Box::new(e),
+                })?;
+            // The child's history: its parent's before the branch, its own from there.
+            let mut motion = parent.motion.states;
+            motion.truncate(branch.frame as usize * n);
+            motion.append(&mut capture.motion);
+            history = motion;
+        }
+        captures.push(capture);
+    }
+    let frames = (history.len() / n.max(1)) as u32;
+    let branch_frame = match inside_rule {
+        None => frame,
+        Some((objects, frustum)) => {
+            let Some(t_min) = (0..frames).find(|&f| {
+                let at = f as usize * n;
+                inside(objects, frustum, &history[at..at + n])
+            }) else {
+                return Err(RefineError::NeverInside {
+                    objects: objects.to_vec(),
+                    frames,
+                });
+            };
+            if t_min < start[generations - 1] {
+                return Ok(Regen::Earlier(t_min));
+            }
+            t_min
+        }
+    };
+    let Some(fork) = captures[owner(generations - 1, branch_frame)].take_fork(branch_frame) else {
+        return Err(RefineError::FramePastEnd {
+            frame: branch_frame,
+            last: frames.saturating_sub(1),
+        });
+    };
+    Ok(Regen::Parent(Box::new(Parent {
+        scene,
+        lineage: lineage.clone(),
+        motion: ExactMotion {
+            bodies: n,
+            states: history,
+        },
+        bodies: n,
+        fork,
+        branch_frame,
+    })))
+}
+
+impl Parent {
+    /// The frame the children start from.
+    pub fn branch_frame(&self) -> u32 {
+        self.branch_frame
+    }
+
+    /// The parent's exact motion (its whole history).
+    pub fn motion(&self) -> &ExactMotion {
+        &self.motion
+    }
+
+    /// Body `body`'s exact state at `frame` (`body` in range: the parent has at least its
+    /// first frame).
+    fn state(&self, frame: u32, body: usize) -> BodyState {
+        self.motion.state(frame, body).unwrap_or(BodyState {
+            pose: Pose::IDENTITY,
+            linvel: Vector::ZERO,
+            angvel: Vector::ZERO,
+            sleeping: true,
+        })
+    }
+
+    /// The parent's lineage.
+    pub fn lineage(&self) -> &Lineage {
+        &self.lineage
+    }
+
+    /// The scene instance (the root seed's).
+    pub fn scene(&self) -> &Scene {
+        &self.scene
+    }
+
+    /// [`Parent::refine`], recording the whole world as a sampled world is recorded: every
+    /// segment from the first, every body (the parent's exact frames before the branch and for
+    /// inactive bodies, encoded again). What a store that does not compose refined worlds from
+    /// their parents needs; it costs the encoding of a whole world.
+    pub fn refine_whole(
+        &self,
+        objects: &[u32],
+        seed: u64,
+        opts: RunOptions,
+        emit: &mut dyn FnMut(Segment) -> ControlFlow<()>,
+    ) -> Result<RefinedWorld, RefineError> {
+        let branch = Branch {
+            frame: self.branch_frame,
+            objects: objects.to_vec(),
+            seed,
+            kicks: Vec::new(),
+        };
+        self.child_recorded(&branch, opts, true, None, emit)
+    }
+
+    /// Refines: a child world that re-simulates `objects` from the branch frame with
+    /// perturbation seed `seed`, emitting its segments. Deterministic in (lineage, objects,
+    /// seed).
+    pub fn refine(
+        &self,
+        objects: &[u32],
+        seed: u64,
+        opts: RunOptions,
+        emit: &mut dyn FnMut(Segment) -> ControlFlow<()>,
+    ) -> Result<RefinedWorld, RefineError> {
+        self.refine_with(objects, seed, opts, &[], emit)
+    }
+
+    /// [`Parent::refine`], some picked objects starting with other velocities than the
+    /// parent's ([`Kick`]).
+    pub fn refine_with(
+        &self,
+        objects: &[u32],
+        seed: u64,
+        opts: RunOptions,
+        kicks: &[Kick],
+        emit: &mut dyn FnMut(Segment) -> ControlFlow<()>,
+    ) -> Result<RefinedWorld, RefineError> {
+        let branch = Branch {
+            frame: self.branch_frame,
+            objects: objects.to_vec(),
+            seed,
+            kicks: kicks.to_vec(),
+        };
+        self.child(&branch, opts, None, emit)
+    }
+
+    /// [`Parent::refine_with`], also returning the child's exact motion over the whole world
+    /// (the parent's before the branch frame): for tests and benchmarks.
+    pub fn refine_traced(
+        &self,
+        objects: &[u32],
+        seed: u64,
+        opts: RunOptions,
+        kicks: &[Kick],
+        emit: &mut dyn FnMut(Segment) -> ControlFlow<()>,
+    ) -> Result<(RefinedWorld, ExactMotion), RefineError> {
+        let branch = Branch {
+            frame: self.branch_frame,
+            objects: objects.to_vec(),
+            seed,
+            kicks: kicks.to_vec(),
+        };
+        let mut capture = Capture::new(Vec::new(), None);
+        let world = self.child(&branch, opts, Some(&mut capture), emit)?;
+        let mut states = self.motion.states[..self.branch_frame as usize * self.bodies].to_vec();
+        states.append(&mut capture.motion);
+        Ok((
+            world,
+            ExactMotion {
+                bodies: self.bodies,
+                states,
+            },
+        ))
+    }
+
+    /// Steps one child (see the module docs); `capture` keeps its exact motion from the branch
+    /// frame on and forks it, for regenerating it as a parent.
+    fn child(
+        &self,
+        branch: &Branch,
+        opts: RunOptions,
+        capture: Option<&mut Capture<'_>>,
+        emit: &mut dyn FnMut(Segment) -> ControlFlow<()>,
+    ) -> Result<RefinedWorld, RefineError> {
+        self.child_recorded(branch, opts, false, capture, emit)
+    }
+
+    /// [`Parent::child`]; `whole` records every segment and body (see
+    /// [`Parent::refine_whole`]).
+    fn child_recorded(
+        &self,
+        branch: &Branch,
+        opts: RunOptions,
+        whole: bool,
+        capture: Option<&mut Capture<'_>>,
+        emit: &mut dyn FnMut(Segment) -> ControlFlow<()>,
+    ) -> Result<RefinedWorld, RefineError> {
+        check_objects(&branch.objects, self.bodies)?;
+        let scene = &self.scene;
+        let n = self.bodies;
+        let k = self.branch_frame;
+        let mut p = self.fork.fork();
+        let groups = joint_groups(scene);
+        let mut active = vec![false; n];
+        for &o in &branch.objects {
+            for &b in &groups[o as usize] {
+                active[b] = true;
+            }
+        }
+        // Sets at the branch frame: active bodies dynamic with the parent's exact state there
+        // (a body a previous refinement kept kinematic has the parent's velocity, not its own),
+        // the others kinematic on the parent's poses.
+        for (i, &h) in p.sim.bodies.iter().enumerate() {
+            let s = self.state(k, i);
+            let rb = &mut p.sim.world.bodies[h];
+            if active[i] {
+                rb.set_body_type(RigidBodyType::Dynamic, true);
+                rb.set_linvel(s.linvel, true);
+                rb.set_angvel(s.angvel, true);
+            } else {
+                rb.set_body_type(RigidBodyType::KinematicPositionBased, false);
+            }
+        }
+        for kick in &branch.kicks {
+            let b = kick.body as usize;
+            if b >= n || !branch.objects.contains(&kick.body) {
+                return Err(RefineError::KickNotPicked { body: kick.body });
+            }
+            let rb = &mut p.sim.world.bodies[p.sim.bodies[b]];
+            let f = |a: [f64; 3]| Vector::new(a[0] as f32, a[1] as f32, a[2] as f32);
+            rb.set_linvel(f(kick.linvel), true);
+            rb.set_angvel(f(kick.angvel), true);
+        }
+        let fps = frames_per_segment(scene) as u32;
+        let first_segment = if whole { 0 } else { k / fps };
+        let mut observe = |_: &[mwb_codec::Track]| {};
+        let mut rec = Recorder::new(scene, &p.sim, opts, emit, &mut observe);
+        rec.frame_count = first_segment * fps;
+        rec.segment_count = first_segment;
+        rec.keep = if whole { vec![true; n] } else { active.clone() };
+        // The segment holding the branch frame starts with the parent's frames (all of them
+        // before the branch, recording the whole world).
+        if opts.record {
+            for f in first_segment * fps..=k {
+                rec.push((0..n).map(|i| frame_pose(&self.state(f, i).pose)))?;
+            }
+        }
+        let mut active_from: Vec<Option<u32>> = active.iter().map(|&a| a.then_some(k)).collect();
+        let radius: Vec<f32> = scene
+            .bodies
+            .iter()
+            .map(|b| b.shape.bounding_radius() as f32)
+            .collect();
+        let margin = 2.0 * p.sim.world.integration_parameters.prediction_distance();
+        let gravity = p.sim.world.gravity.length();
+        let mut capture = capture;
+        if let Some(c) = capture.as_deref_mut() {
+            let active = &active;
+            let sim = &p.sim;
+            c.frame(
+                &p,
+                (0..n).map(|i| {
+                    if active[i] {
+                        sim.state(i)
+                    } else {
+                        self.state(k, i)
+                    }
+                }),
+            );
+        }
+        let mut rng = WorldRng::new(branch.seed, Stream::Perturbation);
+        let mut hooks = ChildHooks {
+            parent: self,
+            diverged: vec![false; n],
+            tolerance: FOLLOW_TOLERANCE_M,
+            active,
+            active_from: &mut active_from,
+            groups,
+            radius,
+            margin,
+            gravity,
+            rec: &mut rec,
+            record: opts.record,
+            capture,
+        };
+        advance(scene, &mut p, &mut rng, opts.perturb, &mut hooks)?;
+        if opts.record {
+            rec.flush()?;
+        }
+        let summary = summary_of(&p, &rec, branch.seed, scene.settings.dt);
+        Ok(RefinedWorld {
+            lineage: self.lineage.child(branch.clone()),
+            summary,
+            branch_frame: k,
+            first_segment,
+            active_from,
+        })
+    }
+}
+
+struct ChildHooks<'a, 'r, 'c, 'k> {
+    parent: &'a Parent,
+    active: Vec<bool>,
+    /// Active bodies that have left their parent motion by more than `tolerance` (once, for
+    /// good). Only they can change what happens to an inactive body.
+    diverged: Vec<bool>,
+    /// [`FOLLOW_TOLERANCE_M`].
+    tolerance: f32,
+    active_from: &'a mut Vec<Option<u32>>,
+    groups: Vec<Vec<usize>>,
+    /// Each body's bounding radius about its origin.
+    radius: Vec<f32>,
+    /// Distance at which two bodies count as about to touch (twice rapier's contact prediction).
+    margin: f32,
+    gravity: f32,
+    rec: &'r mut Recorder<'c>,
+    record: bool,
+    capture: Option<&'r mut Capture<'k>>,
+}
+
+/// The bodies' shapes at a pose, with their AABB there.
+fn placed<'s>(
+    sim: &'s SimWorld,
+    body: usize,
+    pose: &Pose,
+) -> impl Iterator<Item = (Pose, &'s dyn rapier3d::parry::shape::Shape)> + 's {
+    let rb = &sim.world.bodies[sim.bodies[body]];
+    let pose = *pose;
+    rb.colliders().iter().filter_map(move |&c| {
+        let co = sim.world.colliders.get(c)?;
+        let local = co.position_wrt_parent().copied().unwrap_or(Pose::IDENTITY);
+        Some((pose * local, co.shape()))
+    })
+}
+
+/// The AABB of body `body`'s shapes at `pose` (`None` for a body without colliders).
+fn aabb(sim: &SimWorld, body: usize, pose: &Pose) -> Option<Aabb> {
+    placed(sim, body, pose)
+        .map(|(x, shape)| shape.compute_aabb(&x))
+        .reduce(|a, b| a.merged(&b))
+}
+
+/// Whether bodies `a` (at `pa`) and `b` (at `pb`) are within `reach` of each other. Conservative:
+/// a distance query parry does not support counts as touching.
+fn within(sim: &SimWorld, a: usize, pa: &Pose, b: usize, pb: &Pose, reach: f32) -> bool {
+    for (xa, sa) in placed(sim, a, pa) {
+        let box_a = sa.compute_aabb(&xa).loosened(reach);
+        for (xb, sb) in placed(sim, b, pb) {
+            if !box_a.intersects(&sb.compute_aabb(&xb)) {
+                continue;
+            }
+            match rapier3d::parry::query::distance(&xa, sa, &xb, sb) {
+                Ok(d) if d.distance > reach => {}
+                _ => return true,
+            }
+        }
+    }
+    false
+}
+
+impl ChildHooks<'_, '_, '_, '_> {
+    /// How far body `i` can move in one step at most, from its state `s`.
+    fn reach(&self, i: usize, s: &BodyState, dt: f32) -> f32 {
+        (s.linvel.length() + s.angvel.length() * self.radius[i] + self.gravity * dt) * dt
+    }
+
+    /// How far active body `a` is from its parent motion at this frame: position, rotation at
+    /// its bounding radius, and the difference the velocities make over one step.
+    fn divergence(&self, p: &Progress, a: usize, frame: u32) -> f32 {
+        let (s, g) = (p.sim.state(a), self.parent.state(frame, a));
+        let r = self.radius[a];
+        let dt = p.sim.dt as f32;
+        let angle = (s.pose.rotation * g.pose.rotation.inverse())
+            .to_axis_angle()
+            .1;
+        let angle = angle.min(std::f32::consts::TAU - angle).abs();
+        (s.pose.translation - g.pose.translation).length()
+            + r * angle
+            + dt * ((s.linvel - g.linvel).length() + r * (s.angvel - g.angvel).length())
+    }
+
+    fn activate(&mut self, p: &mut Progress, body: usize) {
+        let frame = p.steps as u32;
+        for &b in &self.groups[body] {
+            if self.active[b] {
+                continue;
+            }
+            self.active[b] = true;
+            self.active_from[b] = Some(frame);
+            self.rec.keep[b] = true;
+            let s = self.parent.state(frame, b);
+            let rb = &mut p.sim.world.bodies[p.sim.bodies[b]];
+            rb.set_body_type(RigidBodyType::Dynamic, true);
+            rb.set_linvel(s.linvel, true);
+            rb.set_angvel(s.angvel, true);
+        }
+    }
+}
+
+impl StepHooks for ChildHooks<'_, '_, '_, '_> {
+    fn before_step(&mut self, p: &mut Progress) {
+        let frame = p.steps as u32;
+        let n = self.active.len();
+        let dt = p.sim.dt as f32;
+        for a in 0..n {
+            if self.active[a] && !self.diverged[a] {
+                self.diverged[a] = self.divergence(p, a, frame) > self.tolerance;
+            }
+        }
+        // Who can reach whom this step. A body activated now has its parent's exact state, so it
+        // has not diverged and cannot reach further: one round is enough.
+        let mut sources = Vec::new();
+        for a in (0..n).filter(|&a| self.diverged[a]) {
+            // Figure 4.11a: the active body where it is now (its speed counted twice: a contact
+            // this step may speed it up).
+            let sa = p.sim.state(a);
+            sources.push((a, sa.pose, self.margin + 2.0 * self.reach(a, &sa, dt)));
+            // Figure 4.11b: its ghost, where the parent had it.
+            let ga = self.parent.state(frame, a);
+            let gnext = self.parent.state(frame + 1, a);
+            sources.push((a, ga.pose, self.margin + self.reach(a, &gnext, dt)));
+        }
+        let boxes: Vec<Option<Aabb>> = sources
+            .iter()
+            .map(|(a, pose, reach)| aabb(&p.sim, *a, pose).map(|b| b.loosened(*reach)))
+            .collect();
+        let mut newly = Vec::new();
+        for o in (0..n).filter(|&o| !self.active[o] && !sources.is_empty()) {
+            let so = self.parent.state(frame, o);
+            let reach_o = self.reach(o, &self.parent.state(frame + 1, o), dt);
+            let Some(box_o) = aabb(&p.sim, o, &so.pose).map(|b| b.loosened(reach_o)) else {
+                continue;
+            };
+            let hit = sources.iter().zip(&boxes).any(|((a, pose, reach), b)| {
+                b.is_some_and(|b| b.intersects(&box_o))
+                    && within(&p.sim, *a, pose, o, &so.pose, reach + reach_o)
+            });
+            if hit {
+                newly.push(o);
+            }
+        }
+        for o in newly {
+            self.activate(p, o);
+        }
+        for i in (0..n).filter(|&i| !self.active[i]) {
+            let next = self.parent.state(frame + 1, i).pose;
+            p.sim.world.bodies[p.sim.bodies[i]].set_next_kinematic_position(next);
+        }
+    }
+
+    fn followed(&self, i: usize, frame: u64) -> Option<Followed> {
+        (!self.active[i]).then(|| Followed {
+            before: self.parent.state(frame as u32 - 1, i),
+            after: self.parent.state(frame as u32, i),
+        })
+    }
+
+    fn frame(&mut self, p: &Progress) -> Result<(), RunError> {
+        let n = self.active.len();
+        let frame = p.steps as u32;
+        if let Some(c) = self.capture.as_deref_mut() {
+            let parent = self.parent;
+            let active = &self.active;
+            c.frame(
+                p,
+                (0..n).map(|i| {
+                    if active[i] {
+                        p.sim.state(i)
+                    } else {
+                        // Where the simulator put it (the parent's pose, exactly), moving as
+                        // the parent moved it.
+                        BodyState {
+                            pose: p.sim.state(i).pose,
+                            ..parent.state(frame, i)
+                        }
+                    }
+                }),
+            );
+        }
+        if self.record {
+            self.rec.push((0..n).map(|i| p.sim.pose(i)))?;
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,182 @@
+//! A refinement request (§4.5) turned into a REFINE job, without the bus: the stored world and
+//! its job as the stores serve them, the bodies the animator picked and the box they drew. The
+//! parent is regenerated here (pure computation, about one world's simulation) to find the
+//! branch frame t_min, so that a request that cannot be done is refused before anything is
+//! submitted, naming what is wrong. `mwb refine` and the viewer both use it.
+
+use crate::node::lineage_from_wire;
+use crate::refine::{BranchAt, RefineError, regenerate};
+use mwb_core::browse::api::SceneBodies;
+use mwb_core::browse::{Frustum, ObjectsError, object_label, resolve_objects};
+use mwb_core::scene::{SceneError, SceneTemplate};
+use mwb_proto::v1::{Job, JobKind, Lineage, Refinement, Scene, World};
+
+/// Requests that cannot be done.
+#[derive(Debug, thiserror::Error)]
+pub enum RequestError {
+    #[error("world {world}: the store sent no summary")]
+    NoSummary { world: u32 },
+    #[error("world {world}: a backward world (job {job}); refinement re-simulates forward worlds")]
+    Backward { world: u32, job: String },
+    #[error("job {job}: announced without its scene")]
+    NoScene { job: String },
+    #[error(transparent)]
+    Scene(#[from] SceneError),
+    #[error(transparent)]
+    Objects(#[from] ObjectsError),
+    #[error(
+        "the box: the centre of {objects} is never inside it in world {world}'s {frames} frames"
+    )]
+    NeverInside {
+        objects: String,
+        world: u32,
+        frames: u32,
+    },
+    #[error("world {world}: {source}")]
+    Regenerate {
+        world: u32,
+        #[source]
+        source: RefineError,
+    },
+    #[error(
+        "world {world}: this binary regenerates it with {ours} frames, the store holds {stored} \
+         (made by {made_by:?}, this is {this:?}): refine it with the binary that sampled it"
+    )]
+    NotRegenerated {
+        world: u32,
+        ours: u32,
+        stored: u32,
+        made_by: String,
+        this: String,
+    },
+}
+
+/// A checked request: what a REFINE job needs.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RefinePlan {
+    pub parent_world: u32,
+    pub parent_job: String,
+    pub scene: Scene,
+    pub lineage: Lineage,
+    /// The picked bodies, as scene indices.
+    pub objects: Vec<u32>,
+    pub branch_frame: u32,
+    /// The scene's frame time, seconds.
+    pub frame_dt: f64,
+    /// Encoding and quality of the parent's job, which the refined worlds keep.
+    pub encoding: i32,
+    pub quality: i32,
+}
+
+impl RefinePlan {
+    /// The branch time, seconds.
+    pub fn branch_time_s(&self) -> f64 {
+        f64::from(self.branch_frame) * self.frame_dt
+    }
+
+    /// The REFINE job for `worlds` children.
+    pub fn job(&self, id: String, worlds: u32, priority: i32, created_unix_ms: u64) -> Job {
+        Job {
+            id,
+            revision: 1,
+            kind: JobKind::Refine as i32,
+            scene: Some(self.scene.clone()),
+            target_worlds: worlds,
+            priority,
+            created_unix_ms,
+            cancelled: false,
+            encoding: self.encoding,
+            quality: self.quality,
+            refine: Some(Refinement {
+                parent_job: self.parent_job.clone(),
+                parent_world: self.parent_world,
+                parent: Some(self.lineage.clone()),
+                objects: self.objects.clone(),
+                branch_frame: self.branch_frame,
+            }),
+        }
+    }
+}
+
+/// Checks a request against stored world `world` (as fetched, `q/world/<i>`) of job
+/// `parent_job` (as served, `q/job/<job>`): resolves `objects` (indices or names) in its scene,
+/// regenerates it and finds the first frame any picked body's centre is inside `frustum`.
+pub fn plan(
+    world: &World,
+    parent_job: &Job,
+    objects: &str,
+    frustum: Frustum,
+) -> Result<RefinePlan, RequestError> {
+    let index = world.index;
+    let done = world
+        .done
+        .as_ref()
+        .ok_or(RequestError::NoSummary { world: index })?;
+    if parent_job.kind() == JobKind::Reverse || done.energy_growth.is_some() {
+        return Err(RequestError::Backward {
+            world: index,
+            job: parent_job.id.clone(),
+        });
+    }
+    let scene = parent_job
+        .scene
+        .clone()
+        .ok_or_else(|| RequestError::NoScene {
+            job: parent_job.id.clone(),
+        })?;
+    let template = SceneTemplate::parse(&scene.toml, &format!("job {} scene", parent_job.id))?;
+    let lineage = done.lineage.clone().unwrap_or_else(|| Lineage {
+        root_job: world.job_id.clone(),
+        root_seed: done.seed,
+        steps: Vec::new(),
+    });
+    let instance = template.instantiate(lineage.root_seed);
+    let names: Vec<String> = instance.bodies.iter().map(|b| b.name.clone()).collect();
+    let objects = resolve_objects(
+        objects,
+        &[SceneBodies {
+            objects: names.len() as u32,
+            names: names.clone(),
+            worlds: 1,
+        }],
+    )?;
+    let at = BranchAt::FirstInside {
+        objects: objects.clone(),
+        frustum: Box::new(frustum),
+    };
+    let parent = regenerate(&template, &lineage_from_wire(&lineage), &at).map_err(|e| match e {
+        RefineError::NeverInside { frames, .. } => RequestError::NeverInside {
+            objects: objects
+                .iter()
+                .map(|&o| object_label(&names, o))
+                .collect::<Vec<_>>()
+                .join(", "),
+            world: index,
+            frames,
+        },
+        source => RequestError::Regenerate {
+            world: index,
+            source,
+        },
+    })?;
+    if parent.motion().frame_count() != done.frame_count {
+        return Err(RequestError::NotRegenerated {
+            world: index,
+            ours: parent.motion().frame_count(),
+            stored: done.frame_count,
+            made_by: done.provenance.clone(),
+            this: crate::provenance(),
+        });
+    }
+    Ok(RefinePlan {
+        parent_world: index,
+        parent_job: world.job_id.clone(),
+        scene,
+        lineage,
+        objects,
+        branch_frame: parent.branch_frame(),
+        frame_dt: instance.settings.dt,
+        encoding: parent_job.encoding,
+        quality: parent_job.quality,
+    })
+}
