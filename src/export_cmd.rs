@@ -314,7 +314,8 @@ fn load_world(
         .with_context(|| name.clone())?;
     let motion = decode_segments(&payloads, done.frame_dt, Some(u64::from(done.frame_count)))
         .with_context(|| format!("{name}: decoding its motion"))?;
-    let scene = template.instantiate(done.seed);
+    // A refined world is an instance of its root world's scene (§4.5: its seed is its own).
+    let scene = template.instantiate(done.lineage.as_ref().map_or(done.seed, |l| l.root_seed));
     if scene.bodies.len() != motion.tracks.len() {
         bail!(
             "{name}: {} bodies, its scene {file} has {}",

@@ -26,6 +26,8 @@ use std::time::Duration;
 const WORLDS: usize = 24;
 /// Worlds of the job submitted from the viewer.
 const MORE: usize = 6;
+/// Worlds refined from one of them through the viewer.
+const REFINED: usize = 3;
 
 fn mwb(args: &[&str]) -> std::process::Output {
     Command::new(env!("CARGO_BIN_EXE_mwb"))
@@ -394,6 +396,37 @@ fn the_live_viewer_browses_a_running_cluster() {
         a.state.worlds().len() == WORLDS + MORE
             && a.state.survivor_count() == (WORLDS + MORE) as u64
     });
+
+    // Refine the shown world (§4.5) with a box over the whole view: the bus task checks the
+    // request against the stored world and submits a REFINE job, whose worlds arrive too.
+    h.state_mut()
+        .state
+        .update(mwb_viewer::Msg::SelectWorld(Some(top)))
+        .unwrap_or_else(|e| panic!("{e}"));
+    h.state_mut()
+        .state
+        .update(mwb_viewer::Msg::Refine {
+            viewport: mwb_core::browse::Viewport {
+                width: 800,
+                height: 600,
+            },
+            rect: mwb_core::browse::ScreenRect {
+                x0: 0.0,
+                y0: 0.0,
+                x1: 800.0,
+                y1: 600.0,
+            },
+            worlds: REFINED as u32,
+        })
+        .unwrap_or_else(|e| panic!("{e}"));
+    settle(&rt, &mut h, "the refinement's acknowledgement", |a| {
+        a.state
+            .job_notice()
+            .is_some_and(|n| n.as_ref().is_ok_and(|n| n.contains("refining world")))
+    });
+    settle(&rt, &mut h, "the refined worlds", |a| {
+        a.state.worlds().len() == WORLDS + MORE + REFINED
+    });
     drop(h);
     rt.block_on(async {
         let _ = tokio::time::timeout(Duration::from_secs(3), session.close()).await;
@@ -421,7 +454,7 @@ fn the_live_viewer_browses_a_running_cluster() {
         "rest",
     ]);
     assert!(
-        out.contains(&format!("{} worlds", WORLDS + MORE)),
+        out.contains(&format!("{} worlds", WORLDS + MORE + REFINED)),
         "screenshot line: {out}"
     );
     let img = image::open(&png).unwrap_or_else(|e| panic!("{e}"));

@@ -60,4 +60,6 @@ pub enum ViewerError {
     Size(String),
     #[error("goal orientation: {0}")]
     Goal(String),
+    #[error("refine: {0}")]
+    Refine(&'static str),
 }

@@ -226,6 +226,15 @@ impl Bus {
                 let notice = self.cancel(&job).await;
                 self.emit(Msg::JobNotice(notice)).await;
             }
+            Command::Refine {
+                world,
+                objects,
+                frustum,
+                worlds,
+            } => {
+                let notice = self.refine(world, &objects, *frustum, worlds).await;
+                self.emit(Msg::JobNotice(notice)).await;
+            }
             Command::FetchMotion { world, job } => {
                 let session = self.session.clone();
                 let keys = self.keys.clone();
@@ -279,6 +288,57 @@ impl Bus {
             }
             tokio::time::sleep(Duration::from_millis(200)).await;
         }
+    }
+
+    /// Refines stored world `world` (§4.5): fetches it and its job, checks the request
+    /// (`mwb_sampler::request::plan`, which regenerates the world off the async threads), and
+    /// announces the REFINE job, as `mwb refine` does.
+    async fn refine(
+        &self,
+        world: u32,
+        objects: &[u32],
+        frustum: mwb_core::browse::Frustum,
+        worlds: u32,
+    ) -> Result<String, String> {
+        let timeout = self.cfg.timeout;
+        let replies = get_all(&self.session, &self.keys.world(world), None, timeout).await?;
+        let bytes = replies
+            .first()
+            .ok_or_else(|| format!("no store holds world {world}"))?;
+        let stored = World::decode(bytes.as_slice())
+            .map_err(|e| format!("world {world}: malformed reply: {e}"))?;
+        let replies = get_all(
+            &self.session,
+            &self.keys.held_job(&stored.job_id),
+            None,
+            timeout,
+        )
+        .await?;
+        let parent_job = replies
+            .iter()
+            .filter_map(|b| Job::decode(b.as_slice()).ok())
+            .filter(|j| j.id == stored.job_id)
+            .max_by_key(|j| j.revision)
+            .ok_or_else(|| format!("world {world}: no store serves its job {}", stored.job_id))?;
+        let text = objects
+            .iter()
+            .map(u32::to_string)
+            .collect::<Vec<_>>()
+            .join(",");
+        let plan = tokio::task::spawn_blocking(move || {
+            mwb_sampler::request::plan(&stored, &parent_job, &text, frustum)
+        })
+        .await
+        .map_err(|e| format!("refining: {e}"))?
+        .map_err(|e| e.to_string())?;
+        let id = format!("{}-w{world}-{:x}", plan.parent_job, unix_ms());
+        let job = plan.job(id.clone(), worlds, 0, unix_ms());
+        self.announce(&job).await?;
+        Ok(format!(
+            "job {id} submitted: {worlds} worlds refining world {world} from frame {} (t = {:.3} s)",
+            plan.branch_frame,
+            plan.branch_time_s()
+        ))
     }
 
     /// Re-announces an open job with `cancelled` set.
@@ -656,7 +716,8 @@ async fn fetch_motion(
             t?
         }
     };
-    let seed = done.seed;
+    // A refined world is an instance of its root world's scene (§4.5: its seed is its own).
+    let seed = done.lineage.as_ref().map_or(done.seed, |l| l.root_seed);
     tokio::task::spawn_blocking(move || {
         Motion::decode(
             template.instantiate(seed),

@@ -37,6 +37,15 @@ pub enum Command {
     },
     /// Cancel an open job.
     CancelJob(String),
+    /// Refine stored world `world` (§4.5): re-simulate `objects` from the first frame one of
+    /// them is inside `frustum`, `worlds` times (the bus task fetches the world and its job,
+    /// checks the request with `mwb_sampler::request::plan` and submits a REFINE job).
+    Refine {
+        world: u32,
+        objects: Vec<u32>,
+        frustum: Box<Frustum>,
+        worlds: u32,
+    },
 }
 
 /// One live constraint as the UI lists it.

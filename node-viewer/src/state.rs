@@ -245,6 +245,14 @@ pub enum Msg {
         quality: mwb_proto::v1::Quality,
     },
     CancelJob(String),
+    /// Refine the shown world (live only): its chosen objects, from the first frame one of
+    /// them is inside the rectangle drawn on a view of `viewport` pixels through the current
+    /// camera (§4.5); `worlds` new worlds. See [`Command::Refine`].
+    Refine {
+        viewport: Viewport,
+        rect: ScreenRect,
+        worlds: u32,
+    },
     /// What became of a job submission or cancellation.
     JobNotice(Result<String, String>),
 }
@@ -959,6 +967,33 @@ impl ViewerState {
                     return Err(ViewerError::Offline("cancelling jobs"));
                 }
                 self.outbox.push(Command::CancelJob(job));
+            }
+            Msg::Refine {
+                viewport,
+                rect,
+                worlds,
+            } => {
+                if !self.is_live() {
+                    return Err(ViewerError::Offline("refining a world"));
+                }
+                let Some(world) = self.selected else {
+                    return Err(ViewerError::Refine("pick the world to refine first"));
+                };
+                let objects = self.chosen_objects();
+                if objects.is_empty() {
+                    return Err(ViewerError::Refine("choose the objects to re-simulate"));
+                }
+                if worlds == 0 {
+                    return Err(ViewerError::Refine("ask for at least one world"));
+                }
+                let frustum = self.camera.browse_camera(viewport).frustum(&rect)?;
+                self.job_notice = None;
+                self.outbox.push(Command::Refine {
+                    world,
+                    objects,
+                    frustum: Box::new(frustum),
+                    worlds,
+                });
             }
             Msg::JobNotice(n) => self.job_notice = Some(n),
         }
@@ -1692,6 +1727,61 @@ mod tests {
         };
         assert_eq!(*sent, goal);
         assert!((goal[1] - 0.5f64.sin()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_refine_box_asks_the_bus_task_to_refine_the_shown_world_through_the_camera() {
+        let viewport = Viewport {
+            width: 640,
+            height: 480,
+        };
+        let rect = ScreenRect {
+            x0: 100.0,
+            y0: 100.0,
+            x1: 300.0,
+            y1: 260.0,
+        };
+        let refine = || Msg::Refine {
+            viewport,
+            rect,
+            worlds: 8,
+        };
+        let mut offline = state(&[0.5]);
+        let e = offline.update(refine()).expect_err("offline");
+        assert!(e.to_string().contains("needs a live viewer"), "{e}");
+
+        let mut s = ViewerState::live("tcp/127.0.0.1:7447");
+        s.update(Msg::Scene {
+            name: "t".into(),
+            bodies: vec!["ball".into()],
+            statics: Vec::new(),
+        })
+        .expect("scene");
+        s.update(Msg::Worlds(vec![world(4, 0.5)])).expect("worlds");
+        let e = s.update(refine()).expect_err("nothing shown");
+        assert!(e.to_string().contains("pick the world"), "{e}");
+        s.update(Msg::SelectWorld(Some(4))).expect("select");
+        s.take_commands();
+        s.update(refine()).expect("refine");
+        let want = s
+            .camera
+            .browse_camera(viewport)
+            .frustum(&rect)
+            .expect("frustum");
+        let cmds = s.take_commands();
+        let [
+            Command::Refine {
+                world: 4,
+                objects,
+                frustum,
+                worlds: 8,
+            },
+        ] = cmds.as_slice()
+        else {
+            panic!("expected one refinement, got {cmds:?}");
+        };
+        assert_eq!(objects, &s.chosen_objects());
+        assert_eq!(**frustum, want);
     }
 
     fn status(worlds: u64, result: u64, edits: u64, ids: &[u64]) -> SessionStatus {

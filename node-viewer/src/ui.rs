@@ -135,6 +135,9 @@ struct JobForm {
     scene: String,
     worlds: u32,
     quality: mwb_proto::v1::Quality,
+    /// The next box drawn refines the shown world instead of constraining (§4.5).
+    refine_next: bool,
+    refine_worlds: u32,
 }
 
 impl Default for JobForm {
@@ -143,6 +146,8 @@ impl Default for JobForm {
             scene: String::new(),
             worlds: 200,
             quality: mwb_proto::v1::Quality::Standard,
+            refine_next: false,
+            refine_worlds: 50,
         }
     }
 }
@@ -656,6 +661,24 @@ impl ViewerApp {
                         quality: f.quality,
                     });
                 }
+                // §4.5: the next box drawn says where the shown world must change.
+                ui.horizontal(|ui| {
+                    let shown = self.state.selected().is_some();
+                    ui.add_enabled(
+                        shown,
+                        egui::Checkbox::new(&mut self.job_form.refine_next, "next box refines"),
+                    )
+                    .on_hover_text(
+                        "re-simulate the chosen objects of the shown world from the first frame \
+                         one of them is inside the next box you draw",
+                    );
+                    ui.add(
+                        egui::DragValue::new(&mut self.job_form.refine_worlds)
+                            .range(1..=100_000)
+                            .speed(5)
+                            .suffix(" worlds"),
+                    );
+                });
                 match self.state.job_notice() {
                     Some(Ok(n)) => {
                         ui.label(RichText::new(n).weak());
@@ -1247,14 +1270,23 @@ impl ViewerApp {
             return;
         };
         let (a, b) = (view.pixel(r.min), view.pixel(r.max));
+        let rect = ScreenRect {
+            x0: a[0],
+            y0: a[1],
+            x1: b[0],
+            y1: b[1],
+        };
+        if std::mem::take(&mut self.job_form.refine_next) {
+            self.send(Msg::Refine {
+                viewport: view.viewport,
+                rect,
+                worlds: self.job_form.refine_worlds,
+            });
+            return;
+        }
         self.send(Msg::AddConstraint {
             viewport: view.viewport,
-            rect: ScreenRect {
-                x0: a[0],
-                y0: a[1],
-                x1: b[0],
-                y1: b[1],
-            },
+            rect,
             polarity: if drag.negative {
                 Polarity::Negative
             } else {
