@@ -1682,13 +1682,7 @@ mod tests {
 
     #[test]
     fn a_live_goal_needs_the_motion_and_its_ranking_is_asked_of_node_query() {
-        let mut s = ViewerState::live("tcp/127.0.0.1:7447");
-        s.update(Msg::Scene {
-            name: "t".into(),
-            bodies: vec!["ball".into()],
-            statics: Vec::new(),
-        })
-        .expect("scene");
+        let mut s = live_ball();
         let mut w = turning_world(0, 1.0);
         let motion = w.motion.take().expect("motion");
         s.update(Msg::Worlds(vec![w])).expect("worlds");
@@ -1750,13 +1744,7 @@ mod tests {
         let e = offline.update(refine()).expect_err("offline");
         assert!(e.to_string().contains("needs a live viewer"), "{e}");
 
-        let mut s = ViewerState::live("tcp/127.0.0.1:7447");
-        s.update(Msg::Scene {
-            name: "t".into(),
-            bodies: vec!["ball".into()],
-            statics: Vec::new(),
-        })
-        .expect("scene");
+        let mut s = live_ball();
         s.update(Msg::Worlds(vec![world(4, 0.5)])).expect("worlds");
         let e = s.update(refine()).expect_err("nothing shown");
         assert!(e.to_string().contains("pick the world"), "{e}");
@@ -1784,6 +1772,18 @@ mod tests {
         assert_eq!(**frustum, want);
     }
 
+    /// A live state of the one-ball scene, before any world arrives.
+    fn live_ball() -> ViewerState {
+        let mut s = ViewerState::live("tcp/127.0.0.1:7447");
+        s.update(Msg::Scene {
+            name: "t".into(),
+            bodies: vec!["ball".into()],
+            statics: Vec::new(),
+        })
+        .expect("scene");
+        s
+    }
+
     fn status(worlds: u64, result: u64, edits: u64, ids: &[u64]) -> SessionStatus {
         SessionStatus {
             worlds,
@@ -1808,13 +1808,7 @@ mod tests {
 
     #[test]
     fn a_live_box_becomes_a_request_and_the_answer_is_what_counts() {
-        let mut s = ViewerState::live("tcp/127.0.0.1:7447");
-        s.update(Msg::Scene {
-            name: "t".into(),
-            bodies: vec!["ball".into()],
-            statics: Vec::new(),
-        })
-        .expect("scene");
+        let mut s = live_ball();
         s.update(Msg::Worlds(vec![world(0, 0.0), world(2, 2.0)]))
             .expect("worlds");
         let viewport = front(&mut s);
