@@ -276,17 +276,49 @@ impl FreeDynamics {
     pub(crate) fn frame(&self, q: &mut Quat, wb: &mut Vec3) {
         let h = 1.0 / f64::from(self.substeps);
         for _ in 0..self.substeps {
-            *wb = self.gyroscopic(*wb, h);
-            let hw = rotation::scale3(*wb, 0.5 * h);
-            let n = rotation::mul(*q, [hw[0], hw[1], hw[2], 1.0]);
-            let n2 = n[0] * n[0] + n[1] * n[1] + n[2] * n[2] + n[3] * n[3];
-            // |n|² ≥ 1 for a unit q (the step only adds an orthogonal part), unless w is huge.
-            if n2.is_finite() && n2 > 0.0 {
-                let r = 1.0 / n2.sqrt();
-                *q = [n[0] * r, n[1] * r, n[2] * r, n[3] * r];
-            }
+            self.substep(q, wb, h);
         }
         *wb = rotation::scale3(*wb, self.damping);
+    }
+
+    /// [`Self::frame`] for `N` independent bodies at once, each computed exactly as `frame`
+    /// computes it. One substep's operations form a long chain of dependent square roots and
+    /// divisions; running the bodies' chains side by side lets the processor overlap them (the
+    /// free-flight fit simulates four start velocities over the same frames: 3 % of the
+    /// encoder's time on tumble, the same instructions).
+    pub(crate) fn frames<const N: usize>(&self, q: &mut [Quat; N], wb: &mut [Vec3; N]) {
+        let h = 1.0 / f64::from(self.substeps);
+        for _ in 0..self.substeps {
+            for (q, wb) in q.iter_mut().zip(wb.iter_mut()) {
+                self.substep(q, wb, h);
+            }
+        }
+        for wb in wb.iter_mut() {
+            *wb = rotation::scale3(*wb, self.damping);
+        }
+    }
+
+    /// One of a frame's substeps of length `h`: the gyroscopic update, then the rotation.
+    #[inline(always)]
+    fn substep(&self, q: &mut Quat, wb: &mut Vec3, h: f64) {
+        *wb = self.gyroscopic(*wb, h);
+        let hw = rotation::scale3(*wb, 0.5 * h);
+        // `q ⊗ (hw, 1)`, the products with the 1 left out: `x·1.0 = x` exactly, so these are
+        // the bits of `rotation::mul(*q, [hw[0], hw[1], hw[2], 1.0])` with four fewer products.
+        let [ax, ay, az, aw] = *q;
+        let [bx, by, bz] = hw;
+        let n = [
+            aw * bx + ax + ay * bz - az * by,
+            aw * by - ax * bz + ay + az * bx,
+            aw * bz + ax * by - ay * bx + az,
+            aw - ax * bx - ay * by - az * bz,
+        ];
+        let n2 = n[0] * n[0] + n[1] * n[1] + n[2] * n[2] + n[3] * n[3];
+        // |n|² ≥ 1 for a unit q (the step only adds an orthogonal part), unless w is huge.
+        if n2.is_finite() && n2 > 0.0 {
+            let r = 1.0 / n2.sqrt();
+            *q = [n[0] * r, n[1] * r, n[2] * r, n[3] * r];
+        }
     }
 
     /// The explicit gyroscopic term over `h` frames in the body (principal) frame, rescaled to

@@ -159,7 +159,10 @@ fn tumbling_encode_speed() {
 /// elsewhere.
 #[test]
 fn output_fingerprint() {
-    const GOLDEN: (u64, usize) = (0x4427_0a5b_0461_fdd7, 136_589);
+    // Re-minted for issue 23 (encoder speed): horizon-corrected fits are tried only where the
+    // anchored fit outlasts the fit window, and equal-moment bodies get no free-flight fits, so
+    // some segments differ (136 589 → 136 749 B); every frame still decodes within the bounds.
+    const GOLDEN: (u64, usize) = (0xcec7_2ae9_8b13_2660, 136_749);
     let mut h: u64 = 0xcbf2_9ce4_8422_2325;
     let mut total = 0usize;
     for quality in [Quality::Draft, Quality::Standard, Quality::Final] {

@@ -441,8 +441,9 @@ fn rotation_dynamics_are_the_solvers_and_the_bodies_moments() {
 /// The tumble scene (shipped, `scenes/tumble.toml`), seed 0xfeed, default options (standard
 /// quality, perturbed, spline codec), as this source tree simulates and encodes it: the
 /// [`world_digest`] and the encoded size. See [`the_pinned_world_is_unchanged`] for what a
-/// mismatch means.
-const TUMBLE_FEED: (u32, u64) = (0x2e5e_78c8, 1552);
+/// mismatch means. Re-minted for issue 23 (the encoder tries fewer candidate fits): the same
+/// simulated world, encoded in 5 bytes fewer; every frame still within the bounds.
+const TUMBLE_FEED: (u32, u64) = (0x0c5c_305a, 1547);
 
 /// A CRC-32 over every segment's numbering and payload and over every summary field.
 fn world_digest(segs: &[Segment], summary: &WorldSummary) -> u32 {
