@@ -10,7 +10,8 @@
 //! * `/scene` (`foxglove.SceneUpdate`): one message at time 0 with an entity per static
 //!   (frame `scene`) and per body (frame `body/<name>`, `frame_locked`, so it follows its
 //!   transform), lifetime 0 (forever). Boxes, spheres and cylinders are Foxglove primitives;
-//!   capsules, hulls, planes (a square, as in the glTF) and triangle meshes are triangle lists.
+//!   capsules, hulls, planes (a square, as in the glTF) and triangle meshes are triangle lists;
+//!   a compound is its parts, each at its pose in the body's frame, coloured by its material.
 //! * `/tf` (`foxglove.FrameTransforms`): one message per frame at `k · frame_dt` (log and
 //!   publish time, ns from 0), holding the fixed `world → scene` transform (+90° about x: the
 //!   scene's y up becomes Foxglove's z up) and `scene → body/<name>` for every body.
@@ -71,30 +72,31 @@ pub fn write(world: &ExportWorld<'_>) -> Result<Vec<u8>, ExportError> {
     let mut entities = Vec::new();
     for st in &scene.statics {
         let half = crate::glb::plane_half_size(st.position, motion);
-        let colour = crate::glb::material_colour(scene, st.material);
         let mut e = entity(format!("static/{}", st.name), SCENE_FRAME, forever);
-        let pose = pose(st.position, st.rotation);
-        add_shape(&mut e, &st.shape, pose, colour, half).map_err(|reason| ExportError::Shape {
-            what: "static",
-            name: st.name.clone(),
-            reason,
+        let at = (st.position, st.rotation);
+        add_parts(&mut e, scene, &st.shape, st.material, at, half).map_err(|reason| {
+            ExportError::Shape {
+                what: "static",
+                name: st.name.clone(),
+                reason,
+            }
         })?;
         entities.push(e);
     }
     for body in &scene.bodies {
-        let colour = crate::glb::material_colour(scene, body.material);
         let mut e = entity(
             format!("body/{}", body.name),
             &body_frame(&body.name),
             forever,
         );
         e.frame_locked = true;
-        let local = pose([0.0; 3], mwb_core::scene::IDENTITY);
-        add_shape(
+        let local = ([0.0; 3], mwb_core::scene::IDENTITY);
+        add_parts(
             &mut e,
+            scene,
             &body.shape,
+            body.material,
             local,
-            colour,
             crate::glb::MIN_PLANE_HALF_SIZE,
         )
         .map_err(|reason| ExportError::Shape {
@@ -228,6 +230,37 @@ fn compose(a: [f64; 4], b: [f64; 4]) -> [f64; 4] {
     ]
 }
 
+/// Every part of `shape` (one for a single shape) placed at `at` (position, rotation), each in
+/// its part's material's colour.
+fn add_parts(
+    e: &mut SceneEntity,
+    scene: &mwb_core::scene::Scene,
+    shape: &Shape,
+    material: usize,
+    at: ([f64; 3], [f64; 4]),
+    plane_half_size: f64,
+) -> Result<(), String> {
+    let compound = matches!(shape, Shape::Compound { .. });
+    for (i, part) in shape.placed_parts(material).into_iter().enumerate() {
+        let colour = crate::glb::material_colour(scene, part.material);
+        if !compound {
+            return add_shape(e, part.shape, pose(at.0, at.1), colour, plane_half_size);
+        }
+        let offset = crate::mesh::rotate(at.1, part.position);
+        let position = [0, 1, 2].map(|k| at.0[k] + offset[k]);
+        let rotation = compose(at.1, part.rotation);
+        add_shape(
+            e,
+            part.shape,
+            pose(position, rotation),
+            colour,
+            plane_half_size,
+        )
+        .map_err(|err| format!("part {i}: {err}"))?;
+    }
+    Ok(())
+}
+
 fn add_shape(
     e: &mut SceneEntity,
     shape: &Shape,
@@ -275,7 +308,8 @@ fn add_shape(
         Shape::Capsule { .. }
         | Shape::ConvexHull { .. }
         | Shape::Plane { .. }
-        | Shape::TriMesh { .. } => {
+        | Shape::TriMesh { .. }
+        | Shape::Compound { .. } => {
             let m: TriangleMesh = shape_mesh(shape, plane_half_size)?;
             e.triangles.push(TriangleListPrimitive {
                 pose: Some(at),

@@ -3,7 +3,8 @@
 //! Layout of the file:
 //! * one scene, named after the world (`"tumble world 3"`), with one root node of the same
 //!   name; its children are a node per static (named as in the scene, placed once) and a node
-//!   per dynamic body (named as in the scene, placed at frame 0), each with its own mesh;
+//!   per dynamic body (named as in the scene, placed at frame 0), each with its own mesh (a
+//!   compound's mesh has a primitive per part, each with its part's material);
 //! * one material per scene material (named as in the scene; PBR, not metallic; statics-only
 //!   materials grey, the others from a fixed palette);
 //! * one animation, named after the world: per body a translation and a rotation channel with
@@ -14,7 +15,7 @@
 //! Every buffer view starts on a 4-byte boundary; accessor `min`/`max` are those of the `f32`
 //! values written (mesh positions and key times, as the specification requires).
 
-use crate::mesh::{TriangleMesh, shape_mesh};
+use crate::mesh::{TriangleMesh, part_meshes};
 use crate::{ExportError, ExportWorld};
 use gltf_json as json;
 use json::validation::Checked::Valid;
@@ -40,28 +41,38 @@ pub fn write(world: &ExportWorld<'_>) -> Result<Vec<u8>, ExportError> {
         .map(|(i, m)| b.root.push(material(&m.name, material_colour(scene, i))))
         .collect();
     let material_of = |i: usize| materials.get(i).copied();
+    // A primitive per part (one for a single shape), each with its part's material.
+    let primitives = |parts: Vec<(usize, TriangleMesh)>| -> Vec<(TriangleMesh, Option<json::Index<json::Material>>)> {
+        parts
+            .into_iter()
+            .map(|(material, m)| (m, material_of(material)))
+            .collect()
+    };
 
     let mut children = Vec::new();
     for st in &scene.statics {
         let half = plane_half_size(st.position, motion);
-        let m = shape_mesh(&st.shape, half).map_err(|reason| ExportError::Shape {
-            what: "static",
-            name: st.name.clone(),
-            reason,
-        })?;
-        let mesh = b.mesh(&st.name, &m, material_of(st.material));
+        let parts =
+            part_meshes(&st.shape, st.material, half).map_err(|reason| ExportError::Shape {
+                what: "static",
+                name: st.name.clone(),
+                reason,
+            })?;
+        let mesh = b.mesh(&st.name, &primitives(parts));
         children.push(b.root.push(node(&st.name, mesh, st.position, st.rotation)));
     }
     let rotations = motion.continuous_rotations();
     let mut body_nodes = Vec::new();
     for (i, body) in scene.bodies.iter().enumerate() {
-        let m =
-            shape_mesh(&body.shape, MIN_PLANE_HALF_SIZE).map_err(|reason| ExportError::Shape {
-                what: "body",
-                name: body.name.clone(),
-                reason,
+        let parts =
+            part_meshes(&body.shape, body.material, MIN_PLANE_HALF_SIZE).map_err(|reason| {
+                ExportError::Shape {
+                    what: "body",
+                    name: body.name.clone(),
+                    reason,
+                }
             })?;
-        let mesh = b.mesh(&body.name, &m, material_of(body.material));
+        let mesh = b.mesh(&body.name, &primitives(parts));
         let n = b.root.push(node(
             &body.name,
             mesh,
@@ -181,7 +192,13 @@ const STATIC_GREY: [f32; 3] = [0.45, 0.45, 0.45];
 
 /// The colour of scene material `i`: grey if only statics use it, else from the palette.
 pub(crate) fn material_colour(scene: &mwb_core::scene::Scene, i: usize) -> [f32; 3] {
-    if scene.bodies.iter().any(|b| b.material == i) {
+    let used_by_bodies = scene.bodies.iter().any(|b| {
+        b.shape
+            .placed_parts(b.material)
+            .iter()
+            .any(|p| p.material == i)
+    });
+    if used_by_bodies {
         PALETTE[i % PALETTE.len()]
     } else {
         STATIC_GREY
@@ -294,14 +311,42 @@ impl Builder {
         })
     }
 
-    /// A mesh of one triangle primitive: POSITION (with min/max), NORMAL, indices (u16 when
-    /// every index fits below 65535, the value reserved for primitive restart, else u32).
+    /// A mesh of triangle primitives (one per part of a compound, else one).
     fn mesh(
+        &mut self,
+        name: &str,
+        parts: &[(TriangleMesh, Option<json::Index<json::Material>>)],
+    ) -> json::Index<json::Mesh> {
+        let primitives = parts
+            .iter()
+            .enumerate()
+            .map(|(i, (m, material))| {
+                // A single shape's accessors keep their names ("ball positions").
+                let label = if parts.len() == 1 {
+                    name.to_owned()
+                } else {
+                    format!("{name} part {i}")
+                };
+                self.primitive(&label, m, *material)
+            })
+            .collect();
+        self.root.push(json::Mesh {
+            extensions: Default::default(),
+            extras: Default::default(),
+            name: Some(name.to_owned()),
+            primitives,
+            weights: None,
+        })
+    }
+
+    /// One triangle primitive: POSITION (with min/max), NORMAL, indices (u16 when every index
+    /// fits below 65535, the value reserved for primitive restart, else u32).
+    fn primitive(
         &mut self,
         name: &str,
         m: &TriangleMesh,
         material: Option<json::Index<json::Material>>,
-    ) -> json::Index<json::Mesh> {
+    ) -> json::mesh::Primitive {
         let (lo, hi) = m.bounds();
         let flat = |v: &[[f32; 3]]| -> Vec<f32> { v.iter().flatten().copied().collect() };
         let position = self.accessor_f32(
@@ -348,21 +393,15 @@ impl Builder {
         let mut attributes = BTreeMap::new();
         attributes.insert(Valid(json::mesh::Semantic::Positions), position);
         attributes.insert(Valid(json::mesh::Semantic::Normals), normal);
-        self.root.push(json::Mesh {
+        json::mesh::Primitive {
+            attributes,
             extensions: Default::default(),
             extras: Default::default(),
-            name: Some(name.to_owned()),
-            primitives: vec![json::mesh::Primitive {
-                attributes,
-                extensions: Default::default(),
-                extras: Default::default(),
-                indices: Some(indices),
-                material,
-                mode: Valid(json::mesh::Mode::Triangles),
-                targets: None,
-            }],
-            weights: None,
-        })
+            indices: Some(indices),
+            material,
+            mode: Valid(json::mesh::Mode::Triangles),
+            targets: None,
+        }
     }
 
     fn finish(mut self) -> Result<Vec<u8>, ExportError> {

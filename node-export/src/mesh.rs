@@ -4,9 +4,11 @@
 //!
 //! Boxes, hulls, cylinder caps and triangle meshes are flat-shaded (a vertex per face corner);
 //! spheres, capsules and cylinder sides are smooth. A plane is an infinite half-space in the
-//! scene; here it is a square of a given half size, centred on the plane's point.
+//! scene; here it is a square of a given half size, centred on the plane's point. A compound is
+//! all its parts, each placed at its pose in the body's frame ([`part_meshes`] keeps them apart,
+//! with their materials; [`shape_mesh`] merges them).
 
-use mwb_core::scene::{Shape, Vec3};
+use mwb_core::scene::{Quat, Shape, Vec3};
 use std::f64::consts::PI;
 
 /// Slices around the axis of round shapes.
@@ -53,6 +55,22 @@ impl TriangleMesh {
             .sum()
     }
 
+    /// Appends `other` placed at `position`, `rotation` (its triangles keep their winding).
+    pub fn append_placed(&mut self, other: &TriangleMesh, position: Vec3, rotation: Quat) {
+        let base = self.positions.len() as u32;
+        for (p, n) in other.positions.iter().zip(&other.normals) {
+            let p = rotate(rotation, f64x3(*p));
+            self.positions.push(f32x3([
+                p[0] + position[0],
+                p[1] + position[1],
+                p[2] + position[2],
+            ]));
+            self.normals
+                .push(f32x3(normalize(rotate(rotation, f64x3(*n)))));
+        }
+        self.indices.extend(other.indices.iter().map(|i| base + i));
+    }
+
     fn vertex(&mut self, p: Vec3, n: Vec3) -> u32 {
         let i = self.positions.len() as u32;
         self.positions.push(f32x3(p));
@@ -90,12 +108,50 @@ impl TriangleMesh {
     }
 }
 
-/// The mesh of `shape`. `plane_half_size` is the half side of the square drawn for a plane.
-/// Errors (as text, for the caller to name the body) for a degenerate hull or a triangle mesh
-/// with an index out of range.
+/// The mesh of every part of `shape` in the body's frame, with the part's material (the body's
+/// `material` for a single shape, which is its one part): a glTF primitive each. Errors name the
+/// part of a compound (`part 1: convex hull …`).
+pub fn part_meshes(
+    shape: &Shape,
+    material: usize,
+    plane_half_size: f64,
+) -> Result<Vec<(usize, TriangleMesh)>, String> {
+    let compound = matches!(shape, Shape::Compound { .. });
+    shape
+        .placed_parts(material)
+        .into_iter()
+        .enumerate()
+        .map(|(i, part)| {
+            let local = shape_mesh(part.shape, plane_half_size).map_err(|e| {
+                if compound {
+                    format!("part {i}: {e}")
+                } else {
+                    e
+                }
+            })?;
+            if !compound {
+                return Ok((part.material, local));
+            }
+            let mut m = TriangleMesh::default();
+            m.append_placed(&local, part.position, part.rotation);
+            Ok((part.material, m))
+        })
+        .collect()
+}
+
+/// The mesh of `shape` (a compound's parts merged into one). `plane_half_size` is the half side
+/// of the square drawn for a plane. Errors (as text, for the caller to name the body) for a
+/// degenerate hull or a triangle mesh with an index out of range.
 pub fn shape_mesh(shape: &Shape, plane_half_size: f64) -> Result<TriangleMesh, String> {
     let mut m = TriangleMesh::default();
     match shape {
+        Shape::Compound { parts } => {
+            for (i, part) in parts.iter().enumerate() {
+                let local = shape_mesh(&part.shape, plane_half_size)
+                    .map_err(|e| format!("part {i}: {e}"))?;
+                m.append_placed(&local, part.position, part.rotation);
+            }
+        }
         Shape::Box { half_extents: h } => {
             box_mesh(&mut m, *h);
             m.orient_outward([0.0; 3]);
@@ -292,6 +348,14 @@ fn plane_mesh(m: &mut TriangleMesh, normal: Vec3, half: f64) -> Result<(), Strin
     Ok(())
 }
 
+/// `v` rotated by the unit quaternion `q` (`[x, y, z, w]`): v + 2w(u × v) + 2u × (u × v).
+pub(crate) fn rotate(q: Quat, v: Vec3) -> Vec3 {
+    let u = [q[0], q[1], q[2]];
+    let t = cross(u, v).map(|x| 2.0 * x);
+    let r = cross(u, t);
+    [0, 1, 2].map(|i| v[i] + q[3] * t[i] + r[i])
+}
+
 fn f32x3(p: Vec3) -> [f32; 3] {
     [p[0] as f32, p[1] as f32, p[2] as f32]
 }
@@ -434,5 +498,69 @@ mod tests {
         };
         let e = shape_mesh(&bad, 1.0).unwrap_err();
         assert!(e.contains("vertex index 2"), "{e}");
+    }
+
+    #[test]
+    fn a_compound_is_all_its_parts_placed_in_the_body_frame() {
+        use mwb_core::scene::{IDENTITY, Part};
+        let s = std::f64::consts::FRAC_1_SQRT_2;
+        let compound = Shape::Compound {
+            parts: vec![
+                Part {
+                    shape: Shape::Box {
+                        half_extents: [0.1, 0.1, 0.1],
+                    },
+                    position: [0.0; 3],
+                    rotation: IDENTITY,
+                    material: 0,
+                },
+                // 90° about z: the bar's long x side lies along y, centred 1 m up.
+                Part {
+                    shape: Shape::Box {
+                        half_extents: [0.3, 0.05, 0.05],
+                    },
+                    position: [0.0, 1.0, 0.0],
+                    rotation: [0.0, 0.0, s, s],
+                    material: 2,
+                },
+            ],
+        };
+        let parts = part_meshes(&compound, 0, 1.0).unwrap();
+        assert_eq!(parts.len(), 2);
+        assert_eq!((parts[0].0, parts[1].0), (0, 2));
+        for (_, m) in &parts {
+            closed_and_outward(m);
+            assert_eq!(m.triangle_count(), 12);
+        }
+        let (lo, hi) = parts[1].1.bounds();
+        assert!(
+            (lo[1] - 0.7).abs() < 1e-6 && (hi[1] - 1.3).abs() < 1e-6,
+            "{lo:?} {hi:?}"
+        );
+        assert!((lo[0] + 0.05).abs() < 1e-6 && (hi[0] - 0.05).abs() < 1e-6);
+        // Merged: every part's triangles, the volumes of both (they do not overlap).
+        let merged = shape_mesh(&compound, 1.0).unwrap();
+        assert_eq!(merged.triangle_count(), 24);
+        closed_and_outward(&merged);
+        let want = 8.0 * (0.1 * 0.1 * 0.1 + 0.3 * 0.05 * 0.05);
+        assert!((volume(&merged) - want).abs() < 1e-6, "{}", volume(&merged));
+        // A single shape is its own one part, untouched, in the body's material.
+        let single = Shape::Sphere { radius: 0.2 };
+        let one = part_meshes(&single, 4, 1.0).unwrap();
+        assert_eq!(one.len(), 1);
+        assert_eq!(one[0], (4, shape_mesh(&single, 1.0).unwrap()));
+        // A bad part is named.
+        let bad = Shape::Compound {
+            parts: vec![Part {
+                shape: Shape::ConvexHull {
+                    points: vec![[0.0; 3], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0]],
+                },
+                position: [0.0; 3],
+                rotation: IDENTITY,
+                material: 0,
+            }],
+        };
+        let e = part_meshes(&bad, 0, 1.0).unwrap_err();
+        assert!(e.starts_with("part 0: "), "{e}");
     }
 }

@@ -3,7 +3,7 @@
 
 mod common;
 
-use common::{shapes, tumble};
+use common::{compound, shapes, tumble};
 use foxglove::Encode;
 use foxglove::messages::{FrameTransforms, SceneUpdate};
 use mwb_export::foxglove::{SCENE_FRAME, SCENE_TOPIC, TF_TOPIC, WORLD_FRAME, body_frame};
@@ -149,4 +149,46 @@ fn every_shape_becomes_a_primitive_or_triangles() {
         );
     }
     assert_eq!(by_id("static/ground").frame_id, SCENE_FRAME);
+}
+
+/// A compound body is one entity (it follows one transform) holding every part at its pose in
+/// the body's frame, each in its material's colour; a compound static is placed in the scene.
+#[test]
+fn a_compound_is_one_entity_with_every_part() {
+    let w = compound(5);
+    let bytes = mwb_export::foxglove::write(&w.export(None)).unwrap_or_else(|e| panic!("{e}"));
+    let update = mcap::MessageStream::new(&bytes)
+        .unwrap_or_else(|e| panic!("{e}"))
+        .map(|m| m.unwrap_or_else(|e| panic!("{e}")))
+        .find(|m| m.channel.topic == SCENE_TOPIC)
+        .map(|m| SceneUpdate::decode(&m.data[..]).unwrap_or_else(|e| panic!("{e}")))
+        .unwrap_or_else(|| panic!("no scene update"));
+    assert_eq!(update.entities.len(), 3, "ground, shelf, letter");
+    let find = |id: &str| {
+        update
+            .entities
+            .iter()
+            .find(|e| e.id == id)
+            .unwrap_or_else(|| panic!("no entity {id}"))
+    };
+    let letter = find("body/letter_l");
+    assert!(letter.frame_locked);
+    assert_eq!((letter.cubes.len(), letter.cylinders.len()), (1, 1));
+    let at = |pose: Option<&foxglove::messages::Pose>| {
+        pose.and_then(|p| p.position.as_ref())
+            .map(|p| [p.x, p.y, p.z])
+            .unwrap_or_else(|| panic!("no position"))
+    };
+    assert_eq!(at(letter.cubes[0].pose.as_ref()), [0.0, 0.25, 0.0]);
+    assert_eq!(at(letter.cylinders[0].pose.as_ref()), [0.15, 0.0, 0.0]);
+    let colour = |c: Option<&foxglove::messages::Color>| c.map(|c| [c.r, c.g, c.b]);
+    assert_ne!(
+        colour(letter.cubes[0].color.as_ref()),
+        colour(letter.cylinders[0].color.as_ref()),
+        "wood and steel"
+    );
+    // The shelf's parts: the static's position plus each part's.
+    let shelf = find("static/shelf");
+    let xs: Vec<f64> = shelf.cubes.iter().map(|c| at(c.pose.as_ref())[0]).collect();
+    assert_eq!(xs, vec![2.0, 1.55]);
 }

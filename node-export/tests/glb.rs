@@ -3,7 +3,7 @@
 
 mod common;
 
-use common::{World, shapes, tumble};
+use common::{World, compound, shapes, tumble};
 use gltf::animation::Property;
 use gltf::animation::util::ReadOutputs;
 use std::path::{Path, PathBuf};
@@ -167,6 +167,59 @@ fn every_shape_exports_and_reads_back() {
     assert_eq!(spins, w.scene.bodies.len());
 }
 
+/// A compound is one node (one animated body) whose mesh has a primitive per part, in the
+/// part's material, its triangles in the body's frame where the part sits.
+#[test]
+fn a_compound_exports_every_part_under_one_node() {
+    let w = compound(5);
+    let bytes = check_world(&w, None);
+    let doc = parse(&bytes);
+    let blob = doc.blob.clone().unwrap_or_default();
+    let node = |name: &str| {
+        doc.nodes()
+            .find(|n| n.name() == Some(name))
+            .unwrap_or_else(|| panic!("no node {name}"))
+    };
+    let prims = |n: gltf::Node| -> Vec<(String, usize, [f32; 3], [f32; 3])> {
+        n.mesh()
+            .unwrap_or_else(|| panic!("no mesh"))
+            .primitives()
+            .map(|p| {
+                let count = p
+                    .reader(|_| Some(&blob))
+                    .read_indices()
+                    .map_or(0, |i| i.into_u32().count());
+                let bb = p.bounding_box();
+                let material = p.material().name().unwrap_or_default().to_owned();
+                (material, count / 3, bb.min, bb.max)
+            })
+            .collect()
+    };
+    let letter = prims(node("letter_l"));
+    assert_eq!(letter.len(), 2, "a primitive per part");
+    // The post: a box (12 triangles) of the body's wood, 0.5 m tall from the body's origin.
+    assert_eq!((letter[0].0.as_str(), letter[0].1), ("wood", 12));
+    assert!(letter[0].2[1].abs() < 1e-6 && (letter[0].3[1] - 0.5).abs() < 1e-6);
+    // The foot: a cylinder of its own steel, turned to lie along x, 0.15 ± 0.15 m.
+    assert_eq!(letter[1].0, "steel");
+    let cylinder = mwb_export::mesh::shape_mesh(
+        &mwb_core::scene::Shape::Cylinder {
+            half_height: 0.15,
+            radius: 0.05,
+        },
+        1.0,
+    )
+    .unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(letter[1].1, cylinder.triangle_count());
+    assert!((letter[1].2[0] - 0.0).abs() < 1e-6 && (letter[1].3[0] - 0.3).abs() < 1e-6);
+    assert!((letter[1].3[1] - 0.05).abs() < 1e-6);
+    // The compound static: two boxes in the ground's material.
+    let shelf = prims(node("shelf"));
+    assert_eq!(shelf.len(), 2);
+    assert!(shelf.iter().all(|p| p.0 == "ground" && p.1 == 12));
+    assert!((shelf[1].2[0] + 0.5).abs() < 1e-6 && (shelf[1].3[0] + 0.4).abs() < 1e-6);
+}
+
 #[test]
 fn a_motion_that_does_not_fit_the_scene_is_refused() {
     let w = tumble(1);
@@ -236,6 +289,7 @@ fn khronos_validator_reports_no_errors_and_no_warnings() {
     for (name, w, index) in [
         ("tumble.glb", tumble(0xfeed), Some(0)),
         ("shapes.glb", shapes(11), None),
+        ("compound.glb", compound(5), None),
     ] {
         let bytes = mwb_export::glb::write(&w.export(index)).unwrap_or_else(|e| panic!("{e}"));
         let Some(report) = validate(&bytes, name) else {

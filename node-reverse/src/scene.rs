@@ -76,6 +76,15 @@ pub enum SceneConvertError {
         /// Why.
         source: BodyError,
     },
+    /// A dynamic body made of several shapes: our stepper's bodies have one convex shape
+    /// centred on their centre of mass (compound statics are fine: each part is a static).
+    #[error(
+        "body {name:?}: compound shapes are not supported by the backward stepper (mwb reverse); use a single shape"
+    )]
+    Compound {
+        /// Its name.
+        name: String,
+    },
     /// A material index out of range (cannot come from a parsed scene).
     #[error("{item} {name:?}: material index {index} out of range")]
     Material {
@@ -147,6 +156,11 @@ pub fn world_from_scene(scene: &Scene) -> Result<World, SceneConvertError> {
                 what: "dynamic shape (planes and meshes are static only)",
                 value: f64::NAN,
             }),
+            Shape::Compound { .. } => {
+                return Err(SceneConvertError::Compound {
+                    name: b.name.clone(),
+                });
+            }
         }
         .map_err(err)?;
         // A hull's body position is its centre of mass in the points' frame.
@@ -162,58 +176,18 @@ pub fn world_from_scene(scene: &Scene) -> Result<World, SceneConvertError> {
         );
     }
     for s in &scene.statics {
-        let m = material(scene, s.material, "static", &s.name)?;
-        let err = |source| SceneConvertError::Static {
-            name: s.name.clone(),
-            source,
-        };
-        let rot = quat(&s.rotation);
-        let pos = v3(&s.position);
-        let st = match &s.shape {
-            Shape::Plane { normal } => {
-                let n = rot * v3(normal);
-                StaticBody::plane(n, n.dot(&pos) / n.norm().max(f64::MIN_POSITIVE))
-            }
-            Shape::Box { half_extents } => StaticBody::cuboid(v3(half_extents), pos, rot),
-            Shape::Sphere { radius } => {
-                Ok(StaticBody::new(SharedShape::ball(*radius as f32), pos, rot))
-            }
-            Shape::Capsule {
-                half_height,
-                radius,
-            } => Ok(StaticBody::new(
-                SharedShape::capsule_y(*half_height as f32, *radius as f32),
-                pos,
-                rot,
-            )),
-            Shape::Cylinder {
-                half_height,
-                radius,
-            } => Ok(StaticBody::new(
-                SharedShape::cylinder(*half_height as f32, *radius as f32),
-                pos,
-                rot,
-            )),
-            Shape::ConvexHull { points } => {
-                let pts: Vec<_> = points.iter().map(|p| to_vec3(&v3(p))).collect();
-                SharedShape::convex_hull(&pts)
-                    .map(|shape| StaticBody::new(shape, pos, rot))
-                    .ok_or(BodyError::DegenerateHull)
-            }
-            Shape::TriMesh { vertices, indices } => {
-                let verts: Vec<_> = vertices.iter().map(v3).collect();
-                StaticBody::trimesh(&verts, indices.clone()).map(|mut t| {
-                    t.position = pos;
-                    t.orientation = rot;
-                    t
-                })
-            }
+        // A compound static is its parts, each a static of its own (immovable geometry needs
+        // no common centre of mass), at the static's pose composed with the part's.
+        let (at, turn) = (v3(&s.position), quat(&s.rotation));
+        let compound = matches!(s.shape, Shape::Compound { .. });
+        for part in s.shape.placed_parts(s.material) {
+            let (pos, rot) = if compound {
+                (at + turn * v3(&part.position), turn * quat(&part.rotation))
+            } else {
+                (at, turn) // exactly as before compounds: the same statics, bit for bit
+            };
+            world.add_static(static_from_scene(scene, &s.name, part, pos, rot)?);
         }
-        .map_err(err)?;
-        world.add_static(st.with_material(Material {
-            friction: m.friction,
-            restitution: m.restitution,
-        }));
     }
     for j in &scene.joints {
         let joint = joint_from_scene(j, &centres)?;
@@ -222,6 +196,71 @@ pub fn world_from_scene(scene: &Scene) -> Result<World, SceneConvertError> {
             .map_err(|source| joint_error(&j.name, source))?;
     }
     Ok(world)
+}
+
+/// One static shape (a whole static, or a part of a compound static) at its world pose.
+fn static_from_scene(
+    scene: &Scene,
+    name: &str,
+    part: core_scene::PlacedPart<'_>,
+    pos: Vector3<f64>,
+    rot: UnitQuaternion<f64>,
+) -> Result<StaticBody, SceneConvertError> {
+    let m = material(scene, part.material, "static", name)?;
+    let err = |source| SceneConvertError::Static {
+        name: name.to_owned(),
+        source,
+    };
+    let st = match part.shape {
+        Shape::Plane { normal } => {
+            let n = rot * v3(normal);
+            StaticBody::plane(n, n.dot(&pos) / n.norm().max(f64::MIN_POSITIVE))
+        }
+        Shape::Box { half_extents } => StaticBody::cuboid(v3(half_extents), pos, rot),
+        Shape::Sphere { radius } => {
+            Ok(StaticBody::new(SharedShape::ball(*radius as f32), pos, rot))
+        }
+        Shape::Capsule {
+            half_height,
+            radius,
+        } => Ok(StaticBody::new(
+            SharedShape::capsule_y(*half_height as f32, *radius as f32),
+            pos,
+            rot,
+        )),
+        Shape::Cylinder {
+            half_height,
+            radius,
+        } => Ok(StaticBody::new(
+            SharedShape::cylinder(*half_height as f32, *radius as f32),
+            pos,
+            rot,
+        )),
+        Shape::ConvexHull { points } => {
+            let pts: Vec<_> = points.iter().map(|p| to_vec3(&v3(p))).collect();
+            SharedShape::convex_hull(&pts)
+                .map(|shape| StaticBody::new(shape, pos, rot))
+                .ok_or(BodyError::DegenerateHull)
+        }
+        Shape::TriMesh { vertices, indices } => {
+            let verts: Vec<_> = vertices.iter().map(v3).collect();
+            StaticBody::trimesh(&verts, indices.clone()).map(|mut t| {
+                t.position = pos;
+                t.orientation = rot;
+                t
+            })
+        }
+        // The parser never nests compounds.
+        Shape::Compound { .. } => Err(BodyError::InvalidParameter {
+            what: "compound nested in a compound",
+            value: f64::NAN,
+        }),
+    }
+    .map_err(err)?;
+    Ok(st.with_material(Material {
+        friction: m.friction,
+        restitution: m.restitution,
+    }))
 }
 
 /// The scene field a [`JointError`] is about.
@@ -295,4 +334,78 @@ fn joint_from_scene(
 pub fn world_from_toml(src: &str, file: &str) -> Result<World, SceneConvertError> {
     let template = SceneTemplate::parse(src, file)?;
     world_from_scene(&template.instantiate(0))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const LETTER_ON_A_SHELF: &str = r#"
+name = "letters"
+[[material]]
+name = "wood"
+[[material]]
+name = "ice"
+friction = 0.05
+[[static]]
+name = "ground"
+shape = "plane"
+material = "wood"
+[[static]]
+name = "shelf"
+shape = "compound"
+material = "wood"
+position = [1, 0, 0]
+rotation_deg = [0, 90, 0]
+part = [
+  { shape = "box", size = [1, 0.1, 0.4], position = [0, 0.5, 0] },
+  { shape = "box", size = [0.1, 0.5, 0.4], position = [0.45, 0.25, 0], material = "ice" },
+]
+[[body]]
+name = "ball"
+shape = "sphere"
+radius = 0.1
+material = "wood"
+position = [0, 0.1, 0]
+"#;
+
+    #[test]
+    fn a_compound_static_becomes_a_static_per_part_at_its_pose() {
+        let world =
+            world_from_toml(LETTER_ON_A_SHELF, "letters.toml").unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(
+            world.statics.len(),
+            3,
+            "the ground and the shelf's two parts"
+        );
+        let foot = &world.statics[2];
+        // 90° about y turns the part's offset +x onto −z: (1, 0.25, −0.45).
+        let want = Vector3::new(1.0, 0.25, -0.45);
+        assert!((foot.position - want).norm() < 1e-12, "{}", foot.position);
+        assert_eq!(foot.material.friction, 0.05, "the part's own material");
+        assert_eq!(world.statics[1].material.friction, 0.5);
+    }
+
+    #[test]
+    fn a_compound_body_is_refused_by_name_without_a_panic() {
+        let src = LETTER_ON_A_SHELF.replace(
+            "[[body]]\nname = \"ball\"\nshape = \"sphere\"\nradius = 0.1\n",
+            "[[body]]\nname = \"letter_s\"\nshape = \"compound\"\npart = [{ shape = \"sphere\", radius = 0.1 }]\n",
+        );
+        let err = match world_from_toml(&src, "letters.toml") {
+            Ok(_) => panic!("a compound body was accepted"),
+            Err(e) => e,
+        };
+        assert_eq!(
+            err,
+            SceneConvertError::Compound {
+                name: "letter_s".to_owned()
+            }
+        );
+        assert_eq!(
+            err.to_string(),
+            "body \"letter_s\": compound shapes are not supported by the backward stepper \
+             (mwb reverse); use a single shape"
+        );
+    }
 }

@@ -696,10 +696,21 @@ impl Parent {
             }
         }
         let mut active_from: Vec<Option<u32>> = active.iter().map(|&a| a.then_some(k)).collect();
+        // About the centre of mass, where rapier's velocities are: the shape's radius about its
+        // origin plus how far the centre is from it (non-zero for a compound or an off-centre
+        // hull; exactly zero for the primitives).
         let radius: Vec<f32> = scene
             .bodies
             .iter()
-            .map(|b| b.shape.bounding_radius() as f32)
+            .zip(&p.sim.bodies)
+            .map(|(b, &h)| {
+                let com = p.sim.world.bodies[h]
+                    .mass_properties()
+                    .local_mprops
+                    .local_com
+                    .length();
+                b.shape.bounding_radius() as f32 + com
+            })
             .collect();
         let margin = 2.0 * p.sim.world.integration_parameters.prediction_distance();
         let gravity = p.sim.world.gravity.length();
@@ -758,7 +769,7 @@ struct ChildHooks<'a, 'r, 'c, 'k> {
     tolerance: f32,
     active_from: &'a mut Vec<Option<u32>>,
     groups: Vec<Vec<usize>>,
-    /// Each body's bounding radius about its origin.
+    /// Each body's bounding radius about its centre of mass (at most).
     radius: Vec<f32>,
     /// Distance at which two bodies count as about to touch (twice rapier's contact prediction).
     margin: f32,

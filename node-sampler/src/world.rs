@@ -38,6 +38,13 @@ pub enum BuildError {
     BadTriMesh { name: String, reason: String },
     #[error("body {name:?}: shape {shape} cannot be dynamic")]
     NotDynamic { name: String, shape: &'static str },
+    #[error("{item} {name:?}: part {part}: shape {shape} cannot be a part of a compound")]
+    BadPart {
+        item: &'static str,
+        name: String,
+        part: usize,
+        shape: &'static str,
+    },
 }
 
 /// How to run a world.
@@ -256,7 +263,73 @@ fn shape_builder(name: &str, shape: &Shape) -> Result<ColliderBuilder, BuildErro
                 }
             })?
         }
+        // The parser never nests compounds; a compound is built part by part (`colliders`).
+        Shape::Compound { .. } => {
+            return Err(BuildError::BadPart {
+                item: "body",
+                name: name.to_owned(),
+                part: 0,
+                shape: "compound",
+            });
+        }
     })
+}
+
+/// The colliders of one body or static: one per part of a compound, each at its pose in the
+/// body's frame with its own material, else the one shape with the body's material.
+///
+/// Mass properties: every collider carries its material's density, and rapier sums the parts'
+/// masses, centres of mass and inertia tensors (about the common centre, parallel-axis) into the
+/// body's, so a compound's mass is the union's (overlapping parts count twice where they
+/// overlap — the scene format documents it). A single shape is built exactly as before
+/// compounds existed, so existing scenes give the same bytes.
+fn colliders(
+    scene: &Scene,
+    item: &'static str,
+    name: &str,
+    shape: &Shape,
+    material: usize,
+) -> Result<Vec<ColliderBuilder>, BuildError> {
+    let with = |co: ColliderBuilder, material: usize| {
+        let m = &scene.materials[material];
+        co.friction(m.friction as f32)
+            .restitution(m.restitution as f32)
+            .density(m.density as f32)
+    };
+    match shape {
+        Shape::Compound { parts } => parts
+            .iter()
+            .enumerate()
+            .map(|(i, p)| {
+                if matches!(p.shape, Shape::Compound { .. } | Shape::Plane { .. }) {
+                    return Err(BuildError::BadPart {
+                        item,
+                        name: name.to_owned(),
+                        part: i,
+                        shape: p.shape.kind(),
+                    });
+                }
+                let co = shape_builder(name, &p.shape)?
+                    .position(Pose::from_parts(v3(p.position), quat(p.rotation)));
+                Ok(with(co, p.material))
+            })
+            .collect(),
+        single => Ok(vec![with(shape_builder(name, single)?, material)]),
+    }
+}
+
+/// Inserts a body with its colliders (in part order: the insertion order is the scene's, so the
+/// same scene gives the same world).
+fn insert_body(
+    world: &mut PhysicsWorld,
+    rb: RigidBodyBuilder,
+    colliders: Vec<ColliderBuilder>,
+) -> RigidBodyHandle {
+    let h = world.insert_body(rb);
+    for co in colliders {
+        world.insert_collider(co, Some(h));
+    }
+    h
 }
 
 /// Which bodies can tunnel and need CCD (DESIGN: "CCD only for bodies that can tunnel").
@@ -282,11 +355,13 @@ pub fn ccd_bodies(scene: &Scene) -> Vec<bool> {
             _ => height(st.position) - st.shape.bounding_radius(),
         })
         .fold(f64::INFINITY, f64::min);
+    // Planes and meshes are left out (as they always were), also as parts of a compound.
     let thinnest_static = scene
         .statics
         .iter()
-        .filter(|st| !matches!(st.shape, Shape::Plane { .. } | Shape::TriMesh { .. }))
-        .map(|st| st.shape.min_half_thickness())
+        .flat_map(|st| st.shape.placed_parts(st.material))
+        .filter(|part| !matches!(part.shape, Shape::Plane { .. } | Shape::TriMesh { .. }))
+        .map(|part| part.shape.min_half_thickness())
         .fold(f64::INFINITY, f64::min);
     let v_max = scene
         .bodies
@@ -328,16 +403,11 @@ impl SimWorld {
         world.gravity = v3(s.gravity);
         world.integration_parameters.dt = s.dt as f32;
         world.integration_parameters.num_solver_iterations = (s.solver_iterations as usize).max(1);
-        let material = |i: usize| &scene.materials[i];
         for st in &scene.statics {
-            let m = material(st.material);
             let rb = RigidBodyBuilder::fixed()
                 .pose(Pose::from_parts(v3(st.position), quat(st.rotation)));
-            let co = shape_builder(&st.name, &st.shape)?
-                .friction(m.friction as f32)
-                .restitution(m.restitution as f32)
-                .density(m.density as f32);
-            world.insert(rb, co);
+            let co = colliders(scene, "static", &st.name, &st.shape, st.material)?;
+            insert_body(&mut world, rb, co);
         }
         let ccd = ccd_bodies(scene);
         let mut bodies = Vec::with_capacity(scene.bodies.len());
@@ -345,13 +415,9 @@ impl SimWorld {
             if !b.shape.can_be_dynamic() {
                 return Err(BuildError::NotDynamic {
                     name: b.name.clone(),
-                    shape: match b.shape {
-                        Shape::Plane { .. } => "plane",
-                        _ => "trimesh",
-                    },
+                    shape: b.shape.kind(),
                 });
             }
-            let m = material(b.material);
             let rb = RigidBodyBuilder::dynamic()
                 .pose(Pose::from_parts(v3(b.position), quat(b.rotation)))
                 .linvel(v3(b.linvel))
@@ -359,12 +425,8 @@ impl SimWorld {
                 .linear_damping(s.linear_damping as f32)
                 .angular_damping(s.angular_damping as f32)
                 .ccd_enabled(needs_ccd);
-            let co = shape_builder(&b.name, &b.shape)?
-                .friction(m.friction as f32)
-                .restitution(m.restitution as f32)
-                .density(m.density as f32);
-            let (h, _) = world.insert(rb, co);
-            bodies.push(h);
+            let co = colliders(scene, "body", &b.name, &b.shape, b.material)?;
+            bodies.push(insert_body(&mut world, rb, co));
         }
         if !scene.joints.is_empty() {
             // Joints to the world need a fixed anchor body (at the origin, so world-space

@@ -128,12 +128,81 @@ pub enum Shape {
         vertices: Vec<Vec3>,
         indices: Vec<[u32; 3]>,
     },
+    /// Several shapes rigidly joined into one body (one rigid body, one object for browsing),
+    /// each at its own pose in the body's local frame. Parts are never compounds themselves and
+    /// never planes; a dynamic body's parts are never triangle meshes (the parser refuses them).
+    Compound {
+        parts: Vec<Part>,
+    },
+}
+
+/// One shape of a [`Shape::Compound`], placed in its body's local frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Part {
+    pub shape: Shape,
+    /// Centre of the part's local frame in the body's frame.
+    pub position: Vec3,
+    /// The part's orientation in the body's frame (unit).
+    pub rotation: Quat,
+    /// Index into [`Scene::materials`]: the part's own material, or its body's.
+    pub material: usize,
+}
+
+/// A shape placed in its body's frame with its material: one part of a compound, or a whole
+/// single shape (at the identity, with the body's material). See [`Shape::placed_parts`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PlacedPart<'a> {
+    pub shape: &'a Shape,
+    pub position: Vec3,
+    pub rotation: Quat,
+    pub material: usize,
 }
 
 impl Shape {
     /// Whether a dynamic body may have this shape.
     pub fn can_be_dynamic(&self) -> bool {
-        !matches!(self, Shape::Plane { .. } | Shape::TriMesh { .. })
+        match self {
+            Shape::Plane { .. } | Shape::TriMesh { .. } => false,
+            Shape::Compound { parts } => parts.iter().all(|p| p.shape.can_be_dynamic()),
+            _ => true,
+        }
+    }
+
+    /// The shape's name as the scene format writes it (`"box"`, `"compound"`, …).
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Shape::Box { .. } => "box",
+            Shape::Sphere { .. } => "sphere",
+            Shape::Capsule { .. } => "capsule",
+            Shape::Cylinder { .. } => "cylinder",
+            Shape::ConvexHull { .. } => "convex",
+            Shape::Plane { .. } => "plane",
+            Shape::TriMesh { .. } => "trimesh",
+            Shape::Compound { .. } => "compound",
+        }
+    }
+
+    /// The simple shapes this shape is made of, each placed in the body's frame with its
+    /// material: a compound's parts, or the shape itself at the identity with `body_material`.
+    /// Whatever draws, exports or builds a body's geometry walks these.
+    pub fn placed_parts(&self, body_material: usize) -> Vec<PlacedPart<'_>> {
+        match self {
+            Shape::Compound { parts } => parts
+                .iter()
+                .map(|p| PlacedPart {
+                    shape: &p.shape,
+                    position: p.position,
+                    rotation: p.rotation,
+                    material: p.material,
+                })
+                .collect(),
+            single => vec![PlacedPart {
+                shape: single,
+                position: [0.0; 3],
+                rotation: IDENTITY,
+                material: body_material,
+            }],
+        }
     }
 
     /// Radius of the smallest ball about the local origin that contains the shape (used to
@@ -158,6 +227,14 @@ impl Shape {
                 .map(|p| (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt())
                 .fold(0.0, f64::max),
             Shape::Plane { .. } => f64::INFINITY,
+            // Each part's ball about its own origin, moved out to where the part sits.
+            Shape::Compound { parts } => parts
+                .iter()
+                .map(|p| {
+                    let [x, y, z] = p.position;
+                    (x * x + y * y + z * z).sqrt() + p.shape.bounding_radius()
+                })
+                .fold(0.0, f64::max),
         }
     }
 
@@ -175,6 +252,11 @@ impl Shape {
             Shape::ConvexHull { .. } => self.bounding_radius() * 0.25,
             Shape::Plane { .. } => f64::INFINITY,
             Shape::TriMesh { .. } => 0.0,
+            // The thinnest part decides what can tunnel through (or be tunnelled by) the body.
+            Shape::Compound { parts } => parts
+                .iter()
+                .map(|p| p.shape.min_half_thickness())
+                .fold(f64::INFINITY, f64::min),
         }
     }
 }
@@ -185,7 +267,8 @@ pub struct Body {
     pub name: String,
     pub shape: Shape,
     pub material: usize,
-    /// Centre of the shape's local frame in world space.
+    /// Centre of the shape's local frame in world space (a compound's parts are placed in this
+    /// frame; it need not be the centre of mass). Recorded poses are this frame's.
     pub position: Vec3,
     pub rotation: Quat,
     pub linvel: Vec3,

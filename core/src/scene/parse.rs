@@ -15,7 +15,8 @@ use super::error::SceneError;
 use super::generators::{Layout, MAX_INSTANCES};
 use super::model::{BodyRef, Settings, Vec3};
 use super::template::{
-    BodyT, Dist, JointKindT, JointT, MaterialT, Num, NumVec3, RotationT, SceneTemplate, ShapeT,
+    BodyT, Dist, JointKindT, JointT, MaterialT, Num, NumVec3, PartT, RotationT, SceneTemplate,
+    ShapeT,
 };
 // An item of the scene (`body "ball"`, `settings`, …) is a table of the shared reader.
 use super::toml_span::{Source, Table as Item, Value as Val};
@@ -67,7 +68,7 @@ impl Valid {
 }
 
 const SHAPES: &[&str] = &[
-    "box", "sphere", "capsule", "cylinder", "convex", "plane", "trimesh",
+    "box", "sphere", "capsule", "cylinder", "convex", "plane", "trimesh", "compound",
 ];
 
 fn shape_keys(shape: &str) -> &'static [&'static str] {
@@ -78,6 +79,7 @@ fn shape_keys(shape: &str) -> &'static [&'static str] {
         "convex" => &["points"],
         "plane" => &["normal"],
         "trimesh" => &["vertices", "indices"],
+        "compound" => &["part"],
         _ => &[],
     }
 }
@@ -92,6 +94,16 @@ const ALL_SHAPE_KEYS: &[&str] = &[
     "normal",
     "vertices",
     "indices",
+    "part",
+];
+/// Keys of one part of a compound (besides its shape's own keys).
+const PART_KEYS: &[&str] = &[
+    "shape",
+    "material",
+    "position",
+    "rotation_deg",
+    "axis_angle",
+    "quat",
 ];
 const STATIC_KEYS: &[&str] = &[
     "name",
@@ -755,10 +767,14 @@ fn parse_body<'a>(
     }
     item.check_keys(&allowed, &|k| {
         if ALL_SHAPE_KEYS.contains(&k) {
-            Some(format!(
-                "does not apply to shape \"{shape_name}\" (it takes {})",
-                own_keys.join(", ")
-            ))
+            Some(if shape_name == "compound" {
+                format!("a compound's shapes are written in its parts ([[{kind}.part]] tables), not on the {kind}")
+            } else {
+                format!(
+                    "does not apply to shape \"{shape_name}\" (it takes {})",
+                    own_keys.join(", ")
+                )
+            })
         } else if !dynamic && MOTION_KEYS.contains(&k) {
             Some("statics do not move; velocities apply to [[body]] only".to_owned())
         } else {
@@ -766,20 +782,34 @@ fn parse_body<'a>(
         }
     })?;
 
-    let shape = parse_shape(&item, shape_name)?;
-
-    let (material_name, material_span) =
-        item.required_string("material", "the name of a [[material]]")?;
-    let material = *materials.get(material_name).ok_or_else(|| {
-        item.err(
-            "material",
-            material_span,
-            format!(
-                "unknown material \"{material_name}\"{}",
-                suggestion(material_name, materials.keys().map(String::as_str))
-            ),
-        )
-    })?;
+    let (shape, material) = if shape_name == "compound" {
+        let parts = parse_parts(&item, kind, dynamic, materials)?;
+        // The body's material is the default of its parts; it may be left out when every part
+        // names its own (the body then reports its first part's).
+        let own = parts
+            .iter()
+            .map(|(_, m)| *m)
+            .collect::<Option<Vec<usize>>>();
+        let material = match (item.get("material"), own.as_deref()) {
+            (None, Some([first, ..])) => *first,
+            _ => body_material(
+                &item,
+                materials,
+                " (the material of every part that names none)",
+            )?,
+        };
+        let parts = parts
+            .into_iter()
+            .map(|(p, m)| PartT {
+                material: m.unwrap_or(material),
+                ..p
+            })
+            .collect();
+        (ShapeT::Compound { parts }, material)
+    } else {
+        let shape = parse_shape(&item, shape_name)?;
+        (shape, body_material(&item, materials, "")?)
+    };
 
     let position = item.num3("position", Valid::Any, Some([0.0; 3]))?;
     let rotation = parse_rotation(&item)?;
@@ -816,6 +846,148 @@ fn parse_body<'a>(
         angvel,
         placements,
     })
+}
+
+/// The `material` of a body, static or part: the index of a `[[material]]` by name. `what_for`
+/// is added to the message when it is missing.
+fn body_material(
+    item: &Item<'_>,
+    materials: &HashMap<String, usize>,
+    what_for: &str,
+) -> Result<usize, SceneError> {
+    let (name, span) =
+        item.required_string("material", &format!("the name of a [[material]]{what_for}"))?;
+    material_index(item, materials, name, span)
+}
+
+fn material_index(
+    item: &Item<'_>,
+    materials: &HashMap<String, usize>,
+    name: &str,
+    span: Range<usize>,
+) -> Result<usize, SceneError> {
+    materials.get(name).copied().ok_or_else(|| {
+        item.err(
+            "material",
+            span,
+            format!(
+                "unknown material \"{name}\"{}",
+                suggestion(name, materials.keys().map(String::as_str))
+            ),
+        )
+    })
+}
+
+/// The parts of a compound `item` (`[[body.part]]` tables, or an inline `part = [{ … }, …]`),
+/// each with its own material if it names one. Every refusal names the part: `part[1].radius`.
+/// A part is written like a body's shape (`shape` and its keys), placed by `position` and one
+/// of the rotation keys in the body's frame; it may not be a compound, a plane, or (in a
+/// dynamic body) a triangle mesh.
+fn parse_parts(
+    item: &Item<'_>,
+    kind: &str,
+    dynamic: bool,
+    materials: &HashMap<String, usize>,
+) -> Result<Vec<(PartT, Option<usize>)>, SceneError> {
+    let tables = format!("[[{kind}.part]]");
+    let v = item.get("part").ok_or_else(|| {
+        item.missing(
+            "part",
+            &format!("a compound needs its shapes, each in a {tables} table"),
+        )
+    })?;
+    let DeValue::Array(items) = v.get_ref() else {
+        return Err(item.err(
+            "part",
+            v.span(),
+            format!(
+                "expected an array of tables {tables}, found {}",
+                v.get_ref().type_str()
+            ),
+        ));
+    };
+    if items.is_empty() {
+        return Err(item.err("part", v.span(), "a compound needs at least one part"));
+    }
+    let mut out = Vec::with_capacity(items.len());
+    for (i, pv) in items.iter().enumerate() {
+        let path = format!("part[{i}]");
+        let DeValue::Table(table) = pv.get_ref() else {
+            return Err(item.err(
+                &path,
+                pv.span(),
+                format!("expected a table, found {}", pv.get_ref().type_str()),
+            ));
+        };
+        let part = Item {
+            src: item.src,
+            label: item.label.clone(),
+            prefix: format!("{}{path}.", item.prefix),
+            span: pv.span(),
+            table,
+        };
+        let solids = "box, sphere, capsule, cylinder, convex";
+        let (shape_name, shape_span) = part.required_string(
+            "shape",
+            &format!("one of {solids}{}", if dynamic { "" } else { ", trimesh" }),
+        )?;
+        let refusal = match shape_name {
+            "compound" => Some(
+                "a part cannot be a compound (compounds do not nest): list its shapes as parts of this one".to_owned(),
+            ),
+            "plane" => Some(
+                "a plane cannot be a part (it is an infinite half-space): declare it as its own [[static]]".to_owned(),
+            ),
+            "trimesh" if dynamic => Some(format!(
+                "shape \"trimesh\" can only be static: a dynamic body's parts are solids ({solids}); \
+                 declare the mesh as [[static]]"
+            )),
+            s if !SHAPES.contains(&s) => Some(format!(
+                "unknown shape \"{s}\"; expected one of {solids}{}{}",
+                if dynamic { "" } else { ", trimesh" },
+                suggestion(s, SHAPES.iter().copied())
+            )),
+            _ => None,
+        };
+        if let Some(msg) = refusal {
+            return Err(part.err("shape", shape_span, msg));
+        }
+        let own_keys = shape_keys(shape_name);
+        let allowed: Vec<&str> = PART_KEYS.iter().chain(own_keys).copied().collect();
+        part.check_keys(&allowed, &|k| {
+            if ALL_SHAPE_KEYS.contains(&k) {
+                Some(format!(
+                    "does not apply to shape \"{shape_name}\" (it takes {})",
+                    own_keys.join(", ")
+                ))
+            } else if MOTION_KEYS.contains(&k) {
+                Some(format!("velocities belong to the {kind}, not to one of its parts"))
+            } else if LAYOUT_KEYS.contains(&k) {
+                Some(format!(
+                    "a part cannot be a generator: put `{k}` on the {kind} to repeat the whole compound"
+                ))
+            } else {
+                None
+            }
+        })?;
+        let shape = parse_shape(&part, shape_name)?;
+        let material = match part.string("material")? {
+            Some((name, span)) => Some(material_index(&part, materials, name, span)?),
+            None => None,
+        };
+        let position = part.num3("position", Valid::Any, Some([0.0; 3]))?;
+        let rotation = parse_rotation(&part)?;
+        out.push((
+            PartT {
+                shape,
+                position,
+                rotation,
+                material: 0, // resolved by the caller once the body's material is known
+            },
+            material,
+        ));
+    }
+    Ok(out)
 }
 
 /// Exactly one of `a` (half) or `b` (full); returns the value and whether it was the full one.

@@ -9,8 +9,8 @@
 use super::error::SceneError;
 use super::generators::Placement;
 use super::model::{
-    Body, BodyRef, IDENTITY, Joint, JointKind, Material, Quat, Scene, Settings, Shape, StaticBody,
-    Vec3,
+    Body, BodyRef, IDENTITY, Joint, JointKind, Material, Part, Quat, Scene, Settings, Shape,
+    StaticBody, Vec3,
 };
 use super::toml_span::Source;
 use crate::rng::{Stream, WorldRng};
@@ -105,6 +105,20 @@ pub(crate) enum ShapeT {
         vertices: Vec<Vec3>,
         indices: Vec<[u32; 3]>,
     },
+    /// `shape = "compound"` with its `[[body.part]]` tables (never nested: the parser refuses).
+    Compound {
+        parts: Vec<PartT>,
+    },
+}
+
+/// One part of a compound before sampling. `material` is resolved at parse time (the part's
+/// own, else its body's).
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) struct PartT {
+    pub shape: ShapeT,
+    pub position: NumVec3,
+    pub rotation: RotationT,
+    pub material: usize,
 }
 
 impl ShapeT {
@@ -117,10 +131,21 @@ impl ShapeT {
             }
             ShapeT::Plane { normal } => normal.iter().collect(),
             ShapeT::ConvexHull { .. } | ShapeT::TriMesh { .. } => Vec::new(),
+            ShapeT::Compound { parts } => parts
+                .iter()
+                .flat_map(|p| {
+                    p.shape
+                        .nums()
+                        .into_iter()
+                        .chain(&p.position)
+                        .chain(p.rotation.nums())
+                })
+                .collect(),
         }
     }
 
-    /// Sampling order: the fields in the order they are listed in the enum.
+    /// Sampling order: the fields in the order they are listed in the enum; a compound's parts
+    /// in file order, each its shape, then `position`, then rotation.
     fn sample(&self, rng: &mut WorldRng) -> Shape {
         let half = |full: bool, v: f64| if full { 0.5 * v } else { v };
         match self {
@@ -166,6 +191,22 @@ impl ShapeT {
             ShapeT::TriMesh { vertices, indices } => Shape::TriMesh {
                 vertices: vertices.clone(),
                 indices: indices.clone(),
+            },
+            ShapeT::Compound { parts } => Shape::Compound {
+                parts: parts
+                    .iter()
+                    .map(|p| {
+                        let shape = p.shape.sample(rng);
+                        let position = sample3(&p.position, rng);
+                        let rotation = p.rotation.sample(rng);
+                        Part {
+                            shape,
+                            position,
+                            rotation,
+                            material: p.material,
+                        }
+                    })
+                    .collect(),
             },
         }
     }

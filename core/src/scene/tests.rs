@@ -1177,3 +1177,423 @@ proptest! {
         }
     }
 }
+
+// ---------------------------------------------------------------- compound bodies (issue 18)
+
+/// An "L" of two boxes, the foot of another material and turned about y; a compound static
+/// beside it.
+const COMPOUND: &str = r#"
+name = "c"
+
+[[material]]
+name = "wood"
+density = 600
+
+[[material]]
+name = "steel"
+density = 7800
+
+[[static]]
+name = "ground"
+shape = "plane"
+material = "wood"
+
+[[static]]
+name = "shelf"
+shape = "compound"
+material = "wood"
+
+[[static.part]]
+shape = "box"
+size = [1, 0.1, 0.3]
+
+[[static.part]]
+shape = "trimesh"
+vertices = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]
+indices = [[0, 1, 2]]
+position = [0, 0.05, 0]
+
+[[body]]
+name = "letter_l"
+shape = "compound"
+material = "wood"
+position = [0, 1, 0]
+angvel = [0, 1, 0]
+
+[[body.part]]
+shape = "box"
+size = [0.1, 0.5, 0.1]
+position = [0, 0.25, 0]
+
+[[body.part]]
+shape = "box"
+half_extents = [0.15, 0.05, 0.05]
+position = [0.1, 0, 0]
+rotation_deg = [0, 90, 0]
+material = "steel"
+"#;
+
+fn parts_of(shape: &Shape) -> &[super::Part] {
+    match shape {
+        Shape::Compound { parts } => parts,
+        other => panic!("expected a compound, got {other:?}"),
+    }
+}
+
+#[test]
+fn a_compound_body_is_one_body_with_posed_parts_and_their_materials() {
+    let t = parse_ok(COMPOUND);
+    assert_eq!(t.body_count(), 1);
+    assert!(!t.has_distributions());
+    let s = t.instantiate(5);
+    let b = &s.bodies[0];
+    assert_eq!(b.name, "letter_l");
+    assert_eq!(b.position, [0.0, 1.0, 0.0]);
+    assert_eq!(b.angvel, [0.0, 1.0, 0.0]);
+    assert_eq!(b.material, 0);
+    let parts = parts_of(&b.shape);
+    assert_eq!(parts.len(), 2);
+    assert_eq!(
+        parts[0].shape,
+        Shape::Box {
+            half_extents: [0.05, 0.25, 0.05]
+        }
+    );
+    assert_eq!(parts[0].position, [0.0, 0.25, 0.0]);
+    assert_eq!(parts[0].rotation, super::IDENTITY);
+    assert_eq!(
+        parts[0].material, 0,
+        "a part without material takes its body's"
+    );
+    assert_eq!(parts[1].material, 1);
+    assert_eq!(parts[1].position, [0.1, 0.0, 0.0]);
+    // 90° about y turns local x onto world −z.
+    assert!(close(
+        rotate(parts[1].rotation, [1.0, 0.0, 0.0]),
+        [0.0, 0.0, -1.0]
+    ));
+    // The static may hold a mesh part; it keeps its pose.
+    let shelf = parts_of(&s.statics[1].shape);
+    assert!(matches!(shelf[1].shape, Shape::TriMesh { .. }));
+    assert_eq!(shelf[1].position, [0.0, 0.05, 0.0]);
+    assert!(!s.statics[1].shape.can_be_dynamic());
+    assert!(b.shape.can_be_dynamic());
+    assert_eq!(b.shape.kind(), "compound");
+    // The parts seen uniformly, a single shape as its own one part.
+    let placed = b.shape.placed_parts(b.material);
+    assert_eq!(placed.len(), 2);
+    assert_eq!(placed[1].material, 1);
+    let ball = Shape::Sphere { radius: 1.0 };
+    let single = ball.placed_parts(7);
+    assert_eq!((single.len(), single[0].material), (1, 7));
+    assert_eq!(single[0].shape, &ball);
+}
+
+#[test]
+fn a_compound_reaches_as_far_as_its_farthest_part_and_is_as_thin_as_its_thinnest() {
+    let s = parse_ok(COMPOUND).instantiate(0);
+    let shape = &s.bodies[0].shape;
+    // Upright box: centre 0.25 up, corner sqrt(0.05² + 0.25² + 0.05²) further; foot: 0.1 out,
+    // corner sqrt(0.15² + 0.05² + 0.05²) further.
+    let upright = 0.25 + (0.05f64 * 0.05 + 0.25 * 0.25 + 0.05 * 0.05).sqrt();
+    let foot = 0.1 + (0.15f64 * 0.15 + 0.05 * 0.05 + 0.05 * 0.05).sqrt();
+    assert!((shape.bounding_radius() - upright.max(foot)).abs() < 1e-12);
+    assert!((shape.min_half_thickness() - 0.05).abs() < 1e-12);
+}
+
+#[test]
+fn compound_parts_may_be_written_inline_and_repeated_by_a_generator() {
+    let inline = COMPOUND
+        .replace(
+            "angvel = [0, 1, 0]\n",
+            "angvel = [0, 1, 0]\npart = [\n  { shape = \"box\", size = [0.1, 0.5, 0.1], position = [0, 0.25, 0] },\n  { shape = \"box\", half_extents = [0.15, 0.05, 0.05], position = [0.1, 0, 0], rotation_deg = [0, 90, 0], material = \"steel\" },\n]\n",
+        );
+    let inline = inline
+        .split("[[body.part]]")
+        .next()
+        .unwrap_or_default()
+        .to_owned();
+    assert_eq!(
+        parse_ok(&inline).instantiate(3),
+        parse_ok(COMPOUND).instantiate(3)
+    );
+
+    // A grid of compounds, a part's size randomised per instance.
+    let grid = COMPOUND
+        .replace(
+            "position = [0, 1, 0]\n",
+            "position = [0, 1, 0]\nrow = { count = 3, spacing = [1, 0, 0] }\n",
+        )
+        .replace(
+            "size = [0.1, 0.5, 0.1]",
+            "size = [0.1, { uniform = [0.4, 0.6] }, 0.1]",
+        );
+    let t = parse_ok(&grid);
+    assert!(t.has_distributions());
+    assert_eq!(t.body_count(), 3);
+    let s = t.instantiate(11);
+    assert_eq!(s.bodies[2].name, "letter_l[2]");
+    assert_eq!(s.bodies[2].position, [2.0, 1.0, 0.0]);
+    let heights: Vec<f64> = s
+        .bodies
+        .iter()
+        .map(|b| match parts_of(&b.shape)[0].shape {
+            Shape::Box { half_extents } => half_extents[1],
+            _ => f64::NAN,
+        })
+        .collect();
+    assert!(
+        heights.iter().all(|h| (0.2..=0.3).contains(h)),
+        "{heights:?}"
+    );
+    assert!(heights[0] != heights[1], "each instance draws its own");
+    assert_eq!(t.instantiate(11), s);
+}
+
+#[test]
+fn a_compound_whose_parts_all_name_materials_needs_none_of_its_own() {
+    let src = COMPOUND
+        .replace(
+            "material = \"wood\"\nposition = [0, 1, 0]",
+            "position = [0, 1, 0]",
+        )
+        .replace(
+            "position = [0, 0.25, 0]\n",
+            "position = [0, 0.25, 0]\nmaterial = \"steel\"\n",
+        );
+    let s = parse_ok(&src).instantiate(0);
+    assert_eq!(s.bodies[0].material, 1, "the first part's material");
+    // Without it, a part that names none has nothing to fall back on.
+    let src = COMPOUND.replace(
+        "material = \"wood\"\nposition = [0, 1, 0]",
+        "position = [0, 1, 0]",
+    );
+    let err = parse(&src).err().unwrap_or_else(|| panic!("accepted"));
+    assert_eq!(err.field.as_deref(), Some("material"));
+    assert!(err.message.contains("every part that names none"), "{err}");
+}
+
+#[test]
+fn a_part_quaternion_is_normalised_as_a_body_quaternion_is() {
+    let src = COMPOUND.replace("rotation_deg = [0, 90, 0]", "quat = [0, 0, 0, 2]");
+    let s = parse_ok(&src).instantiate(0);
+    assert_eq!(parts_of(&s.bodies[0].shape)[1].rotation, super::IDENTITY);
+}
+
+/// Every refusal of a compound names the body, the part's index and its field, at the line of
+/// the offending value (marked `#<`).
+#[test]
+fn every_bad_compound_names_the_body_the_part_and_the_field() {
+    let body = |part_lines: &str| {
+        format!(
+            "name = \"t\"\n[[material]]\nname = \"wood\"\n[[body]]\nname = \"s\"\nshape = \"compound\"\nmaterial = \"wood\"\n[[body.part]]\nshape = \"sphere\"\nradius = 0.1\n[[body.part]]\n{part_lines}\n"
+        )
+    };
+    let cases = vec![
+        bad(
+            "nested compound",
+            body("shape = \"compound\" #<"),
+            "body \"s\"",
+            "part[1].shape",
+            "compounds do not nest",
+        ),
+        bad(
+            "plane part",
+            body("shape = \"plane\" #<"),
+            "body \"s\"",
+            "part[1].shape",
+            "a plane cannot be a part",
+        ),
+        bad(
+            "plane part of a static",
+            body("shape = \"plane\" #<")
+                .replace("[[body]]", "[[static]]")
+                .replace("[[body.part]]", "[[static.part]]"),
+            "static \"s\"",
+            "part[1].shape",
+            "a plane cannot be a part",
+        ),
+        bad(
+            "trimesh part of a dynamic body",
+            body(
+                "shape = \"trimesh\" #<\nvertices = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]\nindices = [[0, 1, 2]]",
+            ),
+            "body \"s\"",
+            "part[1].shape",
+            "can only be static",
+        ),
+        bad(
+            "unknown part shape",
+            body("shape = \"bx\" #<"),
+            "body \"s\"",
+            "part[1].shape",
+            "did you mean \"box\"",
+        ),
+        bad(
+            "NaN in a part position",
+            body("shape = \"box\"\nsize = [1, 1, 1]\nposition = [0, nan, 0] #<"),
+            "body \"s\"",
+            "part[1].position[1]",
+            "must be finite",
+        ),
+        bad(
+            "zero part quaternion",
+            body("shape = \"box\"\nsize = [1, 1, 1]\nquat = [0, 0, 0, 0] #<"),
+            "body \"s\"",
+            "part[1].quat",
+            "non-zero direction",
+        ),
+        bad(
+            "two part rotations",
+            body(
+                "shape = \"box\"\nsize = [1, 1, 1]\nrotation_deg = [0, 0, 0]\nquat = [0, 0, 0, 1] #<",
+            ),
+            "body \"s\"",
+            "part[1].quat",
+            "give only one of",
+        ),
+        bad(
+            "bad part size",
+            body("shape = \"box\"\nsize = [1, -1, 1] #<"),
+            "body \"s\"",
+            "part[1].size[1]",
+            "must be > 0",
+        ),
+        bad(
+            "key of another shape in a part",
+            body("shape = \"box\"\nsize = [1, 1, 1]\nradius = 1 #<"),
+            "body \"s\"",
+            "part[1].radius",
+            "does not apply to shape \"box\"",
+        ),
+        bad(
+            "velocity in a part",
+            body("shape = \"box\"\nsize = [1, 1, 1]\nlinvel = [1, 0, 0] #<"),
+            "body \"s\"",
+            "part[1].linvel",
+            "velocities belong to the body",
+        ),
+        bad(
+            "generator in a part",
+            body("shape = \"box\"\nsize = [1, 1, 1]\nrow = { count = 2, spacing = [1, 0, 0] } #<"),
+            "body \"s\"",
+            "part[1].row",
+            "a part cannot be a generator",
+        ),
+        bad(
+            "unknown material in a part",
+            body("shape = \"box\"\nsize = [1, 1, 1]\nmaterial = \"wod\" #<"),
+            "body \"s\"",
+            "part[1].material",
+            "did you mean \"wood\"",
+        ),
+        bad(
+            "missing part shape",
+            body("#<\nsize = [1, 1, 1]").replace("[[body.part]]\n#<", "[[body.part]] #<"),
+            "body \"s\"",
+            "part[1].shape",
+            "missing",
+        ),
+        bad(
+            "empty compound",
+            "name = \"t\"\n[[material]]\nname = \"wood\"\n[[body]]\nname = \"s\"\nshape = \"compound\"\nmaterial = \"wood\"\npart = [] #<\n",
+            "body \"s\"",
+            "part",
+            "at least one part",
+        ),
+        bad(
+            "compound without parts",
+            "name = \"t\"\n[[material]]\nname = \"wood\"\n[[body]] #<\nname = \"s\"\nshape = \"compound\"\nmaterial = \"wood\"\n",
+            "body \"s\"",
+            "part",
+            "missing",
+        ),
+        bad(
+            "a part that is not a table",
+            "name = \"t\"\n[[material]]\nname = \"wood\"\n[[body]]\nname = \"s\"\nshape = \"compound\"\nmaterial = \"wood\"\npart = [1] #<\n",
+            "body \"s\"",
+            "part[0]",
+            "expected a table",
+        ),
+        bad(
+            "shape key on the compound body itself",
+            "name = \"t\"\n[[material]]\nname = \"wood\"\n[[body]]\nname = \"s\"\nshape = \"compound\"\nmaterial = \"wood\"\nradius = 1 #<\n[[body.part]]\nshape = \"sphere\"\nradius = 0.1\n",
+            "body \"s\"",
+            "radius",
+            "written in its parts",
+        ),
+        bad(
+            "parts on a single shape",
+            "name = \"t\"\n[[material]]\nname = \"wood\"\n[[body]]\nname = \"s\"\nshape = \"sphere\"\nradius = 1\nmaterial = \"wood\"\n[[body.part]] #<\nshape = \"sphere\"\nradius = 0.1\n",
+            "body \"s\"",
+            "part",
+            "does not apply to shape \"sphere\"",
+        ),
+        bad(
+            "error in a generated compound's part",
+            body("shape = \"box\"\nsize = [1, 0, 1] #<").replace(
+                "material = \"wood\"\n[[body.part]]",
+                "material = \"wood\"\nrow = { count = 2, spacing = [1, 0, 0] }\n[[body.part]]",
+            ),
+            "body \"s[i]\"",
+            "part[1].size[1]",
+            "must be > 0",
+        ),
+    ];
+    for case in cases {
+        let line = case
+            .src
+            .lines()
+            .position(|l| l.contains("#<"))
+            .map(|i| i + 1)
+            .unwrap_or_else(|| panic!("{}: no #< marker", case.what));
+        let err = match parse(&case.src) {
+            Ok(_) => panic!("{}: accepted:\n{}", case.what, case.src),
+            Err(e) => e,
+        };
+        let shown = err.to_string();
+        assert_eq!(
+            err.item.as_deref(),
+            Some(case.item),
+            "{}: {shown}",
+            case.what
+        );
+        assert_eq!(
+            err.field.as_deref(),
+            Some(case.field),
+            "{}: {shown}",
+            case.what
+        );
+        assert!(err.message.contains(case.message), "{}: {shown}", case.what);
+        let prefix = format!("test.toml:{line}: {}: field `{}`: ", case.item, case.field);
+        assert!(
+            shown.starts_with(&prefix),
+            "{}: expected prefix {prefix:?}, got {shown:?}\n{}",
+            case.what,
+            case.src
+        );
+    }
+}
+
+/// The example of docs/scene-format.md "Compound bodies" is what it says it is.
+#[test]
+fn the_documented_compound_example_is_one_body_of_two_parts_beside_a_compound_static() {
+    let doc = include_str!("../../../docs/scene-format.md");
+    let block = doc
+        .split("### Compound bodies")
+        .nth(1)
+        .and_then(|s| s.split("```toml\n").nth(1))
+        .and_then(|s| s.split("```").next())
+        .unwrap_or_else(|| panic!("no compound example in the format reference"));
+    let s = parse_ok(&format!(
+        "name = \"doc\"\n[[material]]\nname = \"wood\"\n{block}"
+    ))
+    .instantiate(0);
+    assert_eq!(s.bodies.len(), 1);
+    let parts = parts_of(&s.bodies[0].shape);
+    assert_eq!(parts.len(), 2);
+    assert_eq!(s.materials[parts[0].material].name, "wood");
+    assert_eq!(s.materials[parts[1].material].name, "steel");
+    assert!(matches!(parts[1].shape, Shape::Cylinder { .. }));
+    assert_eq!(parts_of(&s.statics[0].shape).len(), 2);
+}

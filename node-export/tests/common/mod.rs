@@ -145,3 +145,62 @@ pub fn tumble(seed: u64) -> World {
 pub fn shapes(seed: u64) -> World {
     simulate(SHAPES, "shapes.toml", seed)
 }
+
+/// A compound body (an "L" of a wooden post and a steel foot, turned) thrown onto the ground,
+/// beside a compound static (a shelf of two boxes): the export draws every part.
+pub const COMPOUND: &str = r#"
+name = "compound"
+
+[settings]
+end_time = 1.5
+
+[[material]]
+name = "ground"
+
+[[material]]
+name = "wood"
+density = 600.0
+
+[[material]]
+name = "steel"
+density = 7800.0
+
+[[static]]
+name = "ground"
+shape = "plane"
+material = "ground"
+
+[[static]]
+name = "shelf"
+shape = "compound"
+material = "ground"
+position = [2, 0, 0]
+part = [
+  { shape = "box", size = [1, 0.1, 0.4], position = [0, 0.5, 0] },
+  { shape = "box", size = [0.1, 0.5, 0.4], position = [-0.45, 0.25, 0] },
+]
+
+[[body]]
+name = "letter_l"
+shape = "compound"
+material = "wood"
+position = [0, 1, 0]
+angvel = [2, 3, -1]
+
+[[body.part]]
+shape = "box"
+size = [0.1, 0.5, 0.1]
+position = [0, 0.25, 0]
+
+[[body.part]]
+shape = "cylinder"
+radius = 0.05
+height = 0.3
+position = [0.15, 0, 0]
+rotation_deg = [0, 0, 90]
+material = "steel"
+"#;
+
+pub fn compound(seed: u64) -> World {
+    simulate(COMPOUND, "compound.toml", seed)
+}
