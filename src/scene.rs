@@ -1,22 +1,63 @@
-//! `mwb scene`: check a scene file — parse, validate, instantiate one world.
+//! `mwb scene`: check a scene file — parse, validate, instantiate one world; `mwb scene preview`
+//! draws it as it starts, before any world is sampled.
+
+use std::path::PathBuf;
 
 use crate::client;
-use anyhow::Result;
+use anyhow::{Context, Result, anyhow};
 
 /// Arguments of `mwb scene`.
 #[derive(Debug, Clone, clap::Args)]
+#[command(args_conflicts_with_subcommands = true, subcommand_negates_reqs = true)]
 pub struct SceneArgs {
+    #[command(subcommand)]
+    pub action: Option<SceneAction>,
     /// Scene file or shipped scene name.
-    pub scene: String,
+    #[arg(required = true)]
+    pub scene: Option<String>,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
 }
 
+/// What else `mwb scene` does.
+#[derive(Debug, Clone, clap::Subcommand)]
+pub enum SceneAction {
+    /// Draw the scene as it starts (statics, and bodies where the instance of --seed places
+    /// them) to a PNG, without sampling a world: `mwb scene preview tower --out tower.png`.
+    Preview(PreviewArgs),
+}
+
+/// Arguments of `mwb scene preview`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct PreviewArgs {
+    /// Scene file or shipped scene name.
+    pub scene: String,
+    /// The PNG to write.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Which instance of a scene with distributions (its bodies' start poses).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Image size, pixels.
+    #[arg(long, default_value = "1280x720")]
+    pub size: String,
+    /// Camera JSON file (as for `mwb query` and `mwb viewer`) [default: framed on the scene].
+    #[arg(long)]
+    pub camera: Option<PathBuf>,
+}
+
 /// Prints one line: what the scene holds, or the first error with its file and line.
 pub fn run(args: SceneArgs) -> Result<()> {
-    let (file, text) = client::load_scene(&args.scene)?;
+    match args.action {
+        Some(SceneAction::Preview(p)) => preview(p),
+        None => check(args.scene.as_deref().unwrap_or_default(), args.seed),
+    }
+}
+
+fn check(scene: &str, seed: u64) -> Result<()> {
+    let (file, text) = client::load_scene(scene)?;
     let t = mwb_core::scene::SceneTemplate::parse(&text, &file)?;
-    let s = t.instantiate(args.seed);
+    let s = t.instantiate(seed);
     println!(
         "{file}: ok — scene {:?}, {} dynamic bodies, {} statics, {} joints, {} materials, distributions: {}",
         t.name(),
@@ -25,6 +66,39 @@ pub fn run(args: SceneArgs) -> Result<()> {
         s.joints.len(),
         s.materials.len(),
         if t.has_distributions() { "yes" } else { "no" }
+    );
+    Ok(())
+}
+
+fn preview(args: PreviewArgs) -> Result<()> {
+    let (file, text) = client::load_scene(&args.scene)?;
+    let t = mwb_core::scene::SceneTemplate::parse(&text, &file)?;
+    let size = mwb_viewer::screenshot::parse_size(&args.size).context("--size")?;
+    let camera: Option<mwb_core::browse::Camera> = match &args.camera {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("reading camera file {}", path.display()))?;
+            Some(
+                serde_json::from_str(&text)
+                    .with_context(|| format!("camera file {}", path.display()))?,
+            )
+        }
+        None => None,
+    };
+    let img = mwb_viewer::preview::render(&t, args.seed, size, camera.as_ref())
+        .map_err(|e| anyhow!("--camera: {e}"))?;
+    let bytes = mwb_viewer::screenshot::png_bytes(&img).context("encoding the preview")?;
+    std::fs::write(&args.out, bytes).with_context(|| format!("writing {}", args.out.display()))?;
+    let s = t.instantiate(args.seed);
+    println!(
+        "{}: {}x{} preview of scene {:?} (seed {}): {} bodies, {} statics",
+        args.out.display(),
+        size[0],
+        size[1],
+        t.name(),
+        args.seed,
+        s.bodies.len(),
+        s.statics.len()
     );
     Ok(())
 }

@@ -192,7 +192,8 @@ fn offline(args: &ViewerArgs, scene: &str) -> Result<(Started, String)> {
     let results = mwb_viewer::offline::sample_worlds(&template, args.worlds, threads);
     let first = template.instantiate(0);
     let names = first.bodies.iter().map(|b| b.name.clone()).collect();
-    let mut state = ViewerState::new(template.name(), names, first.statics.clone());
+    let mut state = ViewerState::new(template.name(), names, first.statics.clone())
+        .with_initial(first.bodies.clone());
     for r in results {
         match r.map_err(|e| e.to_string()).and_then(|w| {
             let i = w.index;

@@ -3,8 +3,10 @@
 //! egui lines and triangle meshes (flat-shaded, painter-sorted). No GPU state: the view looks
 //! the same on any egui backend and in the software rasteriser.
 
+use std::sync::Arc;
+
 use egui::{Color32, Mesh, Pos2, Rect, Shape, Stroke, pos2, vec2};
-use mwb_core::browse::{Polarity, Projection, Viewport};
+use mwb_core::browse::{Polarity, Projection, ProjectionMatrix, Viewport};
 use mwb_core::scene::Shape as SceneShape;
 
 use crate::camera::{OrbitCamera, rotate};
@@ -42,7 +44,9 @@ pub struct View {
     pub ppp: f32,
     pub viewport: Viewport,
     eye: V3,
-    forward: V3,
+    /// `proj` as a matrix: every path vertex of every world goes through it each frame (a
+    /// third of the cost of projecting by the camera's quaternion, `mwb bench viewer`).
+    m: ProjectionMatrix,
     near: f64,
 }
 
@@ -64,7 +68,7 @@ impl View {
             ppp,
             viewport,
             eye: proj.position(),
-            forward: proj.forward(),
+            m: proj.matrix(),
             near: camera.near,
         })
     }
@@ -84,16 +88,18 @@ impl View {
         )
     }
 
+    /// Depth along the viewing axis.
     fn depth(&self, p: V3) -> f64 {
-        dot(sub(p, self.eye), self.forward)
+        -self.m.local(p)[2]
     }
 
     /// The screen point of `p`, if it is in front of the near plane.
     pub fn project(&self, p: V3) -> Option<Pos2> {
-        if self.depth(p) < self.near {
+        let local = self.m.local(p);
+        if -local[2] < self.near {
             return None;
         }
-        self.proj.project(p).map(|(px, _)| self.screen(px))
+        self.m.pixel(local).map(|(px, _)| self.screen(px))
     }
 
     /// A segment clipped to the near plane, on screen.
@@ -114,7 +120,7 @@ impl View {
     }
 
     fn project_unchecked(&self, p: V3) -> Option<Pos2> {
-        self.proj.project(p).map(|(px, _)| self.screen(px))
+        self.m.project(p).map(|(px, _)| self.screen(px))
     }
 
     /// Calls `f` with every segment of a polyline on screen, each vertex projected once;
@@ -124,9 +130,10 @@ impl View {
         let r = self.rect;
         let mut prev: Option<(V3, f64, Option<Pos2>)> = None;
         for &p in points {
-            let d = self.depth(p) - self.near;
+            let local = self.m.local(p);
+            let d = -local[2] - self.near;
             let sp = if d >= 0.0 {
-                self.project_unchecked(p)
+                self.m.pixel(local).map(|(px, _)| self.screen(px))
             } else {
                 None
             };
@@ -189,9 +196,11 @@ pub struct LineBatch {
 }
 
 impl LineBatch {
-    /// A batch with room for `segments` segments (no reallocation while it fills).
-    pub fn with_capacity(segments: usize) -> Self {
-        let mut mesh = Mesh::default();
+    /// A batch filling `mesh`'s buffers (emptied first), with room for `segments` segments.
+    pub fn reusing(mut mesh: Mesh, segments: usize) -> Self {
+        // (`Mesh::clear` would free the vertex buffer.)
+        mesh.indices.clear();
+        mesh.vertices.clear();
         mesh.vertices.reserve(4 * segments);
         mesh.indices.reserve(6 * segments);
         Self { mesh }
@@ -221,10 +230,6 @@ impl LineBatch {
 
     pub fn is_empty(&self) -> bool {
         self.mesh.vertices.is_empty()
-    }
-
-    pub fn into_shape(self) -> Shape {
-        Shape::mesh(self.mesh)
     }
 }
 
@@ -298,6 +303,21 @@ fn local_triangles(shape: &SceneShape) -> (Vec<[V3; 3]>, bool) {
             false,
         ),
         SceneShape::Plane { .. } => (Vec::new(), false),
+        // Every part at its pose in the body's frame; back faces may go only if every part is
+        // closed (a static compound may hold an open mesh).
+        SceneShape::Compound { parts } => {
+            let mut out = Vec::new();
+            let mut all_closed = true;
+            for part in parts {
+                let (tris, closed) = local_triangles(&part.shape);
+                all_closed &= closed;
+                out.extend(
+                    tris.into_iter()
+                        .map(|t| t.map(|v| add(part.position, rotate(part.rotation, v)))),
+                );
+            }
+            (out, all_closed)
+        }
     }
 }
 
@@ -493,8 +513,82 @@ pub struct Overlay {
     pub hovered: Option<u32>,
 }
 
-/// Every shape of the 3D view of `state` in `view`.
-pub fn scene_shapes(state: &ViewerState, view: &View, overlay: Overlay) -> Vec<Shape> {
+/// The faint path meshes of the last frame (rejected worlds, survivors) and a digest of what
+/// they were drawn from. While nothing they show changes — a still camera while the user hovers,
+/// plays a world back or works in the panels — a frame reuses them whole; otherwise their
+/// buffers are refilled in place, so a frame of 10 000 worlds does not allocate (and fault in)
+/// tens of megabytes of vertices again.
+#[derive(Debug, Default)]
+pub struct PathMeshes {
+    key: Option<u64>,
+    meshes: [Arc<Mesh>; 2],
+}
+
+impl PathMeshes {
+    /// A digest of everything the path meshes depend on: the projection, the view rectangle,
+    /// the chosen objects, and every world's index, survival and chosen paths (their length
+    /// and last vertex: a world's paths do not change once it arrived).
+    fn key_of(&self, state: &ViewerState, view: &View, chosen: &[u32]) -> u64 {
+        let mut h = Mix::default();
+        let m = &view.m;
+        for v in m.rows.iter().flatten().chain(&m.t) {
+            h.add(v.to_bits());
+        }
+        for v in [m.fx, m.fy, m.cx, m.cy, view.near] {
+            h.add(v.to_bits());
+        }
+        for v in [
+            view.rect.min.x,
+            view.rect.min.y,
+            view.rect.max.x,
+            view.rect.max.y,
+        ] {
+            h.add(u64::from(v.to_bits()));
+        }
+        h.add(u64::from(view.ppp.to_bits()));
+        h.add(chosen.len() as u64);
+        for &o in chosen {
+            h.add(u64::from(o));
+        }
+        h.add(state.worlds().len() as u64);
+        for w in state.worlds() {
+            h.add(u64::from(w.index) << 1 | u64::from(state.survives(w.index)));
+            for &o in chosen {
+                if let Some(p) = w.paths.get(o as usize) {
+                    let points = p.tree.path().points();
+                    h.add(points.len() as u64);
+                    if let Some(last) = points.last() {
+                        for c in last {
+                            h.add(c.to_bits());
+                        }
+                    }
+                }
+            }
+        }
+        h.0
+    }
+}
+
+/// A fast 64-bit mix (multiply, rotate) for [`PathMeshes`]' digest: not for adversaries.
+#[derive(Default)]
+struct Mix(u64);
+
+impl Mix {
+    fn add(&mut self, v: u64) {
+        self.0 = (self.0 ^ v)
+            .wrapping_mul(0x9E37_79B9_7F4A_7C15)
+            .rotate_left(29);
+    }
+}
+
+/// Every shape of the 3D view of `state` in `view`; the faint paths come from (and are kept
+/// in) `paths`.
+pub fn scene_shapes(
+    state: &ViewerState,
+    view: &View,
+    overlay: Overlay,
+    paths: &mut PathMeshes,
+) -> Vec<Shape> {
     let mut shapes = Vec::new();
     let r = view.rect;
     // Background: a vertical gradient.
@@ -570,37 +664,45 @@ pub fn scene_shapes(state: &ViewerState, view: &View, overlay: Overlay) -> Vec<S
 
     // Paths: rejected dim first, survivors over them, the selected / hovered world on top.
     let chosen = state.chosen_objects();
-    let n = state.worlds().len().max(1) as f32;
-    // Fainter the more worlds overlap.
-    let survivor_alpha = (255.0 * (6.0 / n.sqrt()).clamp(0.12, 0.8)) as u8;
-    let rejected_alpha = (survivor_alpha / 4).max(10);
-    for pass in [false, true] {
-        let (width, colour) = if pass {
-            (1.2, rgba(palette::SURVIVOR, survivor_alpha))
-        } else {
-            (1.0, rgba(palette::REJECTED, rejected_alpha))
-        };
-        let drawn = state
-            .worlds()
-            .iter()
-            .filter(|w| state.survives(w.index) == pass);
-        let segments = drawn
-            .clone()
-            .flat_map(|w| chosen.iter().filter_map(|&o| w.paths.get(o as usize)))
-            .map(|p| p.tree.path().len().saturating_sub(1))
-            .sum();
-        let mut batch = LineBatch::with_capacity(segments);
-        for w in drawn {
-            for &o in &chosen {
-                if let Some(p) = w.paths.get(o as usize) {
-                    view.for_each_segment(p.tree.path().points(), |a, b| {
-                        batch.segment(a, b, width, colour);
-                    });
+    let key = paths.key_of(state, view, &chosen);
+    if paths.key != Some(key) {
+        paths.key = Some(key);
+        let n = state.worlds().len().max(1) as f32;
+        // Fainter the more worlds overlap.
+        let survivor_alpha = (255.0 * (6.0 / n.sqrt()).clamp(0.12, 0.8)) as u8;
+        let rejected_alpha = (survivor_alpha / 4).max(10);
+        for (pass, slot) in [false, true].into_iter().zip(paths.meshes.iter_mut()) {
+            let (width, colour) = if pass {
+                (1.2, rgba(palette::SURVIVOR, survivor_alpha))
+            } else {
+                (1.0, rgba(palette::REJECTED, rejected_alpha))
+            };
+            let drawn = state
+                .worlds()
+                .iter()
+                .filter(|w| state.survives(w.index) == pass);
+            let segments = drawn
+                .clone()
+                .flat_map(|w| chosen.iter().filter_map(|&o| w.paths.get(o as usize)))
+                .map(|p| p.tree.path().len().saturating_sub(1))
+                .sum();
+            // Last frame's buffers, refilled (egui let go of them after that frame).
+            let mut batch = LineBatch::reusing(std::mem::take(Arc::make_mut(slot)), segments);
+            for w in drawn {
+                for &o in &chosen {
+                    if let Some(p) = w.paths.get(o as usize) {
+                        view.for_each_segment(p.tree.path().points(), |a, b| {
+                            batch.segment(a, b, width, colour);
+                        });
+                    }
                 }
             }
+            *Arc::make_mut(slot) = batch.mesh;
         }
-        if !batch.is_empty() {
-            shapes.push(batch.into_shape());
+    }
+    for mesh in &paths.meshes {
+        if !mesh.is_empty() {
+            shapes.push(Shape::Mesh(Arc::clone(mesh)));
         }
     }
     for (w, stroke) in [
@@ -621,15 +723,28 @@ pub fn scene_shapes(state: &ViewerState, view: &View, overlay: Overlay) -> Vec<S
         }
     }
 
-    // Bodies of the shown world at the playback time (once its motion is loaded).
+    // Bodies of the shown world at the playback time (once its motion is loaded); while no
+    // world is shown, where the scene starts them (a scene preview, or before worlds arrive).
+    let alpha = |b: usize| if state.is_chosen(b as u32) { 1.0 } else { 0.55 };
+    let colour = |b: usize| palette::BODIES[b % palette::BODIES.len()];
     if let Some(motion) = state.shown_world().and_then(|w| w.motion.as_ref()) {
         let t = state.playback().time;
         for (b, body) in motion.scene.bodies.iter().enumerate() {
             if let Some((p, q)) = motion.pose_at(b, t) {
-                let colour = palette::BODIES[b % palette::BODIES.len()];
-                let alpha = if state.is_chosen(b as u32) { 1.0 } else { 0.55 };
-                push_shape(&mut tris, &body.shape, p, q, colour, alpha);
+                push_shape(&mut tris, &body.shape, p, q, colour(b), alpha(b));
             }
+        }
+        shapes.push(Shape::mesh(shaded_mesh(view, tris)));
+    } else if state.shown_world().is_none() && !state.initial().is_empty() {
+        for (b, body) in state.initial().iter().enumerate() {
+            push_shape(
+                &mut tris,
+                &body.shape,
+                body.position,
+                body.rotation,
+                colour(b),
+                alpha(b),
+            );
         }
         shapes.push(Shape::mesh(shaded_mesh(view, tris)));
     }
@@ -755,6 +870,37 @@ mod tests {
             .map(|t| dot(t[0], cross(t[1], t[2])) / 6.0)
             .sum();
         assert!((vol - 8.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_compound_draws_every_part_where_it_sits() {
+        let unit_box = SceneShape::Box {
+            half_extents: [1.0, 1.0, 1.0],
+        };
+        let h = std::f64::consts::FRAC_1_SQRT_2;
+        let part = |position, rotation| mwb_core::scene::Part {
+            shape: unit_box.clone(),
+            position,
+            rotation,
+            material: 0,
+        };
+        let compound = SceneShape::Compound {
+            parts: vec![
+                part([0.0; 3], [0.0, 0.0, 0.0, 1.0]),
+                part([5.0, 0.0, 0.0], [0.0, h, 0.0, h]),
+            ],
+        };
+        let (tris, closed) = local_triangles(&compound);
+        assert!(closed);
+        assert_eq!(tris.len(), 24, "both boxes");
+        // The second box, turned, sits 5 m along x: x in [4, 6], still outward.
+        let far: Vec<_> = tris[12..].iter().flatten().map(|v| v[0]).collect();
+        assert!(far.iter().all(|x| (3.999..=6.001).contains(x)), "{far:?}");
+        let vol: f64 = tris
+            .iter()
+            .map(|t| dot(t[0], cross(t[1], t[2])) / 6.0)
+            .sum();
+        assert!((vol - 16.0).abs() < 1e-9, "{vol}");
     }
 
     #[test]

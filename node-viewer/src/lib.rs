@@ -13,6 +13,7 @@
 //!   motion fetched for playback, the cluster's status; never on the UI thread.
 //! * [`draw`] — the 3D view as egui shapes, projected on the CPU.
 //! * [`ui`] — [`ViewerApp`]: panels, the 3D view's mouse and keys, the eframe app.
+//! * [`preview`] — a scene as it starts, drawn with no worlds (`mwb scene preview`).
 //! * [`views`] — saved views kept with the session in a small JSON file (the app reads and
 //!   writes it; the state only holds the views).
 //! * [`softpaint`] — a software rasteriser for egui's tessellated output: headless screenshots
@@ -23,6 +24,7 @@ pub mod draw;
 pub mod live;
 pub mod math;
 pub mod offline;
+pub mod preview;
 pub mod screenshot;
 pub mod session;
 pub mod softpaint;

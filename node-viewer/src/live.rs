@@ -565,6 +565,7 @@ impl Bus {
                         name: t.name().to_owned(),
                         bodies: t.body_names().map(str::to_owned).collect(),
                         statics: first.statics.clone(),
+                        initial: first.bodies.clone(),
                     })
                     .await;
                 }

@@ -15,7 +15,7 @@ use mwb_core::browse::{
     Constraint, ConstraintId, ConstraintSet, Frustum, Order, Polarity, Quat, RankKey, Ranked,
     ScreenRect, TimeWindow, Viewport, WorldSet, top_k_counted,
 };
-use mwb_core::scene::StaticBody;
+use mwb_core::scene::{Body, StaticBody};
 
 use crate::ViewerError;
 use crate::camera::OrbitCamera;
@@ -201,11 +201,13 @@ pub enum Msg {
     ClearGoal,
 
     // What a live viewer's bus task reports.
-    /// The scene the worlds are of: its name, body names and static geometry.
+    /// The scene the worlds are of: its name, body names and static geometry, and its bodies
+    /// as one instance (seed 0) starts them — drawn while no world's motion is shown.
     Scene {
         name: String,
         bodies: Vec<String>,
         statics: Vec<StaticBody>,
+        initial: Vec<Body>,
     },
     /// Worlds that arrived (their indexed paths).
     Worlds(Vec<WorldData>),
@@ -263,6 +265,10 @@ pub struct ViewerState {
     scene_name: String,
     body_names: Vec<String>,
     statics: Vec<StaticBody>,
+    /// The bodies where an instance of the scene starts them (seed 0; a scene with
+    /// distributions starts each world elsewhere): drawn while no world's motion is shown, so
+    /// an author sees the scene before any world exists (`mwb scene preview`).
+    initial: Vec<Body>,
     /// Sorted by index (live stores number sparsely across shards).
     worlds: Vec<WorldData>,
     /// Worlds that could not be used, with why (shown, never fatal).
@@ -350,6 +356,7 @@ impl ViewerState {
             scene_name: scene_name.into(),
             body_names,
             statics,
+            initial: Vec::new(),
             worlds: Vec::new(),
             problems: Vec::new(),
             camera: OrbitCamera::default(),
@@ -390,6 +397,24 @@ impl ViewerState {
 
     pub fn is_live(&self) -> bool {
         self.session.is_remote()
+    }
+
+    /// Gives the state the scene's bodies where an instance starts them (see
+    /// [`initial`](Self::initial)). Bodies beyond the scene's body names are ignored.
+    pub fn with_initial(mut self, bodies: Vec<Body>) -> Self {
+        self.set_initial(bodies);
+        self
+    }
+
+    fn set_initial(&mut self, mut bodies: Vec<Body>) {
+        bodies.truncate(self.body_names.len());
+        self.initial = bodies;
+        self.recompute_extent();
+    }
+
+    /// The bodies where an instance of the scene starts them (empty when unknown).
+    pub fn initial(&self) -> &[Body] {
+        &self.initial
     }
 
     /// Adds a world (its index must not be taken). Offline it is evaluated against every live
@@ -651,7 +676,8 @@ impl ViewerState {
             .flat_map(|w| w.paths.iter())
             .flat_map(|p| p.tree.path().points().iter().copied())
             .collect();
-        self.extend_extent(statics.into_iter().chain(paths));
+        let starts: Vec<V3> = self.initial.iter().map(|b| b.position).collect();
+        self.extend_extent(statics.into_iter().chain(paths).chain(starts));
     }
 
     /// What "frame all" (`world` `None`) or "frame selected" frames: a sphere around the bulk
@@ -682,6 +708,16 @@ impl ViewerState {
             .filter(|p| p.iter().all(|c| c.is_finite()))
             .collect();
         if world.is_none() {
+            if points.is_empty() {
+                // No paths yet: the scene as it starts is what there is to frame.
+                points.extend(
+                    self.initial
+                        .iter()
+                        .enumerate()
+                        .filter(|&(o, _)| self.chosen.get(o).copied().unwrap_or(false))
+                        .map(|(_, b)| b.position),
+                );
+            }
             points.extend(self.statics.iter().filter_map(|s| match &s.shape {
                 mwb_core::scene::Shape::Plane { .. } => None,
                 _ => Some(s.position),
@@ -730,6 +766,11 @@ impl ViewerState {
                     {
                         sphere = grow_sphere(sphere, *start, 0.0);
                     }
+                }
+            }
+            for &o in &chosen {
+                if let Some(b) = self.initial.get(o) {
+                    sphere = grow_sphere(sphere, b.position, b.shape.bounding_radius());
                 }
             }
         }
@@ -911,6 +952,7 @@ impl ViewerState {
                 name,
                 bodies,
                 statics,
+                initial,
             } => {
                 if bodies.len() != self.body_names.len() {
                     self.chosen = vec![true; bodies.len()];
@@ -918,7 +960,7 @@ impl ViewerState {
                 self.scene_name = name;
                 self.body_names = bodies;
                 self.statics = statics;
-                self.recompute_extent();
+                self.set_initial(initial);
             }
             Msg::Worlds(worlds) => {
                 for w in worlds {
@@ -1282,6 +1324,69 @@ mod tests {
 
     fn survivors(s: &ViewerState) -> Vec<u32> {
         s.survivors().collect()
+    }
+
+    /// The path meshes kept between frames are exactly what a fresh frame draws, through a box,
+    /// its undo, a world arriving, a camera move and a change of objects; a frame in which
+    /// nothing changed reuses them.
+    #[test]
+    fn kept_path_meshes_are_what_a_fresh_frame_draws() {
+        use crate::draw::{Overlay, PathMeshes, View, scene_shapes};
+        let mut s = state(&[0.0, 2.0, 0.05, -1.0]);
+        let viewport = front(&mut s);
+        let rect = egui::Rect::from_min_size(egui::Pos2::ZERO, egui::vec2(640.0, 480.0));
+        let meshes = |shapes: &[egui::Shape]| -> Vec<std::sync::Arc<egui::epaint::Mesh>> {
+            shapes
+                .iter()
+                .filter_map(|sh| match sh {
+                    egui::Shape::Mesh(m) => Some(m.clone()),
+                    _ => None,
+                })
+                .collect()
+        };
+        let mut kept = PathMeshes::default();
+        let frame = |s: &ViewerState, kept: &mut PathMeshes| {
+            let view = View::new(&s.camera, rect, 1.0).expect("view");
+            let cached = scene_shapes(s, &view, Overlay::default(), kept);
+            let fresh = scene_shapes(s, &view, Overlay::default(), &mut PathMeshes::default());
+            let (c, f) = (meshes(&cached), meshes(&fresh));
+            assert_eq!(c.len(), f.len());
+            for (c, f) in c.iter().zip(&f) {
+                assert_eq!(**c, **f);
+            }
+            c
+        };
+        let first = frame(&s, &mut kept);
+        // Nothing changed: the same meshes, not copies.
+        let again = frame(&s, &mut kept);
+        assert!(
+            first
+                .iter()
+                .zip(&again)
+                .filter(|(a, b)| std::sync::Arc::ptr_eq(a, b))
+                .count()
+                >= 1
+        );
+        drop((first, again));
+        s.update(Msg::AddConstraint {
+            viewport,
+            rect: MIDDLE,
+            polarity: Polarity::Positive,
+        })
+        .expect("adds");
+        frame(&s, &mut kept);
+        s.update(Msg::Undo).expect("undo");
+        frame(&s, &mut kept);
+        s.add_world(world(4, 0.5)).expect("adds");
+        frame(&s, &mut kept);
+        s.update(Msg::Orbit {
+            d_yaw: 0.3,
+            d_pitch: 0.1,
+        })
+        .expect("orbit");
+        frame(&s, &mut kept);
+        s.update(Msg::ChooseObjects(Vec::new())).expect("none");
+        frame(&s, &mut kept);
     }
 
     #[test]
@@ -1779,6 +1884,7 @@ mod tests {
             name: "t".into(),
             bodies: vec!["ball".into()],
             statics: Vec::new(),
+            initial: scene().bodies,
         })
         .expect("scene");
         s

@@ -163,7 +163,14 @@ pub struct ViewerApp {
     sort_by: SortBy,
     /// The last error an action caused (shown in the top bar until the next action).
     last_error: Option<String>,
+    /// The camera was framed on the worlds (or placed by the user's camera file).
     framed: bool,
+    /// The camera was framed on the scene as it starts (no worlds yet); worlds reframe it.
+    framed_scene: bool,
+    /// Panels, bars and timeline drawn around the 3D view (off: the view alone, a preview).
+    chrome: bool,
+    /// The 3D view's path meshes, kept between frames.
+    path_meshes: draw::PathMeshes,
     link: Option<LiveLink>,
     /// Commands the bus task could not take yet (its queue was full), oldest first.
     unsent: VecDeque<Command>,
@@ -194,6 +201,9 @@ impl ViewerApp {
             sort_by: SortBy::Spin,
             last_error: None,
             framed: false,
+            framed_scene: false,
+            chrome: true,
+            path_meshes: draw::PathMeshes::default(),
             link: None,
             unsent: VecDeque::new(),
             job_form: JobForm::default(),
@@ -326,6 +336,12 @@ impl ViewerApp {
         self
     }
 
+    /// Draws the 3D view alone, without panels, bars or timeline (`mwb scene preview`).
+    pub fn view_only(mut self) -> Self {
+        self.chrome = false;
+        self
+    }
+
     /// The 3D view's rectangle in the last frame, egui points.
     pub fn view_rect(&self) -> Rect {
         self.view_rect
@@ -360,10 +376,12 @@ impl ViewerApp {
     pub fn ui(&mut self, ui: &mut egui::Ui) {
         self.pump();
         self.keys(ui);
-        self.top_bar(ui);
-        self.status_bar(ui);
-        self.timeline(ui);
-        self.side_panel(ui);
+        if self.chrome {
+            self.top_bar(ui);
+            self.status_bar(ui);
+            self.timeline(ui);
+            self.side_panel(ui);
+        }
         egui::CentralPanel::no_frame().show(ui, |ui| self.view(ui));
         // What the frame's gestures asked for leaves now, not a frame later.
         self.pump();
@@ -1010,21 +1028,27 @@ impl ViewerApp {
 
     fn survivors_section(&mut self, ui: &mut egui::Ui) {
         ui.heading(format!("Survivors ({})", self.state.survivor_count()));
-        let survivors: Vec<u32> = self.state.survivors().take(500).collect();
+        // Every survivor, in a list of its own that lays out only the rows in sight (a frame
+        // with 10 000 survivors costs what one with 20 does).
+        let survivors: Vec<u32> = self.state.survivors().collect();
         let selected = self.state.selected();
         let mut pick = None;
-        for w in survivors {
-            let label = match self.state.world(w) {
-                Some(d) => format!("world {w}  (seed {:#x})", d.seed),
-                None => format!("world {w}  (not loaded yet)"),
-            };
-            if ui.selectable_label(selected == Some(w), label).clicked() {
-                pick = Some(if selected == Some(w) { None } else { Some(w) });
-            }
-        }
-        if self.state.survivor_count() > 500 {
-            ui.label(RichText::new("… the first 500 are listed").weak());
-        }
+        let row = ui.text_style_height(&egui::TextStyle::Button) + ui.spacing().item_spacing.y;
+        egui::ScrollArea::vertical()
+            .id_salt("mwb-survivors")
+            .max_height(320.0)
+            .auto_shrink([false, true])
+            .show_rows(ui, row, survivors.len(), |ui, range| {
+                for &w in &survivors[range] {
+                    let label = match self.state.world(w) {
+                        Some(d) => format!("world {w}  (seed {:#x})", d.seed),
+                        None => format!("world {w}  (not loaded yet)"),
+                    };
+                    if ui.selectable_label(selected == Some(w), label).clicked() {
+                        pick = Some(if selected == Some(w) { None } else { Some(w) });
+                    }
+                }
+            });
         if let Some(p) = pick {
             self.send(Msg::SelectWorld(p));
         }
@@ -1163,9 +1187,14 @@ impl ViewerApp {
     fn view(&mut self, ui: &mut egui::Ui) {
         let rect = ui.max_rect();
         self.view_rect = rect;
-        if !self.framed && rect.is_positive() && !self.state.worlds().is_empty() {
-            self.framed = true;
-            self.frame_all();
+        if !self.framed && rect.is_positive() {
+            if !self.state.worlds().is_empty() {
+                self.framed = true;
+                self.frame_all();
+            } else if !self.framed_scene && !self.state.initial().is_empty() {
+                self.framed_scene = true;
+                self.frame_all();
+            }
         }
         let resp = ui.allocate_rect(rect, Sense::click_and_drag());
         let ppp = ui.ctx().pixels_per_point();
@@ -1239,16 +1268,23 @@ impl ViewerApp {
                 hovered: self.hovered.or(self.sorter_hover),
             };
             let painter = ui.painter_at(rect);
-            painter.extend(draw::scene_shapes(&self.state, &view, overlay));
-            let hint = "drag: keep paths through a box · shift+drag: never through · \
-                        right-drag: orbit · middle-drag: pan · wheel: zoom · F: frame selected · A: frame all";
-            painter.text(
-                rect.left_bottom() + egui::vec2(8.0, -8.0),
-                egui::Align2::LEFT_BOTTOM,
-                hint,
-                egui::FontId::proportional(11.0),
-                Color32::from_gray(130),
-            );
+            painter.extend(draw::scene_shapes(
+                &self.state,
+                &view,
+                overlay,
+                &mut self.path_meshes,
+            ));
+            if self.chrome {
+                let hint = "drag: keep paths through a box · shift+drag: never through · \
+                            right-drag: orbit · middle-drag: pan · wheel: zoom · F: frame selected · A: frame all";
+                painter.text(
+                    rect.left_bottom() + egui::vec2(8.0, -8.0),
+                    egui::Align2::LEFT_BOTTOM,
+                    hint,
+                    egui::FontId::proportional(11.0),
+                    Color32::from_gray(130),
+                );
+            }
             if let Some(w) = self.hovered {
                 painter.text(
                     resp.hover_pos().unwrap_or(rect.center()) + egui::vec2(12.0, -4.0),

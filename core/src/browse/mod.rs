@@ -87,7 +87,7 @@ pub use bodies::{ObjectsError, object_label, resolve_objects, split_items};
 pub use constraint::{Constraint, ConstraintId, Polarity, Quantifier, Scope, TimeWindow};
 pub use frustum::{
     ALL_PLANES, Camera, DEFAULT_FAR_M, DEFAULT_NEAR_M, Frustum, Intrinsics, Plane, Projection,
-    RegionCache, ScreenRect, Viewport,
+    ProjectionMatrix, RegionCache, ScreenRect, Viewport,
 };
 pub use geom::{Quat, Vec3, quat_angle_between};
 pub use metrics::{
