@@ -294,6 +294,12 @@ impl Assembler {
         if !p.segments.contains_key(&seg.seq) {
             p.bytes += size;
             self.partial_bytes += size;
+            // A segment for a world already held whole (its summary promised fewer segments):
+            // the world is refused as inconsistent below, and what it holds is released — the
+            // held total must have counted this segment too.
+            if p.held_ms.is_some() {
+                self.held_bytes += size;
+            }
             p.segments.insert(seg.seq, seg);
         }
         // A single partial world larger than the whole cap can never be stored.
@@ -845,6 +851,32 @@ mod tests {
                 ..
             }
         ));
+    }
+
+    /// A summary that promises no segments, for a job not known yet, is "complete" and held;
+    /// a segment of that world arriving after it must not upset the held total (it once
+    /// underflowed and stopped the store's applier).
+    #[test]
+    fn a_segment_after_a_held_world_releases_what_it_added() {
+        let mut a = Assembler::new(1 << 20);
+        let (segs, mut d) = world("late", "n", 0, 1, 1);
+        d.segment_count = 0;
+        d.frame_count = 0;
+        d.impacts.clear();
+        assert_eq!(a.on_done(d, 1), Outcome::Pending);
+        assert_eq!(a.held_count(), 1);
+        for s in segs {
+            assert!(matches!(
+                a.on_segment(s, 2),
+                Outcome::Rejected {
+                    reason: Rejection::Incomplete,
+                    ..
+                }
+            ));
+        }
+        assert_eq!(a.held_count(), 0);
+        assert_eq!(a.held_bytes, 0);
+        assert_eq!(a.memory_bytes(), 0);
     }
 
     #[test]
