@@ -4,7 +4,10 @@
 
 pub mod bench;
 pub mod bus;
+pub mod certs;
+pub mod certs_cmd;
 pub mod check;
+pub mod cli;
 pub mod client;
 pub mod demo;
 pub mod export_cmd;

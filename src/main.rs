@@ -3,67 +3,10 @@
 //! This file only parses the command line and hands each command to its module.
 
 use anyhow::{Context, Result};
-use clap::{Parser, Subcommand};
+use clap::Parser as _;
+use mwb::cli::{Cli, Command};
 use mwb::query::QueryCommand;
 use std::process::ExitCode;
-
-#[derive(Parser)]
-#[command(
-    name = "mwb",
-    version,
-    about = "manyworlds: sample, store and browse thousands of plausible rigid-body worlds"
-)]
-struct Cli {
-    #[command(subcommand)]
-    command: Command,
-}
-
-#[derive(Subcommand)]
-enum Command {
-    /// Everything in one process: an embedded bus, a store, samplers; sample a shipped scene.
-    Demo(mwb::demo::DemoArgs),
-    /// Run a store node (default: a zenoh router other nodes --connect to).
-    Store(mwb::store::StoreArgs),
-    /// Browse: constraints, results, rankings (talks to node-query); `serve` runs node-query.
-    Query {
-        #[command(subcommand)]
-        command: QueryCommand,
-    },
-    /// Run a sampler node; it joins open jobs at any time.
-    Sampler(mwb::sampler::SamplerArgs),
-    /// Backward worlds from a final state (ch. 5): a reverse node, or node + job with --scene.
-    Reverse(mwb::reverse_cmd::ReverseArgs),
-    /// Submit, list and cancel jobs.
-    Job {
-        #[command(subcommand)]
-        command: mwb::job::JobCommand,
-    },
-    /// Live nodes, job progress and throughput.
-    Status(mwb::status::StatusArgs),
-    /// Check a scene file: parse, validate, instantiate one world.
-    Scene(mwb::scene::SceneArgs),
-    /// The workstation viewer: worlds' paths as a live cluster indexes them (or, with --scene,
-    /// sampled here), screen boxes, rankings, playback; --screenshot renders it to a PNG.
-    Viewer(mwb::viewer_cmd::ViewerArgs),
-    /// Regenerate one world from its scene and seed alone: its summary and digest (--check N:
-    /// compare with stored world N).
-    World(mwb::world_cmd::WorldArgs),
-    /// Refine a stored world (§4.5): re-simulate the picked bodies from the first frame one of
-    /// them enters a box, keeping the rest of the world; submits a REFINE job.
-    Refine(mwb::refine_cmd::RefineArgs),
-    /// Export worlds (from a store, a recording, or a seed) as glTF 2.0 .glb, Foxglove MCAP, CSV
-    /// or JSON.
-    Export(mwb::export_cmd::ExportArgs),
-    /// Record every put on the bus (mwb/<space>/**) into an MCAP file until Ctrl-C or --duration.
-    Record(mwb::record_cmd::RecordArgs),
-    /// Put a recording back on the bus in order (--speed 1|4|max) into --space.
-    Replay(mwb::record_cmd::ReplayArgs),
-    /// Benchmarks: a table each, or with --json one JSON line per result.
-    Bench {
-        #[command(subcommand)]
-        command: mwb::bench::BenchCommand,
-    },
-}
 
 /// Every error exits non-zero; a reader that closed the pipe (`mwb … | head`) ends the command
 /// quietly and successfully, as Unix tools do.
@@ -142,6 +85,7 @@ async fn run(command: Command) -> Result<()> {
         Command::Export(args) => mwb::export_cmd::run(args).await,
         Command::Record(args) => mwb::record_cmd::record(args).await,
         Command::Replay(args) => mwb::record_cmd::replay(args).await,
+        Command::Certs(args) => mwb::certs_cmd::run(args),
         Command::Bench { command } => mwb::bench::run(command).await,
     }
 }
