@@ -2,8 +2,10 @@
 //! and a sampler): worlds arrive over the bus, a box dragged in the real UI (egui_kittest)
 //! becomes a constraint in node-query's session whose survivor count `mwb query list` reports
 //! too; the paths the viewer draws are the store's index (evaluating the box on them here gives
-//! the store's survivors); ranking and playback of a picked world; and `mwb viewer
-//! --screenshot` of the same cluster.
+//! the store's survivors); ranking and playback of a picked world; the store SIGKILLed under
+//! the running viewer and restarted from its journal (the link shown lost, a box drawn
+//! meanwhile kept and, with the session's earlier edits, sent to the new node-query); and
+//! `mwb viewer --screenshot` of the same cluster.
 
 mod common;
 
@@ -104,11 +106,19 @@ fn the_live_viewer_browses_a_running_cluster() {
     let port = free_port().unwrap_or_else(|e| panic!("{e}"));
     let endpoint = format!("tcp/127.0.0.1:{port}");
     let space = format!("vlive{}", std::process::id());
-    let mut procs = Procs(Vec::new());
-    procs.spawn(
+    let journal = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
+    let journal_arg = journal.path().display().to_string();
+    let store_args = [
         "store",
-        &["store", "--listen", &endpoint, "--space", &space],
-    );
+        "--listen",
+        &endpoint,
+        "--space",
+        &space,
+        "--journal",
+        &journal_arg,
+    ];
+    let mut procs = Procs(Vec::new());
+    procs.spawn("store", &store_args);
     rt.block_on(wait_port(port));
     procs.spawn(
         "sampler",
@@ -427,6 +437,64 @@ fn the_live_viewer_browses_a_running_cluster() {
     settle(&rt, &mut h, "the refined worlds", |a| {
         a.state.worlds().len() == WORLDS + MORE + REFINED
     });
+
+    // The store (which runs node-query) is killed under the running viewer: the status bar
+    // says so, a box drawn meanwhile is kept, and when the store is back (from its journal,
+    // same worlds under the same indices, but a new node-query without the session) the viewer
+    // reconnects and sends the session's edits again (the first box, its undo, the new box) —
+    // node-query then holds the new box.
+    let all = (WORLDS + MORE + REFINED) as u64;
+    common::sigkill(procs.pid("store"));
+    settle(&rt, &mut h, "the link shown lost", |a| {
+        a.state.link().is_some_and(|l| !l.connected)
+    });
+    let c = h.state().view_rect().center();
+    drag(&mut h, c - vec2(150.0, 120.0), c + vec2(150.0, 120.0));
+    assert_eq!(h.state().state.pending(), 1, "the box is kept, unanswered");
+    procs.spawn("store again", &store_args);
+    rt.block_on(wait_port(port));
+    settle(
+        &rt,
+        &mut h,
+        "reconnected with the session's edits applied",
+        |a| {
+            a.state.link().is_some_and(|l| l.connected)
+                && a.state.pending() == 0
+                && a.unsent() == 0
+                && a.state.constraint_rows().len() == 1
+        },
+    );
+    // The new node-query's survivors are the box evaluated on the paths the viewer holds.
+    let after: Vec<u32> = h.state().state.survivors().collect();
+    let boxed = h.state().state.constraint_list().remove(0);
+    let here: Vec<u32> = h
+        .state()
+        .state
+        .worlds()
+        .iter()
+        .filter(|w| boxed.evaluate(|o| w.paths.get(o as usize).map(|p| (&p.tree, p.radius))))
+        .map(|w| w.index)
+        .collect();
+    assert_eq!(here, after);
+    let list: Value = serde_json::from_str(
+        ok(&[
+            "query",
+            "list",
+            "--session",
+            "viewer",
+            "--json",
+            "--connect",
+            &endpoint,
+            "--space",
+            &space,
+        ])
+        .trim(),
+    )
+    .unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(list["constraints"].as_array().map(Vec::len), Some(1));
+    assert_eq!(list["edits"].as_u64(), Some(3), "{list}");
+    assert_eq!(list["worlds"].as_u64(), Some(all));
+    assert_eq!(list["result"].as_u64(), Some(after.len() as u64));
     drop(h);
     rt.block_on(async {
         let _ = tokio::time::timeout(Duration::from_secs(3), session.close()).await;
