@@ -77,7 +77,11 @@ pub fn load_reverse_scene(arg: &str) -> Result<(String, String)> {
         let bytes =
             std::fs::read(path).with_context(|| format!("reading scene {}", path.display()))?;
         let text = mwb_core::scene::decode_utf8(arg, bytes)?;
-        return Ok((arg.to_owned(), text));
+        // Mesh statics become triangle meshes the stepper takes; mesh bodies become compounds,
+        // which it refuses by name.
+        let dir = path.parent().unwrap_or(std::path::Path::new("."));
+        let resolved = mwb_mesh::resolve(arg, &text, dir)?;
+        return Ok((arg.to_owned(), resolved.text));
     }
     let name = arg.trim_end_matches(".toml");
     let name = name.rsplit('/').next().unwrap_or(name);

@@ -22,7 +22,10 @@ pub enum JobError {
 }
 
 /// Reads a scene argument: a path to a TOML file, or the name of a shipped scene. Returns the
-/// file name to report and the scene text.
+/// file name to report and the scene text, **self-contained**: the meshes a file names
+/// (`shape = "mesh"`) are read, checked and decomposed here ([`mwb_mesh::resolve`], cached
+/// beside each mesh) and written into the text, so a job made from it needs no files on the
+/// machine that samples it. Shipped scenes have no meshes.
 pub fn load_scene(arg: &str) -> Result<(String, String), JobError> {
     let path = std::path::Path::new(arg);
     if path.exists() {
@@ -30,7 +33,10 @@ pub fn load_scene(arg: &str) -> Result<(String, String), JobError> {
             path: path.display().to_string(),
             source,
         })?;
-        return Ok((arg.to_owned(), mwb_core::scene::decode_utf8(arg, bytes)?));
+        let text = mwb_core::scene::decode_utf8(arg, bytes)?;
+        let dir = path.parent().unwrap_or(std::path::Path::new("."));
+        let resolved = mwb_mesh::resolve(arg, &text, dir)?;
+        return Ok((arg.to_owned(), resolved.text));
     }
     let name = arg.trim_end_matches(".toml");
     let name = name.rsplit('/').next().unwrap_or(name);
@@ -109,6 +115,34 @@ mod tests {
             job.scene.as_ref().map(|s| s.content_hash),
             Some(mwb_core::content_hash(&text))
         );
+    }
+
+    #[test]
+    fn a_scene_file_with_meshes_loads_self_contained() {
+        // A copy of scenes/letters.toml and its props in a fresh directory: the decomposition
+        // cache is written beside the copies, not into the repository.
+        let repo = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        let dir = std::env::temp_dir().join(format!("mwb-node-letters-{}", std::process::id()));
+        let copy = |from: &str| {
+            let to = dir.join(from);
+            std::fs::create_dir_all(to.parent().expect("has a parent")).expect("temp dir");
+            std::fs::copy(repo.join("scenes").join(from), &to).expect("shipped file");
+        };
+        for f in [
+            "letters.toml",
+            "props/letter_m.obj",
+            "props/letter_w.obj",
+            "props/letter_b.obj",
+        ] {
+            copy(f);
+        }
+        let arg = dir.join("letters.toml").display().to_string();
+        let (file, text) = load_scene(&arg).expect("resolves");
+        std::fs::remove_dir_all(&dir).ok();
+        assert_eq!(file, arg);
+        assert!(!text.contains("shape = \"mesh\""), "{text}");
+        let job = sample_job(&file, &text, 1, 0, None, 0).expect("a job of the resolved text");
+        assert_eq!(job.scene.map(|s| s.toml), Some(text));
     }
 
     #[test]

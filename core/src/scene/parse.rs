@@ -742,6 +742,16 @@ fn parse_body<'a>(
 
     let (shape_name, shape_span) =
         item.required_string("shape", &format!("one of {}", SHAPES.join(", ")))?;
+    if shape_name == "mesh" {
+        // This parser reads no files: mesh shapes are replaced by inline geometry before a scene
+        // gets here (mwb-mesh's resolve step, which every command's scene loading runs).
+        return Err(item.err(
+            "shape",
+            shape_span,
+            "a mesh is read from its file when the scene is loaded (mwb_mesh::resolve, run by \
+             every mwb command); this text was not resolved",
+        ));
+    }
     if !SHAPES.contains(&shape_name) {
         return Err(item.err(
             "shape",
