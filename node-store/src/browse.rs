@@ -2,15 +2,15 @@
 //! session, a [`ConstraintSet`] of bitsets over them. Pure: the node feeds it worlds as they are
 //! stored and [`ShardRequest`]s from node-query, and sends back the [`ShardReply`].
 
-use crate::index::IndexedWorld;
+use crate::index::{IndexedObject, IndexedWorld};
 use crate::spatial::{Aabb, Part, PathBvh, region_box};
 use mwb_core::browse::api::{
     ConstraintStatus, Reply, Request, SceneBodies, SessionStatus, ShardReply, ShardRequest,
     WorldSummary, merge_bodies,
 };
 use mwb_core::browse::{
-    BrowseError, Constraint, ConstraintId, ConstraintSet, Quantifier, RankKey, RegionCache, Scope,
-    WorldSet, top_k_counted,
+    BrowseError, Constraint, ConstraintId, ConstraintSet, ObjectMetrics, Quantifier, RankKey,
+    RegionCache, Scope, WorldSet, top_k_counted,
 };
 use mwb_proto::v1::PathBatch;
 use std::cell::RefCell;
@@ -152,6 +152,22 @@ pub struct Shard {
     world_bytes: usize,
 }
 
+/// Where a shard's heap bytes go ([`Shard::heap_bytes_by_part`]); the parts sum to
+/// [`Shard::heap_bytes`]. All counted by capacity.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct ShardBytes {
+    /// Every world's stored paths ([`IndexedObject`]s and their vertices).
+    pub paths: usize,
+    /// The per-object hierarchies of path pieces.
+    pub hierarchies: usize,
+    /// Per-object ranking metrics.
+    pub metrics: usize,
+    /// The rest of each world's record (its struct, job id, lineage) and the slot table.
+    pub records: usize,
+    /// Every session's constraint bitsets and the set of all worlds.
+    pub bitsets: usize,
+}
+
 /// Sessions a shard keeps at most (each holds one bitset per constraint).
 pub const MAX_SESSIONS: usize = 256;
 
@@ -237,6 +253,36 @@ impl Shard {
                 .sum::<usize>()
     }
 
+    /// [`heap_bytes`](Self::heap_bytes) by structure (walks every world: for benchmarks).
+    pub fn heap_bytes_by_part(&self) -> ShardBytes {
+        let worlds = self.worlds.iter().flatten();
+        let paths: usize = worlds
+            .clone()
+            .map(|w| {
+                w.objects.capacity() * std::mem::size_of::<IndexedObject>()
+                    + w.objects
+                        .iter()
+                        .map(IndexedObject::heap_bytes)
+                        .sum::<usize>()
+            })
+            .sum();
+        let metrics: usize = worlds
+            .clone()
+            .map(|w| w.metrics.capacity() * std::mem::size_of::<ObjectMetrics>())
+            .sum();
+        let total = self.heap_bytes();
+        let hierarchies = self.bvh.iter().map(PathBvh::heap_bytes).sum::<usize>();
+        let records = self.world_bytes - paths - metrics
+            + self.worlds.capacity() * std::mem::size_of::<Option<IndexedWorld>>();
+        ShardBytes {
+            paths,
+            hierarchies,
+            metrics,
+            records,
+            bitsets: total - paths - hierarchies - metrics - records,
+        }
+    }
+
     /// Stores an indexed world under its global index and evaluates it against every live
     /// constraint of every session (§4.4: results update as worlds stream in).
     pub fn insert(&mut self, world: IndexedWorld) {
@@ -260,7 +306,7 @@ impl Shard {
             self.bvh.resize_with(world.objects.len(), PathBvh::default);
         }
         for (o, obj) in world.objects.iter().enumerate() {
-            self.bvh[o].insert(global, obj.tree.path(), obj.radius);
+            self.bvh[o].insert(global, obj);
         }
         self.all.insert(global);
         self.world_bytes += world_heap_bytes(&world);
@@ -405,7 +451,7 @@ impl Shard {
     /// and scope apply; its objects and quantifier do not).
     fn touched_by(&self, constraint: &Constraint, objects: &[u32]) -> WorldSet {
         let threads = self.threads.max(1);
-        let mut work: Vec<(&PathBvh, Option<Aabb>, Part)> = Vec::new();
+        let mut work: Vec<(usize, &PathBvh, Option<Aabb>, Part)> = Vec::new();
         let mut pieces = 0;
         for &o in objects {
             let Some(b) = self.bvh.get(o as usize).filter(|b| !b.is_empty()) else {
@@ -414,7 +460,11 @@ impl Shard {
             pieces += b.len();
             // The vertex box of the frustum inflated by every radius of this hierarchy.
             let region = region_box(&constraint.frustum.inflated_bounded(b.max_radius()));
-            work.extend(b.parts(4 * threads).into_iter().map(|p| (b, region, p)));
+            work.extend(
+                b.parts(4 * threads)
+                    .into_iter()
+                    .map(|p| (o as usize, b, region, p)),
+            );
         }
         // A final-pose constraint has no window: every path's last piece reaches to +∞ anyway.
         let window = match constraint.scope {
@@ -428,18 +478,39 @@ impl Shard {
             let mut regions = RegionCache::new(&constraint.frustum);
             // Worlds this thread has found touched: their other pieces are passed over.
             let found = RefCell::new(WorldSet::new());
-            while let Some((bvh, region, part)) = work.get(next.fetch_add(1, Ordering::Relaxed)) {
+            while let Some(&(o, bvh, region, part)) = work.get(next.fetch_add(1, Ordering::Relaxed))
+            {
                 bvh.query(
-                    *part,
+                    part,
                     &constraint.frustum,
                     region.as_ref(),
                     window,
                     |w| found.borrow().contains(w),
                     |p| {
-                        let region = regions.region(p.radius());
-                        let hit = match constraint.scope {
-                            Scope::Motion => p.first_entry(region, window).is_some(),
-                            Scope::FinalPose => p.final_pose_inside(region),
+                        // Answers that need no look-up of the path (each is what the exact
+                        // test would say): only a last piece holds the final pose, and a piece
+                        // inside every plane is inside from its first segment on.
+                        let decided = match constraint.scope {
+                            Scope::FinalPose if !p.is_last() => Some(false),
+                            Scope::FinalPose => p.inside_all().then_some(true),
+                            Scope::Motion => (p.inside_all() && window.is_none()).then_some(true),
+                        };
+                        let hit = match decided {
+                            Some(hit) => hit,
+                            None => {
+                                // The piece's vertices and radius are its world's object's:
+                                // reading them costs a few cache misses per piece.
+                                let Some(path) =
+                                    self.world(p.world()).and_then(|w| w.objects.get(o))
+                                else {
+                                    return;
+                                };
+                                let region = regions.region(path.radius);
+                                match constraint.scope {
+                                    Scope::Motion => p.first_entry(path, region, window).is_some(),
+                                    Scope::FinalPose => p.final_pose_inside(path, region),
+                                }
+                            }
                         };
                         if hit {
                             found.borrow_mut().insert(p.world());
@@ -460,8 +531,9 @@ impl Shard {
         })
     }
 
-    /// [`evaluate_all`](Self::evaluate_all) without the hierarchies: every world's OBB trees,
-    /// world by world (on `threads` threads), for benchmarks and as the reference in tests.
+    /// [`evaluate_all`](Self::evaluate_all) without the hierarchies: every world's paths,
+    /// world by world, segment by segment (on `threads` threads), for benchmarks and as the
+    /// reference in tests.
     pub fn evaluate_each(&self, constraint: &Constraint) -> WorldSet {
         let worlds: Vec<&IndexedWorld> = self.worlds.iter().flatten().collect();
         let threads = self.threads.min(worlds.len() / 256).max(1);
@@ -474,11 +546,10 @@ impl Shard {
                         let mut regions = RegionCache::new(&constraint.frustum);
                         part.iter()
                             .filter(|w| {
-                                constraint.satisfied_given(constraint.touched_cached(
+                                constraint.satisfied_given(touched_world(
+                                    constraint,
                                     &mut regions,
-                                    |o| {
-                                        w.objects.get(o as usize).map(|obj| (&obj.tree, obj.radius))
-                                    },
+                                    w,
                                 ))
                             })
                             .map(|w| w.world)
@@ -598,9 +669,26 @@ fn score(key: &RankKey, world: &IndexedWorld, satisfied: u32) -> Option<f64> {
 
 /// Whether a world satisfies a constraint; a world that could not be indexed satisfies none.
 fn evaluate(c: &Constraint, world: Option<&IndexedWorld>) -> bool {
-    world.is_some_and(|w| {
-        c.evaluate(|o| w.objects.get(o as usize).map(|obj| (&obj.tree, obj.radius)))
-    })
+    world.is_some_and(|w| c.satisfied_given(touched_world(c, &mut RegionCache::new(&c.frustum), w)))
+}
+
+/// Whether `world`'s chosen objects come within `c`'s frustum inflated by each path's radius
+/// (`regions`: a cache of that frustum), as [`Constraint::touched`] decides it for OBB trees:
+/// some of them, or every one with [`Quantifier::All`]; objects the world lacks do not touch it.
+fn touched_world(c: &Constraint, regions: &mut RegionCache<'_>, world: &IndexedWorld) -> bool {
+    let mut enters = |o: u32| {
+        world.objects.get(o as usize).is_some_and(|path| {
+            let region = regions.region(path.radius);
+            match c.scope {
+                Scope::Motion => path.first_entry(region, c.window).is_some(),
+                Scope::FinalPose => path.final_pose_inside(region),
+            }
+        })
+    };
+    match c.quantifier {
+        Quantifier::Any => c.objects.iter().any(|&o| enters(o)),
+        Quantifier::All => !c.objects.is_empty() && c.objects.iter().all(|&o| enters(o)),
+    }
 }
 
 fn status_of(set: &ConstraintSet, edits: u64) -> SessionStatus {
@@ -628,12 +716,10 @@ fn status_of(set: &ConstraintSet, edits: u64) -> SessionStatus {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::index::IndexedObject;
     use mwb_core::browse::api::SceneBodies;
     use mwb_core::browse::api::merge;
     use mwb_core::browse::{
-        Aggregate, ConstraintId, Frustum, Metric, ObjectMetrics, Order, PathTree, Polarity,
-        Polyline, TimeWindow,
+        Aggregate, ConstraintId, Frustum, Metric, Order, Polarity, Polyline, TimeWindow,
     };
 
     /// A one-object world whose object slides along x at height `y` from t = 0 to 1.
@@ -648,10 +734,7 @@ mod tests {
             frame_dt: 1.0 / 120.0,
             rested: true,
             bodies: std::sync::Arc::from(vec!["box".to_owned()]),
-            objects: vec![IndexedObject {
-                tree: PathTree::build(path),
-                radius: 0.001,
-            }],
+            objects: vec![IndexedObject::new(&path, 0.5, 0.001).unwrap_or_else(|e| panic!("{e}"))],
             metrics: vec![ObjectMetrics {
                 angular_travel_rad: spin,
                 time_to_rest_s: 1.0,
@@ -959,11 +1042,10 @@ mod tests {
             let path = Polyline::new(times, points).unwrap_or_else(|e| panic!("{e}"));
             let radius = (rng.uniform(0.0, 0.05) / 0.0005).ceil() * 0.0005;
             let mut w = world(i, 0.0, 0.0);
-            w.objects[0] = IndexedObject {
-                tree: PathTree::build(path.clone()),
-                radius,
-            };
-            paths.push((path, radius));
+            let obj = IndexedObject::new(&path, 0.05, radius).unwrap_or_else(|e| panic!("{e}"));
+            // Brute force on the path as stored (grid-rounded, its radius grown to match).
+            paths.push((obj.polyline(), obj.radius));
+            w.objects[0] = obj;
             shard.insert(w);
         }
         let mut kept_some = 0;
@@ -1075,17 +1157,13 @@ mod tests {
             let b = walk(&mut rng, 1 + (i * 7) % 41);
             let r = (rng.uniform(0.0, 0.02) / 0.0005).ceil() * 0.0005;
             let mut w = world(i, 0.0, 0.0);
-            w.objects = vec![
-                IndexedObject {
-                    tree: PathTree::build(a.clone()),
-                    radius: r,
-                },
-                IndexedObject {
-                    tree: PathTree::build(b.clone()),
-                    radius: r,
-                },
-            ];
-            paths.push([(a, r), (b, r)]);
+            let store =
+                |p: &Polyline| IndexedObject::new(p, 0.1, r).unwrap_or_else(|e| panic!("{e}"));
+            w.objects = vec![store(&a), store(&b)];
+            paths.push([
+                (w.objects[0].polyline(), w.objects[0].radius),
+                (w.objects[1].polyline(), w.objects[1].radius),
+            ]);
             shard.insert(w);
         }
         let (mut kept, mut late) = (0, 0);

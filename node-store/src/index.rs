@@ -1,11 +1,15 @@
-//! Ingest-time indexing of a stored world for browsing (§4.4.2–4.4.3): per object, an OBB path
-//! tree over the low-resolution polyline with its never-miss inflation radius, and the ranking
-//! metrics computed once from the full-rate decoded motion. Pure: no bus, no clock.
+//! Ingest-time indexing of a stored world for browsing (§4.4.2–4.4.3): per object, the
+//! low-resolution polyline stored compactly (grid-rounded vertices, the rounding folded into
+//! the never-miss inflation radius), and the ranking metrics computed once from the full-rate
+//! decoded motion. Pure: no bus, no clock.
 
 use crate::assembly::StoredWorld;
 use mwb_codec::WorldReader;
 use mwb_core::browse::api::{RefineStep, Refined};
-use mwb_core::browse::{ObjectMetrics, PathTree, Polyline, RestThresholds, Track, WorldMetrics};
+use mwb_core::browse::{
+    ALL_PLANES, Frustum, ObjectMetrics, Polyline, RestThresholds, TimeWindow, Track, WorldMetrics,
+    rest_entry, segment_entry,
+};
 use mwb_proto::v1::{Encoding, IndexedPaths, Job, MotionSegment, ObjectPath};
 use std::sync::Arc;
 
@@ -52,15 +56,252 @@ impl From<RestThresholds> for JobScene {
     }
 }
 
-/// One object of an indexed world.
-#[derive(Debug, Clone)]
+/// Finest grid of stored path vertices, metres (2⁻¹³ m ≈ 0.12 mm): a vertex is stored as i16
+/// steps of this grid (or of a coarser power of two, for a path wider than ±4 m) from its
+/// path's centre, so the rounding moves it by at most √3/2 of a step, 0.11 mm here. That error
+/// is measured and added to the never-miss radius ([`IndexedObject::new`]).
+pub const PATH_GRID_M: f64 = 1.0 / 8192.0;
+
+/// One stored path vertex: i16 grid steps from the path's origin, and its frame number (as two
+/// u16 halves, so that the vertex is 10 bytes with 2-byte alignment instead of 12).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Vertex {
+    steps: [i16; 3],
+    frame: [u16; 2],
+}
+
+impl Vertex {
+    fn frame(self) -> u32 {
+        (u32::from(self.frame[0]) << 16) | u32::from(self.frame[1])
+    }
+}
+
+/// Why a polyline could not be stored as an object's path.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum PathError {
+    #[error("frame interval {0} is not a positive number")]
+    FrameDt(f64),
+    #[error("vertex {vertex}: time {time} s is not a whole number of {frame_dt} s frames")]
+    OffFrame {
+        vertex: usize,
+        time: f64,
+        frame_dt: f64,
+    },
+    #[error("vertex {vertex}: a coordinate is not finite or too far from the path's centre")]
+    TooFar { vertex: usize },
+}
+
+/// One object of an indexed world: its indexed polyline, stored compactly, and its never-miss
+/// radius. This is the only copy of the path's vertices in the store: the per-object
+/// hierarchies ([`crate::spatial`]) hold boxes that refer to it.
+///
+/// Layout (measured with `mwb bench query`, docs/performance.md): a vertex is 10 bytes — i16
+/// steps of a power-of-two grid from the path's origin (an f32 point) and a u32 frame number —
+/// against 32 for an f64 point and time; the §4.4.2 OBB tree over it is gone (a path of ~20
+/// vertices is tested segment by segment faster than its boxes were fitted, and the
+/// hierarchies do the pruning across worlds).
+#[derive(Debug, Clone, PartialEq)]
 pub struct IndexedObject {
-    pub tree: PathTree,
+    /// Grid origin (the centre of the path's bounding box, rounded to f32).
+    origin: [f32; 3],
+    /// The grid step, metres: a power of two (exact in f32), [`PATH_GRID_M`] unless the path
+    /// reaches farther than ±4 m from its centre.
+    step: f32,
+    /// The world's frame interval: vertex times are `frame × frame_dt`, exactly as
+    /// [`Polyline::simplify`] made them.
+    frame_dt: f64,
+    vertices: Box<[Vertex]>,
     /// Inflation for frustum tests, metres: the codec's error bound plus the largest distance
-    /// between the full-rate decoded path and the indexed polyline, so that a world whose true
-    /// path enters a frustum is never missed (§4.4.2 tests the low-res path conservatively);
-    /// rounded up to [`PATH_RADIUS_STEP_M`].
+    /// between the full-rate decoded path and the indexed polyline plus the grid rounding of
+    /// its vertices, so that a world whose true path enters a frustum is never missed (§4.4.2
+    /// tests the low-res path conservatively); rounded up to [`PATH_RADIUS_STEP_M`]. NaN:
+    /// unknown (never pruned).
     pub radius: f64,
+}
+
+impl IndexedObject {
+    /// Stores `path` (its times whole multiples of `frame_dt`, from 0) with never-miss radius
+    /// `radius` for the path as given: the vertices are rounded to the grid, and the largest
+    /// distance a vertex moved is added to the radius before it is rounded up to
+    /// [`PATH_RADIUS_STEP_M`]. Between vertices the stored path is within that distance of the
+    /// given one too (both are linear in time between the same vertex times), so whatever the
+    /// radius bounded still lies within the new radius of the stored path.
+    pub fn new(path: &Polyline, frame_dt: f64, radius: f64) -> Result<Self, PathError> {
+        if !(frame_dt.is_finite() && frame_dt > 0.0) {
+            return Err(PathError::FrameDt(frame_dt));
+        }
+        let points = path.points();
+        let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+        for p in points {
+            for k in 0..3 {
+                lo[k] = lo[k].min(p[k]);
+                hi[k] = hi[k].max(p[k]);
+            }
+        }
+        let origin = [0, 1, 2].map(|k| (0.5 * (lo[k] + hi[k])) as f32);
+        // The finest power-of-two step at which every vertex is within i16 range of the origin
+        // (a margin of one step for the origin's own rounding).
+        let reach = (0..3)
+            .map(|k| (hi[k] - f64::from(origin[k])).max(f64::from(origin[k]) - lo[k]))
+            .fold(0.0f64, f64::max);
+        let mut step_exp = PATH_GRID_M.log2() as i32;
+        // (A step above 2⁶⁴ m would fail the range check below: coordinates that large are refused.)
+        while reach / 2f64.powi(step_exp) > f64::from(i16::MAX - 1) && step_exp < 64 {
+            step_exp += 1;
+        }
+        let step = 2f64.powi(step_exp);
+        let mut vertices = Vec::with_capacity(points.len());
+        let mut moved = 0.0f64;
+        for (vertex, (p, &t)) in points.iter().zip(path.times()).enumerate() {
+            let mut steps = [0i16; 3];
+            let mut d2 = 0.0;
+            for k in 0..3 {
+                let s = ((p[k] - f64::from(origin[k])) / step).round();
+                // (NaN is refused too: it fails the range test.)
+                if !(f64::from(i16::MIN)..=f64::from(i16::MAX)).contains(&s) {
+                    return Err(PathError::TooFar { vertex });
+                }
+                steps[k] = s as i16;
+                let d = decode_coordinate(origin[k], step, steps[k]) - p[k];
+                d2 += d * d;
+            }
+            moved = moved.max(d2.sqrt());
+            let f = (t / frame_dt).round();
+            let off = PathError::OffFrame {
+                vertex,
+                time: t,
+                frame_dt,
+            };
+            if !(0.0..=f64::from(u32::MAX)).contains(&f) || f * frame_dt != t {
+                return Err(off);
+            }
+            let f = f as u32;
+            vertices.push(Vertex {
+                steps,
+                frame: [(f >> 16) as u16, f as u16],
+            });
+        }
+        Ok(Self {
+            origin,
+            step: step as f32,
+            frame_dt,
+            vertices: vertices.into_boxed_slice(),
+            radius: round_radius(radius + moved),
+        })
+    }
+
+    /// The same path moved by `d` rounded to whole grid steps, the vertices untouched and the
+    /// radius unchanged (a move by whole steps adds no rounding): `None` when the moved origin
+    /// is not exact in f32 (far from the scene's origin, ~1 km at the finest grid).
+    pub fn translated(&self, d: [f64; 3]) -> Option<Self> {
+        let step = f64::from(self.step);
+        let mut origin = self.origin;
+        for k in 0..3 {
+            let moved = f64::from(origin[k]) + (d[k] / step).round() * step;
+            origin[k] = moved as f32;
+            if f64::from(origin[k]) != moved {
+                return None;
+            }
+        }
+        Some(Self {
+            origin,
+            ..self.clone()
+        })
+    }
+
+    /// Vertices (at least 1).
+    pub fn len(&self) -> usize {
+        self.vertices.len()
+    }
+
+    /// Always false: a path has at least one vertex.
+    pub fn is_empty(&self) -> bool {
+        self.vertices.is_empty()
+    }
+
+    /// Segments, as [`Polyline::segment_count`] counts them (one vertex: one degenerate).
+    pub fn segment_count(&self) -> usize {
+        self.vertices.len().saturating_sub(1).max(1)
+    }
+
+    /// Vertex `i` (clamped to the last) decoded: its position and time. Every reader — the
+    /// hierarchies, the world-by-world test, `q/paths` — decodes with this one function, so
+    /// all see the same f64 path.
+    #[inline]
+    pub fn vertex(&self, i: usize) -> ([f64; 3], f64) {
+        let v = self.vertices[i.min(self.vertices.len() - 1)];
+        let step = f64::from(self.step);
+        (
+            [0, 1, 2].map(|k| decode_coordinate(self.origin[k], step, v.steps[k])),
+            f64::from(v.frame()) * self.frame_dt,
+        )
+    }
+
+    /// The stored path as a polyline (allocates; for drawing, benchmarks and tests).
+    pub fn polyline(&self) -> Polyline {
+        let (points, times) = (0..self.len()).map(|i| self.vertex(i)).unzip();
+        // Times strictly increase and points are finite: they were checked when stored.
+        Polyline::new(times, points).unwrap_or_else(|e| unreachable!("stored path: {e}"))
+    }
+
+    /// Exact test of segments `first..first + count`: the earliest time in `window` at which
+    /// one is inside the planes of `region` in `mask` ([`segment_entry`], as brute force runs
+    /// it), then, if `rest`, the final pose held after the end ([`rest_entry`]).
+    pub fn entry_in(
+        &self,
+        first: usize,
+        count: usize,
+        rest: bool,
+        region: &Frustum,
+        mask: u8,
+        window: Option<TimeWindow>,
+    ) -> Option<f64> {
+        let mut a = self.vertex(first);
+        (first..first + count)
+            .find_map(|i| {
+                let b = self.vertex(i + 1);
+                let hit = segment_entry(a.0, b.0, a.1, b.1, region, mask, window);
+                a = b;
+                hit
+            })
+            .or_else(|| {
+                let (p, t) = self.vertex(self.len() - 1);
+                rest.then(|| rest_entry(p, t, region, mask, window))
+                    .flatten()
+            })
+    }
+
+    /// The earliest time in `window` at which the stored path (its final pose held after the
+    /// end) is inside `region`: [`Polyline::first_entry`] of [`polyline`](Self::polyline).
+    pub fn first_entry(&self, region: &Frustum, window: Option<TimeWindow>) -> Option<f64> {
+        self.entry_in(0, self.segment_count(), true, region, ALL_PLANES, window)
+    }
+
+    /// Whether the final pose is inside `region` (on the boundary counts).
+    pub fn final_pose_inside(&self, region: &Frustum) -> bool {
+        let (p, _) = self.vertex(self.len() - 1);
+        region
+            .clip_segment_masked(p, p, 0.0, 1.0, ALL_PLANES)
+            .is_some()
+    }
+
+    /// Never-miss test: does the path come within `frustum` inflated by the radius during
+    /// `window`?
+    pub fn intersects(&self, frustum: &Frustum, window: Option<TimeWindow>) -> bool {
+        self.first_entry(&frustum.inflated(self.radius), window)
+            .is_some()
+    }
+
+    /// Heap bytes held (the vertices).
+    pub fn heap_bytes(&self) -> usize {
+        std::mem::size_of_val::<[Vertex]>(&self.vertices)
+    }
+}
+
+/// `origin + steps × step`: one rounding (the product is exact, `step` a power of two).
+#[inline]
+fn decode_coordinate(origin: f32, step: f64, steps: i16) -> f64 {
+    f64::from(origin) + f64::from(steps) * step
 }
 
 /// A world as the browsing layer sees it.
@@ -85,7 +326,7 @@ pub struct IndexedWorld {
 }
 
 impl IndexedWorld {
-    /// Heap bytes held by the index of this world (trees, polylines, metrics).
+    /// Heap bytes held by the index of this world (paths, metrics, names), by capacity.
     pub fn heap_bytes(&self) -> usize {
         self.job_id.capacity()
             + self.objects.capacity() * std::mem::size_of::<IndexedObject>()
@@ -93,8 +334,18 @@ impl IndexedWorld {
             + self
                 .objects
                 .iter()
-                .map(|o| o.tree.heap_bytes())
+                .map(IndexedObject::heap_bytes)
                 .sum::<usize>()
+            + self.refined.as_ref().map_or(0, |r| {
+                std::mem::size_of::<Refined>()
+                    + r.root_job.capacity()
+                    + r.steps.capacity() * std::mem::size_of::<RefineStep>()
+                    + r.steps
+                        .iter()
+                        .map(|s| s.objects.capacity() * std::mem::size_of::<u32>())
+                        .sum::<usize>()
+                    + r.active_from.capacity() * std::mem::size_of::<Option<u32>>()
+            })
     }
 }
 
@@ -114,7 +365,7 @@ impl IndexedWorld {
                 .objects
                 .iter()
                 .map(|o| {
-                    let path = o.tree.path();
+                    let path = o.polyline();
                     ObjectPath {
                         times: path.times().to_vec(),
                         xyz: path.points().iter().flatten().copied().collect(),
@@ -215,8 +466,9 @@ fn round_radius(r: f64) -> f64 {
 /// job's scene facts (`scene`: rest thresholds, body names; a bare [`RestThresholds`] converts).
 ///
 /// Every segment is decoded once (full rate). From the decoded centre-of-mass positions each
-/// object gets an error-bounded polyline ([`Polyline::simplify`], deviation ≤ `tolerance`) and
-/// an OBB tree over it; its never-miss radius is the codec's e_max plus the measured deviation.
+/// object gets an error-bounded polyline ([`Polyline::simplify`], deviation ≤ `tolerance`),
+/// stored grid-rounded ([`IndexedObject::new`]); its never-miss radius is the codec's e_max
+/// plus the measured deviation plus the measured rounding.
 /// (The 4 Hz low-res path that travels with the segments is meant for instant display: a
 /// bouncing box strays decimetres from it, which would widen every query box as much.)
 /// Metrics come from the same full-rate track; impact counts from the world summary; rest
@@ -288,10 +540,17 @@ pub fn index_world(
             metrics.time_to_rest_s = t;
             metrics.came_to_rest = rested;
         }
-        objects.push(IndexedObject {
-            tree: PathTree::build(polyline),
-            radius: round_radius(e_max + deviation),
-        });
+        let mut object = IndexedObject::new(&polyline, dt, e_max + deviation)
+            .map_err(|e| obj_err(e.to_string()))?;
+        // The bound above adds the grid rounding to the simplification's deviation; the rounded
+        // path's own deviation from the full-rate path, measured exactly (same-time distances
+        // at every frame, as `simplify` measures), is mostly smaller, and keeps the p50 radius
+        // where it was before rounding (11.0 mm on `mwb bench query`, 11.5 with the bound).
+        let full = Polyline::uniform(0.0, dt, track.positions.clone())
+            .map_err(|e| obj_err(e.to_string()))?;
+        let exact = round_radius(e_max + object.polyline().max_deviation_from(&full));
+        object.radius = object.radius.min(exact);
+        objects.push(object);
         all_metrics.push(metrics);
     }
     Ok(IndexedWorld {
@@ -336,4 +595,155 @@ pub fn index_world(
             })
         }),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use mwb_core::rng::{Stream, WorldRng};
+
+    /// Random walks on a 120 Hz frame grid, from a few centimetres to ~100 m across (so that
+    /// some need a coarser grid than [`PATH_GRID_M`]), far from the origin too.
+    fn walk(rng: &mut WorldRng, i: u32) -> Polyline {
+        let dt = 1.0 / 120.0;
+        let reach = [0.05, 2.0, 12.0, 100.0][i as usize % 4];
+        let mut p = [
+            rng.uniform(-500.0, 500.0),
+            rng.uniform(-5.0, 5.0),
+            rng.uniform(-500.0, 500.0),
+        ];
+        let (mut times, mut points) = (Vec::new(), Vec::new());
+        let mut frame = rng.uniform(0.0, 50.0) as u32;
+        for _ in 0..1 + i % 30 {
+            times.push(f64::from(frame) * dt);
+            points.push(p);
+            frame += 1 + rng.uniform(0.0, 60.0) as u32;
+            for v in &mut p {
+                *v += rng.uniform(-reach, reach) / 4.0;
+            }
+        }
+        Polyline::new(times, points).unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    /// Every decoded vertex is at its own time and within the stated bound of the given one:
+    /// √3/2 of the grid step, which is [`PATH_GRID_M`] for paths within ±4 m of their centre,
+    /// and at most the radius's growth. So at every time the stored path is within
+    /// `radius − given radius` of the given one (both linear between the same vertex times).
+    #[test]
+    fn decoded_vertices_are_within_the_bound_the_radius_carries() {
+        let mut rng = WorldRng::new(41, Stream::Scene);
+        let dt = 1.0 / 120.0;
+        let mut coarse = 0;
+        for i in 0..400 {
+            let path = walk(&mut rng, i);
+            let given = rng.uniform(0.0, 0.02);
+            let obj = IndexedObject::new(&path, dt, given).unwrap_or_else(|e| panic!("{e}"));
+            assert_eq!(obj.len(), path.len());
+            let span = (0..3)
+                .map(|k| {
+                    let (lo, hi) = path
+                        .points()
+                        .iter()
+                        .fold((f64::MAX, f64::MIN), |(l, h), p| (l.min(p[k]), h.max(p[k])));
+                    hi - lo
+                })
+                .fold(0.0, f64::max);
+            let step = f64::from(obj.step);
+            coarse += usize::from(step > PATH_GRID_M);
+            if span < 7.9 {
+                assert_eq!(step, PATH_GRID_M, "path {i} spans {span} m");
+            }
+            let stored = obj.polyline();
+            for (v, (p, t)) in path.points().iter().zip(path.times()).enumerate() {
+                let (q, tq) = obj.vertex(v);
+                assert_eq!(tq, *t, "path {i} vertex {v}: times are exact");
+                let d = (0..3).map(|k| (q[k] - p[k]).powi(2)).sum::<f64>().sqrt();
+                assert!(d <= 0.5 * 3f64.sqrt() * step * (1.0 + 1e-9), "{i}/{v}: {d}");
+                assert!(
+                    d <= obj.radius - given,
+                    "{i}/{v}: {d} > {}",
+                    obj.radius - given
+                );
+            }
+            assert!(stored.max_deviation_from(&path) <= obj.radius - given);
+            assert!(obj.radius - given <= 0.5 * 3f64.sqrt() * step + PATH_RADIUS_STEP_M);
+        }
+        assert!(coarse > 50, "{coarse} paths needed a coarser grid");
+    }
+
+    /// A box that touches the given path is never missed by the stored one (its radius covers
+    /// the rounding), with or without a time window; tiny boxes placed on the path itself, so
+    /// that only the radius saves them.
+    #[test]
+    fn a_box_touching_the_given_path_is_never_missed() {
+        let mut rng = WorldRng::new(42, Stream::Scene);
+        let dt = 1.0 / 120.0;
+        let mut checks = 0;
+        for i in 0..300 {
+            let path = walk(&mut rng, i);
+            let obj = IndexedObject::new(&path, dt, 0.0).unwrap_or_else(|e| panic!("{e}"));
+            let (t0, t1) = (path.times()[0], path.end().1);
+            for _ in 0..20 {
+                let t = rng.uniform(t0, t1 + 0.5);
+                let c = path.position_at(t);
+                let h = rng.uniform(1e-6, 1e-3);
+                let frustum = Frustum::aabb(c.map(|v| v - h), c.map(|v| v + h))
+                    .unwrap_or_else(|e| panic!("{e}"));
+                let window = (rng.next_f64() < 0.5)
+                    .then(|| TimeWindow::new(t - 0.01, t + 0.01).ok())
+                    .flatten();
+                assert!(path.first_entry(&frustum, window).is_some());
+                assert!(
+                    obj.intersects(&frustum, window),
+                    "path {i}: box of {h} m at {c:?}, t {t}, {window:?}"
+                );
+                checks += 1;
+            }
+        }
+        assert_eq!(checks, 6000);
+    }
+
+    /// Times off the frame grid and non-positive frame intervals are refused, naming the
+    /// vertex; nothing is silently moved in time.
+    #[test]
+    fn off_grid_times_are_refused() {
+        let path = Polyline::new(vec![0.0, 0.013], vec![[0.0; 3], [1.0; 3]])
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert!(matches!(
+            IndexedObject::new(&path, 0.01, 0.0),
+            Err(PathError::OffFrame { vertex: 1, .. })
+        ));
+        assert_eq!(
+            IndexedObject::new(&path, 0.0, 0.0),
+            Err(PathError::FrameDt(0.0))
+        );
+    }
+
+    /// A move by whole grid steps keeps the vertices and the radius: every decoded vertex moves
+    /// by the rounded offset (up to the f64 sum's last bit), no farther.
+    #[test]
+    fn a_translated_path_moves_by_whole_steps() {
+        let mut rng = WorldRng::new(43, Stream::Scene);
+        for i in 0..100 {
+            let obj = IndexedObject::new(&walk(&mut rng, 4 * i + 1), 1.0 / 120.0, 0.01)
+                .unwrap_or_else(|e| panic!("{e}"));
+            let d = [rng.uniform(-20.0, 20.0), 0.0, rng.uniform(-20.0, 20.0)];
+            let Some(moved) = obj.translated(d) else {
+                continue;
+            };
+            assert_eq!(moved.radius, obj.radius);
+            let step = f64::from(obj.step);
+            for v in 0..obj.len() {
+                let ((a, ta), (b, tb)) = (obj.vertex(v), moved.vertex(v));
+                assert_eq!(ta, tb);
+                for k in 0..3 {
+                    let want = a[k] + (d[k] / step).round() * step;
+                    assert!(
+                        (b[k] - want).abs() <= 1e-12 * (1.0 + want.abs()),
+                        "{i}/{v}/{k}"
+                    );
+                }
+            }
+        }
+    }
 }

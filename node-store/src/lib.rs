@@ -1,12 +1,13 @@
 //! The in-memory world store (DESIGN.md "Store and queries").
 //!
 //! * [`assembly`] — pure: segments + summaries → complete, CRC-verified, indexed worlds.
-//! * [`index`] — pure: a stored world → per-object path trees (OBB, depth ≤ 3) and metrics.
+//! * [`index`] — pure: a stored world → per-object paths (grid-rounded, 10 bytes a vertex, the
+//!   store's only copy) with never-miss radii, and metrics.
 //! * [`browse`] — pure: one shard's worlds and per-session constraint bitsets; answers
 //!   node-query's requests.
 //! * [`spatial`] — pure: per object index, a bounding-volume hierarchy over every world's path
-//!   pieces (4 segments each, vertices copied in), so a constraint visits only the parts of
-//!   paths near it.
+//!   pieces (4 segments each, referring to the world's path), so a constraint visits only the
+//!   parts of paths near it.
 //! * [`journal`] — the store's durable journal (MCAP files via `mwb-record`) and loading
 //!   recordings into a store.
 //! * [`node`] — the bus node around them.
@@ -19,7 +20,7 @@ pub mod node;
 pub mod spatial;
 
 pub use assembly::{Assembler, Outcome, Rejection, StoredWorld};
-pub use browse::{Shard, ShardSpec};
+pub use browse::{Shard, ShardBytes, ShardSpec};
 pub use index::{IndexError, IndexedWorld, index_world};
 pub use journal::{FileReport, Journal, JournalCounters, JournalError, StartReport};
 pub use node::{DEFAULT_MEMORY_CAP_MIB, StoreConfig, StoreError, StoreHandle, run_store};

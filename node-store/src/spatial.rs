@@ -6,26 +6,26 @@
 //! nearly every path's box meets a frustum drawn through the scene. A frustum is thin, though,
 //! and most of a path is far from it. So each path enters the hierarchy as pieces of
 //! [`PIECE_SEGMENTS`] segments: per piece the box of its vertices grown by the path's
-//! never-miss radius, its world, and a copy of its vertices and times, so that the exact test
-//! ([`segment_entry`], the same function brute force and the OBB trees run) reads nothing but
-//! the entry. A query walks the hierarchy with the frustum's planes — plane masking as in the
+//! never-miss radius (f32, rounded outward), its time range, its world and which segments it
+//! covers; the exact test ([`segment_entry`](mwb_core::browse::segment_entry), the same
+//! function brute force runs) reads them from the world's [`IndexedObject`]. A query walks the hierarchy with the frustum's planes — plane masking as in the
 //! trees: a node wholly inside a plane spares everything below it that plane — and the
 //! bounding box of the inflated frustum's vertices, skips pieces whose time range misses the
 //! window, and clips the segments of the pieces that remain. A path's last piece reaches to
 //! +∞ in time: its world has ended and the body stays at its final pose, which the piece's box
-//! holds (it is the last vertex), so windows past the end still reach it ([`rest_entry`]).
+//! holds (it is the last vertex), so windows past the end still reach it
+//! ([`rest_entry`](mwb_core::browse::rest_entry)).
 //!
 //! The work of one query comes in [`Part`]s (subtrees near the top, runs of the pending list)
 //! that threads take one at a time. Pieces that arrive after the last build wait in a pending
 //! list (tested one by one) until it is a quarter of the built part, then the hierarchy is
 //! rebuilt: ingest stays amortised O(log n) per piece and queries O(pieces near the frustum +
-//! pending). The copy of the vertices costs memory (`mwb bench query` reports it per world)
-//! and buys the speed: without it every surviving piece was a chain of cache misses into its
-//! world (see docs/performance.md).
+//! pending). The pieces used to carry f64 copies of their vertices (no lookup into the world
+//! for a surviving piece), at 232 bytes a piece the largest part of the store; they refer to
+//! the one compact copy now (see docs/performance.md for what that costs a query).
 
-use mwb_core::browse::{
-    ALL_PLANES, Frustum, Plane, Polyline, TimeWindow, rest_entry, segment_entry,
-};
+use crate::index::IndexedObject;
+use mwb_core::browse::{ALL_PLANES, Frustum, Plane, TimeWindow};
 
 type Vec3 = [f64; 3];
 
@@ -154,39 +154,45 @@ const LEAF: usize = 16;
 /// of its pieces do). Measured with `mwb bench query` (see docs/performance.md).
 pub const PIECE_SEGMENTS: usize = 4;
 
-/// One piece of a path: the box of its vertices grown by the path's radius, the radius, its
-/// world, and a copy of its vertices with their times (`[x, y, z, t]`; `count + 1` of them, the
-/// last shared with the next piece), so that the exact test reads nothing but the entry.
+/// One piece of a path: the box of its vertices grown by the path's radius (f32, rounded
+/// outward), its world, and which segments of the path it covers. The vertices themselves stay
+/// in the world's [`IndexedObject`] (the store's only copy of them): a query looks the object
+/// up for the few pieces whose box meets the frustum. 44 bytes, against 232 when each piece
+/// carried f64 copies of its vertices and times (`mwb bench query`, docs/performance.md).
 #[derive(Debug, Clone)]
 struct Entry {
-    bounds: Aabb,
-    /// The never-miss radius as [`Frustum::inflated`] uses it: ≥ 0, NaN taken as +∞.
-    radius: f64,
+    min: [f32; 3],
+    max: [f32; 3],
+    /// The piece's time range, rounded outward to f32; `t1` is +∞ for a path's last piece (the
+    /// final pose is held after the end). Windows that miss it skip the piece unseen.
+    t0: f32,
+    t1: f32,
     world: u32,
+    /// First segment of the path in the piece.
+    first: u32,
     /// Segments in the piece, 1..=[`PIECE_SEGMENTS`].
-    count: u32,
+    count: u8,
     /// Whether the piece ends the path: its last vertex is the final pose, held after the end.
     last: bool,
-    verts: [[f64; 4]; PIECE_SEGMENTS + 1],
+}
+
+/// `v` rounded down (`up` false) or up to an f32, so that a box stored in f32 still holds
+/// every point the f64 box held.
+fn f32_outward(v: f64, up: bool) -> f32 {
+    let f = v as f32;
+    match (up, f64::from(f).partial_cmp(&v)) {
+        (true, Some(std::cmp::Ordering::Less)) => f.next_up(),
+        (false, Some(std::cmp::Ordering::Greater)) => f.next_down(),
+        _ => f,
+    }
 }
 
 impl Entry {
-    fn t0(&self) -> f64 {
-        self.verts[0][3]
-    }
-
-    /// The end of the piece's time range: +∞ for a path's last piece (the held final pose).
-    fn t1(&self) -> f64 {
-        if self.last {
-            f64::INFINITY
-        } else {
-            self.verts[self.count as usize][3]
+    fn bounds(&self) -> Aabb {
+        Aabb {
+            min: self.min.map(f64::from),
+            max: self.max.map(f64::from),
         }
-    }
-
-    fn end(&self) -> ([f64; 3], f64) {
-        let v = self.verts[self.count as usize];
-        ([v[0], v[1], v[2]], v[3])
     }
 }
 
@@ -205,48 +211,43 @@ impl Piece<'_> {
         self.entry.world
     }
 
-    /// The path's never-miss radius.
-    pub fn radius(&self) -> f64 {
-        self.entry.radius
-    }
-
     /// Whether this piece ends its path (and so holds the final pose).
     pub fn is_last(&self) -> bool {
         self.entry.last
     }
 
-    /// The exact test ([`segment_entry`], as brute force and the OBB trees run it) of the
-    /// piece's segments against `region` — the query's frustum inflated by
-    /// [`radius`](Self::radius) — during `window`, then, for a path's last piece, of the final
-    /// pose held after the end ([`rest_entry`]): the earliest time inside, if any.
-    pub fn first_entry(&self, region: &Frustum, window: Option<TimeWindow>) -> Option<f64> {
-        let v = &self.entry.verts;
-        (0..self.entry.count as usize)
-            .find_map(|i| {
-                let (a, b) = (v[i], v[i + 1]);
-                segment_entry(
-                    [a[0], a[1], a[2]],
-                    [b[0], b[1], b[2]],
-                    a[3],
-                    b[3],
-                    region,
-                    self.mask,
-                    window,
-                )
-            })
-            .or_else(|| {
-                let (p, t) = self.entry.end();
-                self.entry
-                    .last
-                    .then(|| rest_entry(p, t, region, self.mask, window))
-                    .flatten()
-            })
+    /// Whether the piece's box (grown by the radius) is inside every plane: then every point of
+    /// the piece is inside the inflated frustum, and without a time window the exact test
+    /// answers "inside" from its first segment — the caller need not read the path.
+    pub fn inside_all(&self) -> bool {
+        self.mask == 0
     }
 
-    /// Whether the piece ends its path and the final pose is inside `region` (the query's
-    /// frustum inflated by [`radius`](Self::radius)), as [`Polyline::final_pose_inside`].
-    pub fn final_pose_inside(&self, region: &Frustum) -> bool {
-        let (p, _) = self.entry.end();
+    /// The exact test ([`segment_entry`](mwb_core::browse::segment_entry), as brute force runs
+    /// it) of the piece's segments of `path` — the world's object this piece was cut from —
+    /// against `region` — the query's frustum inflated by the path's radius — during `window`,
+    /// then, for a path's last piece, of the final pose held after the end: the earliest time
+    /// inside, if any.
+    pub fn first_entry(
+        &self,
+        path: &IndexedObject,
+        region: &Frustum,
+        window: Option<TimeWindow>,
+    ) -> Option<f64> {
+        path.entry_in(
+            self.entry.first as usize,
+            usize::from(self.entry.count),
+            self.entry.last,
+            region,
+            self.mask,
+            window,
+        )
+    }
+
+    /// Whether the piece ends its path and the path's final pose is inside `region` (the
+    /// query's frustum inflated by the path's radius).
+    pub fn final_pose_inside(&self, path: &IndexedObject, region: &Frustum) -> bool {
+        let (p, _) = path.vertex(path.len() - 1);
         self.entry.last
             && region
                 .clip_segment_masked(p, p, 0.0, 1.0, self.mask)
@@ -276,36 +277,37 @@ pub struct PathBvh {
 impl PathBvh {
     /// Adds `world`'s path with its never-miss radius (NaN: unknown, taken as +∞, so the path is
     /// never pruned), cut into pieces of [`PIECE_SEGMENTS`] segments. A one-vertex path is one
-    /// degenerate segment, as [`Polyline::segment_count`] counts it.
-    pub fn insert(&mut self, world: u32, path: &Polyline, radius: f64) {
-        let radius = if radius.is_nan() {
+    /// degenerate segment, as [`IndexedObject::segment_count`] counts it.
+    pub fn insert(&mut self, world: u32, path: &IndexedObject) {
+        let radius = if path.radius.is_nan() {
             f64::INFINITY
         } else {
-            radius.max(0.0)
+            path.radius.max(0.0)
         };
         self.max_radius = self.max_radius.max(radius);
-        let (points, times) = (path.points(), path.times());
-        let last = points.len() - 1;
         let segments = path.segment_count();
+        let mut span = Vec::with_capacity(PIECE_SEGMENTS + 1);
         for first in (0..segments).step_by(PIECE_SEGMENTS) {
             let count = PIECE_SEGMENTS.min(segments - first);
-            let mut verts = [[0.0; 4]; PIECE_SEGMENTS + 1];
-            for (i, v) in verts.iter_mut().enumerate().take(count + 1) {
-                let j = (first + i).min(last);
-                let p = points[j];
-                *v = [p[0], p[1], p[2], times[j]];
-            }
-            let span = &points[first.min(last)..=(first + count).min(last)];
-            let Some(bounds) = Aabb::of_points(span, radius) else {
+            span.clear();
+            span.extend((first..=first + count).map(|i| path.vertex(i).0));
+            let Some(b) = Aabb::of_points(&span, radius) else {
                 continue;
             };
+            let last = first + count >= segments;
             self.pending.push(Entry {
-                bounds,
-                radius,
+                min: b.min.map(|v| f32_outward(v, false)),
+                max: b.max.map(|v| f32_outward(v, true)),
+                t0: f32_outward(path.vertex(first).1, false),
+                t1: if last {
+                    f32::INFINITY
+                } else {
+                    f32_outward(path.vertex(first + count).1, true)
+                },
                 world,
-                count: count as u32,
-                last: first + count >= segments,
-                verts,
+                first: first as u32,
+                count: count as u8,
+                last,
             });
         }
         if self.pending.len() >= 256 && self.pending.len() * 4 >= self.entries.len() {
@@ -350,7 +352,7 @@ impl PathBvh {
             return;
         }
         self.nodes.push(Node {
-            bounds: self.entries[0].bounds,
+            bounds: self.entries[0].bounds(),
             first: 0,
             count: 0,
         });
@@ -368,7 +370,7 @@ impl PathBvh {
     fn build(&mut self, at: usize, lo: usize, hi: usize) {
         let bounds = self.entries[lo + 1..hi]
             .iter()
-            .fold(self.entries[lo].bounds, |b, e| b.union(&e.bounds));
+            .fold(self.entries[lo].bounds(), |b, e| b.union(&e.bounds()));
         if hi - lo <= LEAF {
             self.nodes[at] = Node {
                 bounds,
@@ -380,8 +382,9 @@ impl PathBvh {
         let (mut cmin, mut cmax) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
         for e in &self.entries[lo..hi] {
             for k in 0..3 {
-                cmin[k] = cmin[k].min(e.bounds.centre(k));
-                cmax[k] = cmax[k].max(e.bounds.centre(k));
+                let c = e.bounds().centre(k);
+                cmin[k] = cmin[k].min(c);
+                cmax[k] = cmax[k].max(c);
             }
         }
         let axis = (0..3)
@@ -389,7 +392,7 @@ impl PathBvh {
             .unwrap_or(0);
         let mid = lo + (hi - lo) / 2;
         self.entries[lo..hi].select_nth_unstable_by(mid - lo, |a, b| {
-            a.bounds.centre(axis).total_cmp(&b.bounds.centre(axis))
+            a.bounds().centre(axis).total_cmp(&b.bounds().centre(axis))
         });
         let left = self.nodes.len();
         for _ in 0..2 {
@@ -466,12 +469,13 @@ impl PathBvh {
             b.classify(planes, mask)
         };
         let mut leaf = |entry: &Entry, mask: u8| {
-            if window.is_some_and(|w| entry.t1() < w.start() || entry.t0() > w.end())
+            if window
+                .is_some_and(|w| f64::from(entry.t1) < w.start() || f64::from(entry.t0) > w.end())
                 || skip(entry.world)
             {
                 return;
             }
-            if let Some(mask) = test(&entry.bounds, mask) {
+            if let Some(mask) = test(&entry.bounds(), mask) {
                 visit(Piece { entry, mask });
             }
         };
@@ -510,11 +514,15 @@ impl PathBvh {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use mwb_core::browse::Polyline;
     use mwb_core::rng::{Stream, WorldRng};
     use std::collections::BTreeSet;
 
-    /// Random-walk paths of 1 to 40 vertices, radii from 0 to 5 cm (one unknown, NaN).
-    fn paths(rng: &mut WorldRng, n: u32) -> Vec<(Polyline, f64)> {
+    const DT: f64 = 1.0 / 120.0;
+
+    /// Random-walk paths of 1 to 40 vertices on a 120 Hz frame grid, radii from 0 to 5 cm (one
+    /// unknown, NaN), stored as the index stores them.
+    fn paths(rng: &mut WorldRng, n: u32) -> Vec<IndexedObject> {
         (0..n)
             .map(|i| {
                 let mut p = [
@@ -523,11 +531,11 @@ mod tests {
                     rng.uniform(-10.0, 10.0),
                 ];
                 let (mut times, mut points) = (Vec::new(), Vec::new());
-                let mut t = rng.uniform(0.0, 1.0);
+                let mut frame = (rng.uniform(0.0, 120.0)) as u32;
                 for _ in 0..1 + i % 40 {
-                    times.push(t);
+                    times.push(f64::from(frame) * DT);
                     points.push(p);
-                    t += rng.uniform(0.01, 0.3);
+                    frame += 1 + rng.uniform(0.0, 36.0) as u32;
                     for v in &mut p {
                         *v += rng.uniform(-0.4, 0.4);
                     }
@@ -538,7 +546,7 @@ mod tests {
                     rng.uniform(0.0, 0.05)
                 };
                 let path = Polyline::new(times, points).unwrap_or_else(|e| panic!("{e}"));
-                (path, radius)
+                IndexedObject::new(&path, DT, radius).unwrap_or_else(|e| panic!("{e}"))
             })
             .collect()
     }
@@ -551,6 +559,7 @@ mod tests {
         parts: &[Part],
         frustum: &Frustum,
         window: Option<TimeWindow>,
+        paths: &[IndexedObject],
     ) -> BTreeSet<u32> {
         let region = region_box(&frustum.inflated_bounded(bvh.max_radius()));
         let mut hits = BTreeSet::new();
@@ -562,16 +571,19 @@ mod tests {
                 window,
                 |_| false,
                 |p| {
+                    let path = &paths[p.world() as usize];
                     for (k, plane) in frustum.planes().iter().enumerate() {
                         if p.mask & (1 << k) == 0 {
-                            for v in &p.entry.verts[..=p.entry.count as usize] {
-                                let d = plane.distance([v[0], v[1], v[2]]);
-                                assert!(d < -p.radius(), "plane {k}: vertex {v:?} at {d}");
+                            let first = p.entry.first as usize;
+                            for i in first..=first + usize::from(p.entry.count) {
+                                let (v, _) = path.vertex(i);
+                                let d = plane.distance(v);
+                                assert!(d < -path.radius, "plane {k}: vertex {v:?} at {d}");
                             }
                         }
                     }
-                    let inflated = frustum.inflated(p.radius());
-                    if p.first_entry(&inflated, window).is_some() {
+                    let inflated = frustum.inflated(path.radius);
+                    if p.first_entry(path, &inflated, window).is_some() {
                         hits.insert(p.world());
                     }
                 },
@@ -590,17 +602,17 @@ mod tests {
         let paths = paths(&mut rng, 3000);
         let mut bvh = PathBvh::default();
         // A removal rebuilds; the last paths then wait in the pending list.
-        for (w, (path, radius)) in paths.iter().enumerate() {
+        for (w, path) in paths.iter().enumerate() {
             if w == 2950 {
                 bvh.remove(17);
             }
-            bvh.insert(w as u32, path, *radius);
+            bvh.insert(w as u32, path);
         }
         let pieces: usize = paths
             .iter()
             .enumerate()
             .filter(|(w, _)| *w != 17)
-            .map(|(_, (p, _))| p.segment_count().div_ceil(PIECE_SEGMENTS))
+            .map(|(_, p)| p.segment_count().div_ceil(PIECE_SEGMENTS))
             .sum();
         assert_eq!(bvh.len(), pieces);
         assert!(
@@ -638,14 +650,21 @@ mod tests {
             let truth: BTreeSet<u32> = paths
                 .iter()
                 .enumerate()
-                .filter(|(w, (p, r))| {
-                    *w != 17 && p.first_entry(&frustum.inflated(*r), window).is_some()
+                .filter(|(w, p)| {
+                    *w != 17
+                        && p.polyline()
+                            .first_entry(&frustum.inflated(p.radius), window)
+                            .is_some()
                 })
                 .map(|(w, _)| w as u32)
                 .collect();
             kept += usize::from(truth.len() > 1);
             for parts in &splits {
-                assert_eq!(touched(&bvh, parts, &frustum, window), truth, "query {q}");
+                assert_eq!(
+                    touched(&bvh, parts, &frustum, window, &paths),
+                    truth,
+                    "query {q}"
+                );
             }
         }
         assert!(
@@ -660,8 +679,9 @@ mod tests {
     fn parts_cover_every_piece_once() {
         let mut rng = WorldRng::new(5, Stream::Scene);
         let mut bvh = PathBvh::default();
-        for (w, (path, _)) in paths(&mut rng, 700).iter().enumerate() {
-            bvh.insert(w as u32, path, 0.01);
+        for (w, path) in paths(&mut rng, 700).iter_mut().enumerate() {
+            path.radius = 0.01;
+            bvh.insert(w as u32, path);
         }
         let all = Frustum::aabb([-100.0; 3], [100.0; 3]).unwrap_or_else(|e| panic!("{e}"));
         let region = region_box(&all.inflated_bounded(bvh.max_radius()));

@@ -1,7 +1,8 @@
 //! `mwb bench query`: browsing speed over a store shard (§4.4.2), one JSON line.
 //!
 //! Worlds are synthetic but their paths are real: a few worlds of a shipped scene are sampled
-//! and indexed exactly as the store does (decode, error-bounded polyline, OBB tree, metrics);
+//! and indexed exactly as the store does (decode, error-bounded polyline stored grid-rounded,
+//! metrics);
 //! each synthetic world takes `objects` of those object paths, each shifted sideways by up to a
 //! metre so that no two worlds are alike. Constraints are screen rectangles (2–20 % of the image
 //! side) drawn through a camera looking at the scene from a random direction, aimed at a random
@@ -10,14 +11,14 @@
 //!
 //! * add: a new constraint over every world (`Shard::handle`, every core), including the AND;
 //! * remove: removing one of four live constraints (AND of the other bitsets, no geometry);
-//! * index: the store's path index — per object index a hierarchy of path pieces (4 segments,
-//!   vertices copied in) is walked down to the pieces near the frustum, whose segments are
-//!   clipped, on every core; per_world_trees: the §4.4.2 OBB trees of every world, world by
-//!   world (every core);
+//! * index: the store's path index — per object index a hierarchy of path pieces (4 segments
+//!   each, referring to the world's one stored copy of the path) is walked down to the pieces
+//!   near the frustum, whose segments are clipped, on every core; per_world: every world's
+//!   stored paths, world by world, segment by segment (every core);
 //! * brute: the same constraint tested segment by segment on every polyline without any tree,
 //!   on every core, from a plain copy of the polylines (each world's side by side, allocated
 //!   world after world: the cheapest layout for it, sharing nothing with the index);
-//!   obb_speedup = brute ÷ index, per_world_trees_speedup = brute ÷ per_world_trees (medians).
+//!   obb_speedup = brute ÷ index, per_world_speedup = brute ÷ per_world (medians).
 //!   All three must agree on every world;
 //! * rank: top 10 by angular travel summed over all objects, over every world;
 //! * ingest: `Shard::insert` of each world as the shard is filled (no live constraint), mean
@@ -27,8 +28,8 @@ use crate::output::{Summary, fields_table};
 use anyhow::{Result, bail};
 use mwb_core::browse::api::{Reply, Request, ShardReply, ShardRequest};
 use mwb_core::browse::{
-    Aggregate, Camera, Constraint, ConstraintId, Frustum, Intrinsics, Metric, Order, PathTree,
-    Polarity, Polyline, RankKey, RestThresholds, ScreenRect, TimeWindow, Viewport, WorldSet,
+    Aggregate, Camera, Constraint, ConstraintId, Frustum, Intrinsics, Metric, Order, Polarity,
+    Polyline, RankKey, RestThresholds, ScreenRect, TimeWindow, Viewport, WorldSet,
 };
 use mwb_core::rng::{Stream, WorldRng};
 use mwb_core::scene::SceneTemplate;
@@ -96,19 +97,40 @@ pub struct QueryBench {
     /// pieces near the frustum, whose segments are then clipped (`tree_p50_ms` in earlier
     /// lines).
     pub index_p50_ms: f64,
-    /// Every world's OBB trees, without the hierarchy (how §4.4.2 tests: world by world).
-    pub per_world_trees_p50_ms: f64,
+    /// Every world's stored paths, world by world, without the hierarchy (the store's
+    /// `evaluate_each`; `per_world_trees_p50_ms` when worlds held §4.4.2 OBB trees).
+    pub per_world_p50_ms: f64,
     pub brute_p50_ms: f64,
     /// brute ÷ index (the issue's name for it).
     pub obb_speedup: f64,
-    /// brute ÷ per-world OBB trees: what the §4.4.2 trees alone give.
-    pub per_world_trees_speedup: f64,
+    /// brute ÷ per-world.
+    pub per_world_speedup: f64,
     pub rank_p50_ms: f64,
     /// `Shard::insert` of one indexed world (its pieces into the hierarchies, the occasional
     /// rebuild, no live constraint): mean over the worlds, and the slowest (a rebuild).
     pub ingest_mean_us: f64,
     pub ingest_max_ms: f64,
+    /// The shard's heap bytes per world (`Shard::heap_bytes`, by capacity): paths, hierarchies,
+    /// metrics, world records, bitsets — everything the store holds for browsing.
     pub memory_bytes_per_world: f64,
+    /// `memory_bytes_per_world` by structure: stored paths (the only copy of the vertices),
+    /// hierarchies of path pieces, metrics, the rest of the world records, bitsets.
+    pub paths_bytes_per_world: f64,
+    pub hierarchy_bytes_per_world: f64,
+    pub metrics_bytes_per_world: f64,
+    pub records_bytes_per_world: f64,
+    pub bitsets_bytes_per_world: f64,
+    /// The codec payloads of a world of `objects` objects (the compressed motion; charged at the
+    /// sampled worlds' mean per object).
+    pub payload_bytes_per_world: f64,
+    /// A world's segments as the store's memory cap counts them (payload, 4 Hz low-res path,
+    /// header fields), charged the same way.
+    pub motion_bytes_per_world: f64,
+    /// `motion_bytes_per_world + memory_bytes_per_world`: the store's total per world.
+    pub total_bytes_per_world: f64,
+    /// Resident set of the whole bench process at the end (the shard, and the bench's own copies
+    /// of the worlds for brute force), from /proc/self/status; 0 where unavailable.
+    pub rss_bytes: u64,
     /// Polyline vertices per object, mean (the index's size driver).
     pub vertices_per_object: f64,
     pub path_radius_mm_p50: f64,
@@ -143,11 +165,28 @@ fn percentile(v: &mut [f64], p: f64) -> f64 {
     v[((v.len() - 1) as f64 * p).round() as usize]
 }
 
-/// Real indexed worlds of `scene`, as the store builds them.
-fn sample_pool(file: &str, text: &str, worlds: u32, tolerance: f64) -> Result<Vec<IndexedWorld>> {
+/// What the sampled worlds' motion costs the store, per object (the synthetic worlds hold no
+/// motion of their own: each of their objects is charged the pool's mean).
+#[derive(Debug, Clone, Copy, Default)]
+struct MotionBytes {
+    /// Segment messages as the store's assembly counts them against its memory cap
+    /// (`StoredWorld::bytes`: payload, low-res path, header fields).
+    encoded_per_object: f64,
+    /// The codec payloads alone (the compressed motion).
+    payload_per_object: f64,
+}
+
+/// Real indexed worlds of `scene`, as the store builds them, and their motion's bytes.
+fn sample_pool(
+    file: &str,
+    text: &str,
+    worlds: u32,
+    tolerance: f64,
+) -> Result<(Vec<IndexedWorld>, MotionBytes)> {
     let template = SceneTemplate::parse(text, file)?;
     let rest = RestThresholds::from(template.settings());
     let mut out = Vec::new();
+    let (mut encoded, mut payload, mut objects) = (0u64, 0u64, 0u64);
     for i in 0..worlds {
         let seed = mwb_core::rng::world_seed("bench-query", "local", u64::from(i));
         let mut segments = Vec::new();
@@ -157,6 +196,9 @@ fn sample_pool(file: &str, text: &str, worlds: u32, tolerance: f64) -> Result<Ve
         })?;
         let done = world_done("q", "n", u64::from(i), &summary);
         let bytes = segments.iter().map(|s| s.encoded_len() as u64).sum();
+        encoded += bytes;
+        payload += segments.iter().map(|s| s.payload.len() as u64).sum::<u64>();
+        objects += segments.first().map_or(0, |s| u64::from(s.body_count));
         let stored = StoredWorld {
             index: i,
             job_id: "q".into(),
@@ -166,27 +208,38 @@ fn sample_pool(file: &str, text: &str, worlds: u32, tolerance: f64) -> Result<Ve
         };
         out.push(index_world(&stored, i, rest, tolerance)?);
     }
-    Ok(out)
+    let per = |b: u64| b as f64 / objects.max(1) as f64;
+    Ok((
+        out,
+        MotionBytes {
+            encoded_per_object: per(encoded),
+            payload_per_object: per(payload),
+        },
+    ))
 }
 
-fn shifted(obj: &IndexedObject, d: [f64; 3]) -> Result<IndexedObject> {
-    let p = obj.tree.path();
+/// `obj` moved by `d` (rounded to the path's grid, so the move adds no rounding and the radius
+/// stays exact); where that is not possible, stored again from the moved polyline, the new
+/// rounding added to the radius.
+fn shifted(obj: &IndexedObject, frame_dt: f64, d: [f64; 3]) -> Result<IndexedObject> {
+    if let Some(moved) = obj.translated(d) {
+        return Ok(moved);
+    }
+    let p = obj.polyline();
     let points = p
         .points()
         .iter()
         .map(|x| [x[0] + d[0], x[1] + d[1], x[2] + d[2]])
         .collect();
-    Ok(IndexedObject {
-        tree: PathTree::build(Polyline::new(p.times().to_vec(), points)?),
-        radius: obj.radius,
-    })
+    let moved = Polyline::new(p.times().to_vec(), points)?;
+    Ok(IndexedObject::new(&moved, frame_dt, obj.radius)?)
 }
 
 fn random_constraint(rng: &mut Rng, id: u64, worlds: &[IndexedWorld]) -> Result<Constraint> {
     let w = &worlds[rng.index(worlds.len())];
     let o = rng.index(w.objects.len());
-    let pts = w.objects[o].tree.path().points();
-    let target = pts[rng.index(pts.len())];
+    let path = &w.objects[o];
+    let (target, _) = path.vertex(rng.index(path.len()));
     let (yaw, pitch) = (rng.range(0.0, std::f64::consts::TAU), rng.range(0.2, 1.2));
     let dist = rng.range(4.0, 12.0);
     let dir = [
@@ -338,7 +391,7 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
         bail!("--worlds, --objects and --constraints must be positive");
     }
     let (file, text) = crate::client::load_scene(&opts.scene)?;
-    let pool = sample_pool(&file, &text, 24, opts.path_tolerance_m)?;
+    let (pool, motion) = sample_pool(&file, &text, 24, opts.path_tolerance_m)?;
     let pool_objects: Vec<(&IndexedObject, mwb_core::browse::ObjectMetrics)> = pool
         .iter()
         .flat_map(|w| w.objects.iter().zip(w.metrics.iter().copied()))
@@ -362,8 +415,8 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
                 0.0,
                 rng.range(-opts.spread_m, opts.spread_m),
             ];
-            let o = shifted(obj, d)?;
-            vertices += o.tree.path().len();
+            let o = shifted(obj, pool[0].frame_dt, d)?;
+            vertices += o.len();
             radii.push(o.radius * 1000.0);
             objs.push(o);
             metrics.push(m);
@@ -396,12 +449,7 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
     let ingest_max_ms = ingest.iter().copied().fold(0.0, f64::max);
     let plain: Vec<PlainWorld> = synthetic
         .iter()
-        .map(|w| {
-            w.objects
-                .iter()
-                .map(|o| (o.tree.path().clone(), o.radius))
-                .collect()
-        })
+        .map(|w| w.objects.iter().map(|o| (o.polyline(), o.radius)).collect())
         .collect();
     let mut seq = 0u64;
     let mut send = |shard: &mut Shard, request: Request| -> Result<Reply> {
@@ -432,7 +480,7 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
     };
     for round in 0..constraints {
         let c = random_constraint(&mut rng, round as u64 + 1, &synthetic)?;
-        // Index, per-world trees and brute force on the same threads, same constraint.
+        // Index, world by world and brute force on the same threads, same constraint.
         let t = Instant::now();
         let by_index = shard.evaluate_all(&c);
         index.push(t.elapsed().as_secs_f64() * 1e3);
@@ -444,7 +492,7 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
         brute_ms.push(t.elapsed().as_secs_f64() * 1e3);
         if by_index != by_brute || each != by_brute {
             bail!(
-                "constraint {round}: the index kept {} worlds, per-world trees {}, brute force {} \
+                "constraint {round}: the index kept {} worlds, world by world {}, brute force {} \
                  (not the same worlds)",
                 by_index.len(),
                 each.len(),
@@ -483,6 +531,9 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
     let index_p50 = percentile(&mut index, 0.5);
     let per_world_p50 = percentile(&mut per_world, 0.5);
     let brute_p50 = percentile(&mut brute_ms, 0.5);
+    let per_world = |bytes: usize| bytes as f64 / f64::from(worlds);
+    let memory = per_world(shard.heap_bytes());
+    let parts = shard.heap_bytes_by_part();
     Ok(QueryBench {
         scene: file,
         path_tolerance_mm: opts.path_tolerance_m * 1e3,
@@ -496,24 +547,45 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
         add_p95_ms: percentile(&mut add, 0.95),
         remove_p50_ms: percentile(&mut remove, 0.5),
         index_p50_ms: index_p50,
-        per_world_trees_p50_ms: per_world_p50,
+        per_world_p50_ms: per_world_p50,
         brute_p50_ms: brute_p50,
         obb_speedup: brute_p50 / index_p50.max(1e-9),
-        per_world_trees_speedup: brute_p50 / per_world_p50.max(1e-9),
+        per_world_speedup: brute_p50 / per_world_p50.max(1e-9),
         rank_p50_ms: percentile(&mut rank, 0.5),
         ingest_mean_us,
         ingest_max_ms,
-        memory_bytes_per_world: shard.heap_bytes() as f64 / f64::from(worlds),
+        memory_bytes_per_world: memory,
+        paths_bytes_per_world: per_world(parts.paths),
+        hierarchy_bytes_per_world: per_world(parts.hierarchies),
+        metrics_bytes_per_world: per_world(parts.metrics),
+        records_bytes_per_world: per_world(parts.records),
+        bitsets_bytes_per_world: per_world(parts.bitsets),
+        payload_bytes_per_world: motion.payload_per_object * f64::from(objects),
+        motion_bytes_per_world: motion.encoded_per_object * f64::from(objects),
+        total_bytes_per_world: motion.encoded_per_object * f64::from(objects) + memory,
+        rss_bytes: rss_bytes(),
         vertices_per_object: vertices as f64 / (f64::from(worlds) * f64::from(objects)),
         path_radius_mm_p50: percentile(&mut radii, 0.5),
     })
+}
+
+/// The process's resident set (`VmRSS`), bytes; 0 where /proc is not there to ask.
+fn rss_bytes() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find_map(|l| l.strip_prefix("VmRSS:"))
+                .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
+        })
+        .map_or(0, |kb| kb * 1024)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    /// A small run end to end: it fails if the index, the per-world trees and brute force keep
+    /// A small run end to end: it fails if the index, the world-by-world test and brute force keep
     /// different worlds for any constraint, and reports sane figures.
     #[test]
     fn a_small_bench_agrees_with_brute_force() {
@@ -526,7 +598,12 @@ mod tests {
         .unwrap_or_else(|e| panic!("{e:#}"));
         assert_eq!((b.worlds, b.objects, b.constraints), (300, 4, 12));
         assert!((0.0..=1.0).contains(&b.kept_fraction_p50), "{b:?}");
-        assert!(b.memory_bytes_per_world > 1000.0, "{b:?}");
+        assert!(b.memory_bytes_per_world > 100.0, "{b:?}");
+        assert!(b.payload_bytes_per_world > 0.0, "{b:?}");
+        assert_eq!(
+            b.total_bytes_per_world,
+            b.motion_bytes_per_world + b.memory_bytes_per_world
+        );
         assert!(
             b.vertices_per_object >= 2.0 && b.ingest_max_ms >= 0.0,
             "{b:?}"
