@@ -63,7 +63,14 @@ impl Summary for SamplerBench {
     }
 }
 
+/// CPU time of the whole process (all threads), seconds (0 where it is not read: not unix).
+#[cfg(not(unix))]
+pub fn process_cpu_seconds() -> f64 {
+    0.0
+}
+
 /// CPU time of the whole process (all threads), seconds.
+#[cfg(unix)]
 pub fn process_cpu_seconds() -> f64 {
     // SAFETY: getrusage fills the struct we pass; a zeroed rusage is a valid value.
     let mut ru: libc::rusage = unsafe { std::mem::zeroed() };
