@@ -49,6 +49,22 @@ fn ok(args: &[&str]) -> String {
     String::from_utf8_lossy(&out.stdout).into_owned()
 }
 
+/// `mwb query list --json` of a browsing session: its status as node-query reports it.
+fn query_list(endpoint: &str, space: &str, session: &str) -> Value {
+    let out = ok(&[
+        "query",
+        "list",
+        "--session",
+        session,
+        "--json",
+        "--connect",
+        endpoint,
+        "--space",
+        space,
+    ]);
+    serde_json::from_str(out.trim()).unwrap_or_else(|e| panic!("{e}: {out}"))
+}
+
 /// Presses at `a`, moves to `b` in a few steps, releases there.
 fn drag(h: &mut Harness<'_, ViewerApp>, a: Pos2, b: Pos2) {
     h.event(Event::PointerMoved(a));
@@ -308,21 +324,7 @@ fn the_live_viewer_browses_a_running_cluster() {
     assert_eq!(answered.result, survivors.len() as u64);
 
     // `mwb query list` on the same session reports the same count.
-    let list: Value = serde_json::from_str(
-        ok(&[
-            "query",
-            "list",
-            "--session",
-            "viewer",
-            "--json",
-            "--connect",
-            &endpoint,
-            "--space",
-            &space,
-        ])
-        .trim(),
-    )
-    .unwrap_or_else(|e| panic!("{e}"));
+    let list = query_list(&endpoint, &space, "viewer");
     assert_eq!(list["result"].as_u64(), Some(survivors.len() as u64));
     assert_eq!(list["worlds"].as_u64(), Some(WORLDS as u64));
     assert_eq!(list["constraints"].as_array().map(Vec::len), Some(1));
@@ -476,21 +478,7 @@ fn the_live_viewer_browses_a_running_cluster() {
         .map(|w| w.index)
         .collect();
     assert_eq!(here, after);
-    let list: Value = serde_json::from_str(
-        ok(&[
-            "query",
-            "list",
-            "--session",
-            "viewer",
-            "--json",
-            "--connect",
-            &endpoint,
-            "--space",
-            &space,
-        ])
-        .trim(),
-    )
-    .unwrap_or_else(|e| panic!("{e}"));
+    let list = query_list(&endpoint, &space, "viewer");
     assert_eq!(list["constraints"].as_array().map(Vec::len), Some(1));
     assert_eq!(list["edits"].as_u64(), Some(3), "{list}");
     assert_eq!(list["worlds"].as_u64(), Some(all));
@@ -527,21 +515,7 @@ fn the_live_viewer_browses_a_running_cluster() {
     );
     let img = image::open(&png).unwrap_or_else(|e| panic!("{e}"));
     assert_eq!((img.width(), img.height()), (960, 600));
-    let shot: Value = serde_json::from_str(
-        ok(&[
-            "query",
-            "list",
-            "--session",
-            "shot",
-            "--json",
-            "--connect",
-            &endpoint,
-            "--space",
-            &space,
-        ])
-        .trim(),
-    )
-    .unwrap_or_else(|e| panic!("{e}"));
+    let shot = query_list(&endpoint, &space, "shot");
     assert!(
         out.contains(&format!("{} survive", shot["result"])),
         "{out} vs {shot}"
