@@ -1500,15 +1500,19 @@ mod tests {
         }
     }
 
-    #[test]
-    fn the_fast_angle_test_agrees_with_the_full_computation() {
-        let mut seed = 42u64;
-        let mut rnd = || {
+    /// A seeded stream of numbers in [0, 1) (a 64-bit LCG's top 53 bits): the same every run.
+    fn uniform(mut seed: u64) -> impl FnMut() -> f64 {
+        move || {
             seed = seed
                 .wrapping_mul(6364136223846793005)
                 .wrapping_add(1442695040888963407);
             (seed >> 11) as f64 / (1u64 << 53) as f64
-        };
+        }
+    }
+
+    #[test]
+    fn the_fast_angle_test_agrees_with_the_full_computation() {
+        let mut rnd = uniform(42u64);
         for theta_lim in [1e-9, 1e-6, 1e-4, 1e-3, 5e-3, 0.1, 1.0, 2.0, 3.0] {
             let test = AngleTest::new(theta_lim);
             for _ in 0..2000 {
@@ -1540,13 +1544,7 @@ mod tests {
     /// side), at angles from 10⁻⁹ to 1 rad, with `y` the logarithm the fitter would use.
     #[test]
     fn the_log_space_verdicts_agree_with_the_full_computation() {
-        let mut seed = 7u64;
-        let mut rnd = || {
-            seed = seed
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (seed >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut rnd = uniform(7u64);
         let mut decided = 0;
         for theta_lim in [1e-9, 1e-6, 1e-4, 1e-3, 5e-3, 0.1, 1.0] {
             let test = AngleTest::new(theta_lim);
@@ -1587,13 +1585,8 @@ mod tests {
     /// minimum is the fit without it, or `None` where that one is shorter.
     #[test]
     fn a_fit_with_a_minimum_length_is_the_fit_without_it_or_none() {
-        let mut seed = 11u64;
-        let mut rnd = || {
-            seed = seed
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5
-        };
+        let mut u = uniform(11);
+        let mut rnd = || u() - 0.5;
         let coding = PositionCoding::new(1.1e-3, Some([0.0, -9.81, 0.0]), 1.0 / 120.0);
         let (mut kept, mut refused) = (0, 0);
         for case in 0..300 {

@@ -793,39 +793,46 @@ fn bad_cases() -> Vec<Bad> {
 fn every_bad_input_names_line_item_and_field() {
     let cases = bad_cases();
     assert!(cases.len() >= 40);
-    for case in cases {
-        let line = case
-            .src
-            .lines()
-            .position(|l| l.contains("#<"))
-            .map(|i| i + 1)
-            .unwrap_or_else(|| panic!("{}: no #< marker", case.what));
-        let err = match parse(&case.src) {
-            Ok(_) => panic!("{}: accepted:\n{}", case.what, case.src),
-            Err(e) => e,
-        };
-        let shown = err.to_string();
-        assert_eq!(err.file, "test.toml");
-        assert_eq!(
-            err.item.as_deref(),
-            Some(case.item),
-            "{}: {shown}",
-            case.what
-        );
-        assert_eq!(
-            err.field.as_deref(),
-            Some(case.field),
-            "{}: {shown}",
-            case.what
-        );
-        assert!(err.message.contains(case.message), "{}: {shown}", case.what);
-        let prefix = format!("test.toml:{line}: {}: field `{}`: ", case.item, case.field);
-        assert!(
-            shown.starts_with(&prefix),
-            "{}: expected prefix {prefix:?}, got {shown:?}",
-            case.what
-        );
+    for case in &cases {
+        assert_refused(case);
     }
+}
+
+/// Parses `case.src` and checks the refusal names the file, the marked line, the item, the field
+/// and the message.
+fn assert_refused(case: &Bad) {
+    let line = case
+        .src
+        .lines()
+        .position(|l| l.contains("#<"))
+        .map(|i| i + 1)
+        .unwrap_or_else(|| panic!("{}: no #< marker", case.what));
+    let err = match parse(&case.src) {
+        Ok(_) => panic!("{}: accepted:\n{}", case.what, case.src),
+        Err(e) => e,
+    };
+    let shown = err.to_string();
+    assert_eq!(err.file, "test.toml");
+    assert_eq!(
+        err.item.as_deref(),
+        Some(case.item),
+        "{}: {shown}",
+        case.what
+    );
+    assert_eq!(
+        err.field.as_deref(),
+        Some(case.field),
+        "{}: {shown}",
+        case.what
+    );
+    assert!(err.message.contains(case.message), "{}: {shown}", case.what);
+    let prefix = format!("test.toml:{line}: {}: field `{}`: ", case.item, case.field);
+    assert!(
+        shown.starts_with(&prefix),
+        "{}: expected prefix {prefix:?}, got {shown:?}\n{}",
+        case.what,
+        case.src
+    );
 }
 
 #[test]
@@ -1543,38 +1550,8 @@ fn every_bad_compound_names_the_body_the_part_and_the_field() {
             "must be > 0",
         ),
     ];
-    for case in cases {
-        let line = case
-            .src
-            .lines()
-            .position(|l| l.contains("#<"))
-            .map(|i| i + 1)
-            .unwrap_or_else(|| panic!("{}: no #< marker", case.what));
-        let err = match parse(&case.src) {
-            Ok(_) => panic!("{}: accepted:\n{}", case.what, case.src),
-            Err(e) => e,
-        };
-        let shown = err.to_string();
-        assert_eq!(
-            err.item.as_deref(),
-            Some(case.item),
-            "{}: {shown}",
-            case.what
-        );
-        assert_eq!(
-            err.field.as_deref(),
-            Some(case.field),
-            "{}: {shown}",
-            case.what
-        );
-        assert!(err.message.contains(case.message), "{}: {shown}", case.what);
-        let prefix = format!("test.toml:{line}: {}: field `{}`: ", case.item, case.field);
-        assert!(
-            shown.starts_with(&prefix),
-            "{}: expected prefix {prefix:?}, got {shown:?}\n{}",
-            case.what,
-            case.src
-        );
+    for case in &cases {
+        assert_refused(case);
     }
 }
 
