@@ -11,36 +11,47 @@ use mwb_proto::v1::{Encoding, MotionSegment, World};
 pub struct WorldCheck {
     pub frames: u32,
     pub bodies: u32,
-    /// Payload bytes (compressed motion).
+    /// Payload bytes (compressed motion) the world holds itself (a refined world stored as a
+    /// difference: only its own).
     pub bytes: u64,
     /// The same motion as 7 × f32 per body-frame, for comparison.
     pub raw_f32_bytes: u64,
     pub impacts: u64,
 }
 
+/// Verifies a fetched world. A refined world stored as a difference from its parent (§4.5)
+/// carries its own segments from `first_segment` on and its parent chain
+/// ([`World::parent`]): its segments are checked the same way, the parent chain verified in
+/// turn, and the composed motion decoded end to end. `bytes` counts what the world itself holds.
 pub fn verify_world(w: &World) -> Result<WorldCheck> {
     let Some(done) = &w.done else {
         bail!("world {}: no summary", w.index);
     };
-    if w.segments.len() != done.segment_count as usize {
+    let own = done.segment_count.checked_sub(done.first_segment);
+    if own != Some(w.segments.len() as u32) {
         bail!(
-            "world {}: {} segments, summary says {}",
+            "world {}: {} segments from segment {}, summary says {} in all",
             w.index,
             w.segments.len(),
+            done.first_segment,
             done.segment_count
         );
     }
-    let mut frames = 0u32;
+    let layered = mwb_export::is_layered(done, &w.segments);
+    let mut frames = w.segments.first().map_or(0, |s| s.first_frame);
+    if !layered && frames != 0 {
+        bail!("world {}: segment 0 starts at frame {frames}", w.index);
+    }
     let mut bytes = 0u64;
-    let bodies = w.segments.first().map_or(0, |s| s.body_count);
     for (i, s) in w.segments.iter().enumerate() {
+        let seq = done.first_segment as usize + i;
         if crc32fast::hash(&s.payload) != s.crc32 {
-            bail!("world {}: segment {i}: CRC mismatch", w.index);
+            bail!("world {}: segment {seq}: CRC mismatch", w.index);
         }
-        if s.seq as usize != i || s.first_frame != frames || s.seed != done.seed {
-            bail!("world {}: segment {i} out of order", w.index);
+        if s.seq as usize != seq || s.first_frame != frames || s.seed != done.seed {
+            bail!("world {}: segment {seq} out of order", w.index);
         }
-        verify_payload(s).with_context(|| format!("world {}: segment {i}", w.index))?;
+        verify_payload(s).with_context(|| format!("world {}: segment {seq}", w.index))?;
         frames += s.frame_count;
         bytes += s.payload.len() as u64;
     }
@@ -51,6 +62,20 @@ pub fn verify_world(w: &World) -> Result<WorldCheck> {
             done.frame_count
         );
     }
+    let bodies = if layered {
+        let parent = w.parent.as_deref().with_context(|| {
+            format!(
+                "world {}: stored as a difference from its parent, which did not come with it",
+                w.index
+            )
+        })?;
+        verify_world(parent).with_context(|| format!("world {}: its parent", w.index))?;
+        let motion = mwb_export::decode_world(w)
+            .with_context(|| format!("world {}: composing it over its parent", w.index))?;
+        motion.tracks.len() as u32
+    } else {
+        w.segments.first().map_or(0, |s| s.body_count)
+    };
     Ok(WorldCheck {
         frames,
         bodies,

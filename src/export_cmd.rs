@@ -25,7 +25,7 @@ use crate::output::{Summary, print};
 use anyhow::{Context, Result, bail};
 use mwb_core::keys::Keys;
 use mwb_core::scene::{Scene, SceneTemplate};
-use mwb_export::{ExportWorld, Motion, SegmentPayload, decode_segments};
+use mwb_export::{ExportWorld, Motion, decode_world};
 use mwb_proto::v1::{Job, Message, MotionSegment, World, WorldDone};
 use mwb_record::Family;
 use serde::Serialize;
@@ -256,7 +256,12 @@ fn simulate(args: &ExportArgs) -> Result<Vec<Loaded>> {
             file: &file,
             text: &text,
         };
-        out.push(load_world(None, &done, &segments, source)?);
+        let world = World {
+            done: Some(done),
+            segments,
+            ..World::default()
+        };
+        out.push(load_world(None, &world, source)?);
     }
     Ok(out)
 }
@@ -274,12 +279,13 @@ enum SceneSource<'a> {
 
 /// A world's motion and instantiated scene. A scene text that is not the world's (its hash
 /// differs from `WorldDone.scene_hash`) is refused.
-fn load_world(
-    index: Option<u32>,
-    done: &WorldDone,
-    segments: &[MotionSegment],
-    source: SceneSource<'_>,
-) -> Result<Loaded> {
+fn load_world(index: Option<u32>, world: &World, source: SceneSource<'_>) -> Result<Loaded> {
+    let Some(done) = &world.done else {
+        bail!(
+            "world {}: no summary",
+            index.map_or_else(|| "?".into(), |i| i.to_string())
+        );
+    };
     let name = match index {
         Some(i) => format!("world {i}"),
         None => format!("seed {}", done.seed),
@@ -307,13 +313,8 @@ fn load_world(
         );
     }
     let template = SceneTemplate::parse(&text, &file)?;
-    let payloads = segments
-        .iter()
-        .map(SegmentPayload::from_proto)
-        .collect::<Result<Vec<_>, _>>()
-        .with_context(|| name.clone())?;
-    let motion = decode_segments(&payloads, done.frame_dt, Some(u64::from(done.frame_count)))
-        .with_context(|| format!("{name}: decoding its motion"))?;
+    // A refined world stored as a difference composes over its parent chain.
+    let motion = decode_world(world).with_context(|| format!("{name}: decoding its motion"))?;
     // A refined world is an instance of its root world's scene (§4.5: its seed is its own).
     let scene = template.instantiate(done.lineage.as_ref().map_or(done.seed, |l| l.root_seed));
     if scene.bodies.len() != motion.tracks.len() {
@@ -400,7 +401,7 @@ fn from_recording(path: &Path, indices: &[u32], scene_arg: Option<&str>) -> Resu
         };
         let job = table.jobs().find(|(j, _)| j.id == w.job_id).map(|(j, _)| j);
         let source = scene_source(&user, job, &lacking);
-        out.push(load_world(Some(index), &w.done, &w.segments, source)?);
+        out.push(load_world(Some(index), &w.message(), source)?);
     }
     Ok(out)
 }
@@ -427,12 +428,9 @@ async fn fetch_all(
         let Some(world): Option<World> = fetch_world(session, keys, index).await? else {
             bail!("world {index}: no store holds it (`mwb query result` lists the worlds)");
         };
-        let Some(done) = &world.done else {
-            bail!("world {index}: the store's reply has no summary");
-        };
         let job = crate::client::held_job(session, keys, &world.job_id).await?;
         let source = scene_source(&user, job.as_ref(), "no store");
-        out.push(load_world(Some(index), done, &world.segments, source)?);
+        out.push(load_world(Some(index), &world, source)?);
     }
     Ok(out)
 }

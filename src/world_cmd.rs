@@ -148,7 +148,7 @@ pub fn regenerate(
             )
             .with_context(|| format!("regenerating the parent of world {seed:#x} of {file}"))?;
             let child = parent
-                .refine_whole(&last.objects, seed, opts, &mut emit)
+                .refine(&last.objects, seed, opts, &mut emit)
                 .with_context(|| format!("regenerating refined world {seed:#x} of {file}"))?;
             Some((l, child))
         }
@@ -159,18 +159,7 @@ pub fn regenerate(
                 .with_context(|| format!("regenerating world {seed:#x} of {file}"))?;
             mwb_sampler::world_done("", "", 0, &summary)
         }
-        Some((l, child)) => WorldDone {
-            lineage: Some(mwb_sampler::node::lineage_to_wire(
-                &l.root_job,
-                &child.lineage,
-            )),
-            active_from: child
-                .active_from
-                .iter()
-                .map(|a| a.map_or(-1, i64::from))
-                .collect(),
-            ..mwb_sampler::world_done("", "", 0, &child.summary)
-        },
+        Some((l, child)) => mwb_sampler::node::refined_done("", "", 0, &l.root_job, &child),
     };
     let done = WorldDone {
         // What the worker skeleton adds to every summary and the digest covers.
@@ -396,6 +385,7 @@ mod tests {
             job_id: "j".into(),
             done: Some(a.done.clone()),
             segments: a.segments.clone(),
+            parent: None,
         };
         assert_eq!(shipped_scene(a.done.scene_hash), Some("tumble"));
         assert_eq!(shipped_scene(a.done.scene_hash ^ 1), None);

@@ -105,6 +105,7 @@ mod encode;
 mod error;
 mod fit;
 mod format;
+mod layers;
 mod lowres;
 mod params;
 mod rotation;
@@ -120,6 +121,7 @@ pub use encode::{
 };
 pub use error::CodecError;
 pub use format::FORMAT_VERSION;
+pub use layers::{LayerError, Layered};
 pub use lowres::LowResPath;
 pub use params::{
     DEFAULT_FRAME_DT, DEFAULT_LOWRES_HZ, EncodeParams, FIT_WINDOW, MAX_TRACK_FRAMES, MIN_THETA_MAX,

@@ -52,7 +52,9 @@ pub mod mesh;
 pub mod motion;
 pub mod table;
 
-pub use motion::{Motion, MotionError, SegmentPayload, decode_segments};
+pub use motion::{
+    Motion, MotionError, SegmentPayload, decode_payload, decode_segments, decode_world, is_layered,
+};
 
 use mwb_core::scene::Scene;
 

@@ -5,9 +5,9 @@
 //! Every segment decodes alone (each is its own codec stream, or its own quantised frames), so
 //! a world is the concatenation of its segments in `seq` order, checked to be contiguous.
 
-use mwb_codec::{Track, WorldReader};
+use mwb_codec::{Layered, Track, WorldReader};
 use mwb_core::scene::Scene;
-use mwb_proto::v1::{Encoding, MotionSegment};
+use mwb_proto::v1::{Encoding, MotionSegment, World, WorldDone};
 
 /// Every body's track over the whole world.
 #[derive(Debug, Clone, PartialEq)]
@@ -90,6 +90,8 @@ pub struct SegmentPayload<'a> {
     pub first_frame: u32,
     pub frame_count: u32,
     pub body_count: u32,
+    /// The bodies the payload holds, in order (empty: every body). See [`decode_world`].
+    pub bodies: &'a [u32],
     pub kind: PayloadKind,
     pub payload: &'a [u8],
 }
@@ -121,6 +123,7 @@ impl<'a> SegmentPayload<'a> {
             first_frame: s.first_frame,
             frame_count: s.frame_count,
             body_count: s.body_count,
+            bodies: &s.bodies,
             kind,
             payload: &s.payload,
         })
@@ -172,6 +175,24 @@ pub enum MotionError {
     NotFinite { seq: u32, body: usize },
     #[error("the segments hold {got} frames, the world's summary says {expected}")]
     FrameCount { got: u64, expected: u64 },
+    #[error("world {world}: no summary")]
+    NoSummary { world: u32 },
+    #[error(
+        "world {world} is stored as a difference from its parent (refined), which did not come with it"
+    )]
+    NoParent { world: u32 },
+    #[error("parent world {world}: {source}")]
+    Parent {
+        world: u32,
+        #[source]
+        source: Box<MotionError>,
+    },
+    #[error("segment {seq}: {source}")]
+    Layer {
+        seq: u32,
+        #[source]
+        source: mwb_codec::LayerError,
+    },
 }
 
 /// Decodes a world's segments (in `seq` order, contiguous) into one [`Motion`]. With
@@ -209,67 +230,137 @@ pub fn decode_segments(
                 expected: bodies,
             });
         }
-        let shape_err = |b: usize, f: usize| MotionError::Shape {
-            seq,
-            bodies: b,
-            frames: f,
-            want_bodies: s.body_count,
-            want_frames: s.frame_count,
-        };
-        match s.kind {
-            PayloadKind::Spline => {
-                let reader = WorldReader::new(s.payload)
-                    .map_err(|source| MotionError::Codec { seq, source })?;
-                if reader.object_count() != bodies as usize
-                    || reader.frame_count() != s.frame_count as usize
-                {
-                    return Err(shape_err(reader.object_count(), reader.frame_count()));
-                }
-                let decoded = reader
-                    .decode_all()
-                    .map_err(|source| MotionError::Codec { seq, source })?;
-                for (body, (t, d)) in tracks.iter_mut().zip(decoded).enumerate() {
-                    if d.len() != s.frame_count as usize || d.rotations.len() != d.len() {
-                        return Err(shape_err(bodies as usize, d.len()));
-                    }
-                    if !all_finite(&d) {
-                        return Err(MotionError::NotFinite { seq, body });
-                    }
-                    t.positions.extend(d.positions);
-                    t.rotations.extend(d.rotations);
-                }
-            }
-            PayloadKind::QuantisedFrames => {
-                let poses = mwb_core::frames::decode(s.payload, s.frame_count, s.body_count)
-                    .map_err(|source| MotionError::Frames { seq, source })?;
-                if poses.len() != s.frame_count as usize * bodies as usize {
-                    return Err(shape_err(
-                        bodies as usize,
-                        poses.len() / bodies.max(1) as usize,
-                    ));
-                }
-                // Frame-major: frame 0 body 0, frame 0 body 1, …
-                for (i, p) in poses.iter().enumerate() {
-                    let body = i % bodies as usize;
-                    if !p.position.iter().chain(&p.rotation).all(|x| x.is_finite()) {
-                        return Err(MotionError::NotFinite { seq, body });
-                    }
-                    tracks[body].positions.push(p.position);
-                    tracks[body].rotations.push(p.rotation);
-                }
-            }
+        for (t, d) in tracks.iter_mut().zip(decode_payload(s)?) {
+            t.positions.extend(d.positions);
+            t.rotations.extend(d.rotations);
         }
         next_frame += u64::from(s.frame_count);
     }
-    if let Some(expected) = expected_frames
-        && expected != next_frame
-    {
-        return Err(MotionError::FrameCount {
-            got: next_frame,
-            expected,
-        });
-    }
+    check_frames(next_frame, expected_frames)?;
     Ok(Motion { frame_dt, tracks })
+}
+
+fn check_frames(got: u64, expected: Option<u64>) -> Result<(), MotionError> {
+    match expected {
+        Some(expected) if expected != got => Err(MotionError::FrameCount { got, expected }),
+        _ => Ok(()),
+    }
+}
+
+/// One segment's payload decoded: a track per body it carries, each `frame_count` long and
+/// finite.
+pub fn decode_payload(s: &SegmentPayload<'_>) -> Result<Vec<Track>, MotionError> {
+    let seq = s.seq;
+    let bodies = s.body_count as usize;
+    let shape_err = |b: usize, f: usize| MotionError::Shape {
+        seq,
+        bodies: b,
+        frames: f,
+        want_bodies: s.body_count,
+        want_frames: s.frame_count,
+    };
+    let tracks = match s.kind {
+        PayloadKind::Spline => {
+            let reader =
+                WorldReader::new(s.payload).map_err(|source| MotionError::Codec { seq, source })?;
+            if reader.object_count() != bodies || reader.frame_count() != s.frame_count as usize {
+                return Err(shape_err(reader.object_count(), reader.frame_count()));
+            }
+            reader
+                .decode_all()
+                .map_err(|source| MotionError::Codec { seq, source })?
+        }
+        PayloadKind::QuantisedFrames => {
+            let poses = mwb_core::frames::decode(s.payload, s.frame_count, s.body_count)
+                .map_err(|source| MotionError::Frames { seq, source })?;
+            if poses.len() != s.frame_count as usize * bodies {
+                return Err(shape_err(bodies, poses.len() / bodies.max(1)));
+            }
+            let mut tracks = vec![Track::default(); bodies];
+            // Frame-major: frame 0 body 0, frame 0 body 1, …
+            for (i, p) in poses.iter().enumerate() {
+                let t = &mut tracks[i % bodies];
+                t.positions.push(p.position);
+                t.rotations.push(p.rotation);
+            }
+            tracks
+        }
+    };
+    for (body, d) in tracks.iter().enumerate() {
+        if d.len() != s.frame_count as usize || d.rotations.len() != d.len() {
+            return Err(shape_err(bodies, d.len()));
+        }
+        if !all_finite(d) {
+            return Err(MotionError::NotFinite { seq, body });
+        }
+    }
+    Ok(tracks)
+}
+
+/// Whether a fetched world was stored as a difference from its parent (§4.5): it starts past
+/// segment 0 or some segment carries only some bodies.
+pub fn is_layered(done: &WorldDone, segments: &[MotionSegment]) -> bool {
+    done.first_segment > 0 || segments.iter().any(|s| !s.bodies.is_empty())
+}
+
+/// Decodes a world as a store serves it (`q/world/<i>`): its own segments, and for a refined
+/// world stored as a difference its parent chain ([`World::parent`]), composed with
+/// [`mwb_codec::Layered`]: each body's motion is its own where one of its segments carries it,
+/// its parent's elsewhere. The frame count is checked against the summary.
+pub fn decode_world(w: &World) -> Result<Motion, MotionError> {
+    let done = w
+        .done
+        .as_ref()
+        .ok_or(MotionError::NoSummary { world: w.index })?;
+    let payloads = w
+        .segments
+        .iter()
+        .map(SegmentPayload::from_proto)
+        .collect::<Result<Vec<_>, _>>()?;
+    let frames = u64::from(done.frame_count);
+    if !is_layered(done, &w.segments) {
+        return decode_segments(&payloads, done.frame_dt, Some(frames));
+    }
+    let parent = w
+        .parent
+        .as_deref()
+        .ok_or(MotionError::NoParent { world: w.index })?;
+    let base = decode_world(parent).map_err(|source| MotionError::Parent {
+        world: parent.index,
+        source: Box::new(source),
+    })?;
+    let mut layered =
+        Layered::start(base.tracks, frames as usize).map_err(|source| MotionError::Layer {
+            seq: done.first_segment,
+            source,
+        })?;
+    let mut next_frame: Option<u64> = None;
+    for (i, s) in payloads.iter().enumerate() {
+        let seq = s.seq;
+        let position = done.first_segment as usize + i;
+        if seq as usize != position {
+            return Err(MotionError::Order { seq, position });
+        }
+        if let Some(expected) = next_frame
+            && u64::from(s.first_frame) != expected
+        {
+            return Err(MotionError::Gap {
+                seq,
+                first_frame: s.first_frame,
+                expected,
+            });
+        }
+        let tracks = decode_payload(s)?;
+        layered
+            .overlay(s.first_frame, s.bodies, tracks)
+            .map_err(|source| MotionError::Layer { seq, source })?;
+        next_frame = Some(u64::from(s.first_frame) + u64::from(s.frame_count));
+    }
+    check_frames(next_frame.unwrap_or(0), Some(frames))?;
+    Ok(Motion {
+        frame_dt: done.frame_dt,
+        tracks: layered.finish(),
+    })
 }
 
 fn all_finite(t: &Track) -> bool {
@@ -307,6 +398,7 @@ mod tests {
             first_frame: 0,
             frame_count: 1,
             body_count: 1,
+            bodies: &[],
             kind: PayloadKind::QuantisedFrames,
             payload: &[],
         };

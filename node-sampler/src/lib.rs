@@ -4,12 +4,15 @@
 //! * [`world`] — pure computation: one `(scene, seed)` → motion segments + summary.
 //! * [`refine`] — pure computation: §4.5 refinement, a parent regenerated exactly from its
 //!   lineage and children that re-simulate only the bodies they must.
+//! * [`edit`] — pure computation: scene edits (§4.5 from frame 0), children of kept worlds with
+//!   an edit of their scene's bodies applied, re-simulating only the bodies it reaches.
 //! * [`request`] — a refinement request (stored world, picked bodies, box) checked and turned
 //!   into a REFINE job, for `mwb refine` and the viewer.
 //! * [`node`] — the bus node: the [`Forward`] kind of `mwb-node`'s worker node (it takes sample
 //!   and refine jobs; the skeleton picks them, runs the workers, publishes segments and
 //!   `WorldDone`).
 
+pub mod edit;
 pub mod node;
 pub mod refine;
 pub mod request;

@@ -168,18 +168,16 @@ impl WorkerKind for Forward {
             let summary = run_world(&prepared.template, w.seed, opts, &mut emit)?;
             return Ok(world_done(&w.job.id, w.node, w.counter, &summary));
         };
-        // The store keeps whole worlds: the child is recorded whole (its parent's frames
-        // before the branch, encoded again), so it browses, fetches and exports like any world.
-        let child = r.parent.refine_whole(&r.objects, w.seed, opts, &mut emit)?;
-        Ok(WorldDone {
-            lineage: Some(lineage_to_wire(&r.root_job, &child.lineage)),
-            active_from: child
-                .active_from
-                .iter()
-                .map(|a| a.map_or(-1, i64::from))
-                .collect(),
-            ..world_done(&w.job.id, w.node, w.counter, &child.summary)
-        })
+        // Only what is new: the segments from the one holding the branch frame, each with the
+        // bodies re-simulated by then. The store composes the rest from the parent it holds.
+        let child = r.parent.refine(&r.objects, w.seed, opts, &mut emit)?;
+        Ok(refined_done(
+            &w.job.id,
+            w.node,
+            w.counter,
+            &r.root_job,
+            &child,
+        ))
     }
 
     fn stopped(e: &WorldError) -> bool {
@@ -226,6 +224,27 @@ pub fn world_done(
         perturbations: summary.perturbations,
         sim_steps: summary.steps,
         ..Default::default()
+    }
+}
+
+/// The wire summary of refined world `(job, node, counter)` (§4.5): its lineage, from which
+/// frame each body's motion is new, and the first segment it sent.
+pub fn refined_done(
+    job_id: &str,
+    node: &str,
+    counter: u64,
+    root_job: &str,
+    child: &crate::refine::RefinedWorld,
+) -> WorldDone {
+    WorldDone {
+        lineage: Some(lineage_to_wire(root_job, &child.lineage)),
+        active_from: child
+            .active_from
+            .iter()
+            .map(|a| a.map_or(-1, i64::from))
+            .collect(),
+        first_segment: child.first_segment,
+        ..world_done(job_id, node, counter, &child.summary)
     }
 }
 
@@ -343,12 +362,12 @@ mod tests {
         assert_eq!(lineage.steps.len(), 1);
         assert_eq!((lineage.steps[0].frame, lineage.steps[0].seed), (30, 99));
         assert_eq!(done.active_from[1], 30);
-        // The whole world, from its first segment, every body.
-        assert_eq!(segs[0].first_frame, 0);
-        assert!(
-            segs.iter()
-                .all(|s| s.bodies.is_empty() && s.body_count == 5)
-        );
+        // Only what is new: from the segment holding the branch frame (frame 30 is in segment 0
+        // of 120 frames), the bodies re-simulated by then, each listed.
+        assert_eq!((done.first_segment, segs[0].first_frame), (0, 0));
+        assert!(segs.iter().all(|s| s.bodies.contains(&1)
+            && s.bodies.len() < 5
+            && s.body_count as usize == s.bodies.len()));
         assert_eq!(done.segment_count as usize, segs.len());
         // A parent frame past its end is refused when the job is prepared.
         if let Some(r) = j.refine.as_mut() {

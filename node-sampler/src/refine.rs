@@ -41,10 +41,15 @@
 //! **What a child records.** Only the bodies that became active, as segments on the parent's
 //! segment grid from the one holding the branch frame on ([`Segment::bodies`] names them); the
 //! rest of the world is the parent's. [`RefinedWorld::active_from`] says from which frame each
-//! body's motion is new. [`Parent::refine_whole`] records the whole world instead, which is what
-//! samplers send today (the store does not yet compose a refined world from its parent).
+//! body's motion is new. This is what samplers send: the store composes the whole world from the
+//! parent it holds (`mwb_codec::Layered`). [`Parent::refine_whole`] records the whole world
+//! instead (tests compare the composition with it).
 //! Whatever is recorded, the simulation is the same: a refined world regenerates from its
 //! lineage alone.
+//!
+//! **Scene edits** ([`crate::edit`]) step through the same child loop (`ChildStart`): from
+//! frame 0 of a world built from the edited scene, its bodies mapped to the parent's by name,
+//! bodies the edit dropped kept only as ghosts.
 
 use crate::world::{
     BodyState, Followed, Progress, Recorder, RunError, RunOptions, Segment, SimWorld, StepHooks,
@@ -185,6 +190,7 @@ impl ExactMotion {
                 linvel: Vector::ZERO,
                 angvel: Vector::ZERO,
                 sleeping: true,
+                in_impact: false,
                 ..last
             })
         }
@@ -237,7 +243,7 @@ impl RefinedWorld {
 
 /// The bodies joined to each body by joints, transitively (itself included): they change sets
 /// together, since a joint to a kinematic body would drag an active one along the parent's path.
-fn joint_groups(scene: &Scene) -> Vec<Vec<usize>> {
+pub(crate) fn joint_groups(scene: &Scene) -> Vec<Vec<usize>> {
     let n = scene.bodies.len();
     let mut root: Vec<usize> = (0..n).collect();
     fn find(root: &mut [usize], mut i: usize) -> usize {
@@ -278,7 +284,7 @@ fn check_objects(objects: &[u32], bodies: usize) -> Result<(), RefineError> {
 
 /// What one generation (the root world or a child) leaves for the next: its exact motion from
 /// its first frame on, and forks at the frames later generations start from.
-struct Capture<'a> {
+pub(crate) struct Capture<'a> {
     /// Fork at these frames.
     frames: Vec<u32>,
     /// Also fork at the first frame at which the centre of any of these bodies is inside the
@@ -290,7 +296,7 @@ struct Capture<'a> {
 }
 
 impl<'a> Capture<'a> {
-    fn new(frames: Vec<u32>, inside: Option<(&'a [u32], &'a Frustum)>) -> Self {
+    pub(crate) fn new(frames: Vec<u32>, inside: Option<(&'a [u32], &'a Frustum)>) -> Self {
         Self {
             frames,
             inside,
@@ -302,7 +308,11 @@ impl<'a> Capture<'a> {
 
     fn frame(&mut self, p: &Progress, states: impl Iterator<Item = BodyState>) {
         let start = self.motion.len();
-        self.motion.extend(states);
+        self.motion
+            .extend(states.zip(&p.trackers).map(|(s, t)| BodyState {
+                in_impact: t.in_impact,
+                ..s
+            }));
         let frame = p.steps as u32;
         let mut fork = self.frames.contains(&frame);
         if let Some((objects, frustum)) = self.inside
@@ -320,6 +330,14 @@ impl<'a> Capture<'a> {
     fn take_fork(&mut self, frame: u32) -> Option<Progress> {
         let i = self.forks.iter().position(|(f, _)| *f == frame)?;
         Some(self.forks.swap_remove(i).1)
+    }
+
+    /// The motion captured, as a world of `bodies` bodies from its first frame.
+    pub(crate) fn into_motion(self, bodies: usize) -> ExactMotion {
+        ExactMotion {
+            bodies,
+            states: self.motion,
+        }
     }
 }
 
@@ -528,6 +546,7 @@ impl Parent {
             pose: Pose::IDENTITY,
             linvel: Vector::ZERO,
             angvel: Vector::ZERO,
+            in_impact: false,
             sleeping: true,
         })
     }
@@ -544,8 +563,8 @@ impl Parent {
 
     /// [`Parent::refine`], recording the whole world as a sampled world is recorded: every
     /// segment from the first, every body (the parent's exact frames before the branch and for
-    /// inactive bodies, encoded again). What a store that does not compose refined worlds from
-    /// their parents needs; it costs the encoding of a whole world.
+    /// inactive bodies, encoded again): the reference a composed world is checked against; it
+    /// costs the encoding of a whole world.
     pub fn refine_whole(
         &self,
         objects: &[u32],
@@ -695,59 +714,16 @@ impl Parent {
                 rec.push((0..n).map(|i| frame_pose(&self.state(f, i).pose)))?;
             }
         }
-        let mut active_from: Vec<Option<u32>> = active.iter().map(|&a| a.then_some(k)).collect();
-        // About the centre of mass, where rapier's velocities are: the shape's radius about its
-        // origin plus how far the centre is from it (non-zero for a compound or an off-centre
-        // hull; exactly zero for the primitives).
-        let radius: Vec<f32> = scene
-            .bodies
-            .iter()
-            .zip(&p.sim.bodies)
-            .map(|(b, &h)| {
-                let com = p.sim.world.bodies[h]
-                    .mass_properties()
-                    .local_mprops
-                    .local_com
-                    .length();
-                b.shape.bounding_radius() as f32 + com
-            })
-            .collect();
-        let margin = 2.0 * p.sim.world.integration_parameters.prediction_distance();
-        let gravity = p.sim.world.gravity.length();
-        let mut capture = capture;
-        if let Some(c) = capture.as_deref_mut() {
-            let active = &active;
-            let sim = &p.sim;
-            c.frame(
-                &p,
-                (0..n).map(|i| {
-                    if active[i] {
-                        sim.state(i)
-                    } else {
-                        self.state(k, i)
-                    }
-                }),
-            );
-        }
-        let mut rng = WorldRng::new(branch.seed, Stream::Perturbation);
-        let mut hooks = ChildHooks {
-            parent: self,
-            diverged: vec![false; n],
-            tolerance: FOLLOW_TOLERANCE_M,
+        let start = ChildStart {
+            scene,
+            parent_of: (0..n).map(Some).collect(),
             active,
-            active_from: &mut active_from,
+            diverged: vec![false; n],
+            ghosts: Vec::new(),
             groups,
-            radius,
-            margin,
-            gravity,
-            rec: &mut rec,
-            record: opts.record,
-            capture,
+            seed: branch.seed,
         };
-        advance(scene, &mut p, &mut rng, opts.perturb, &mut hooks)?;
-        if opts.record {
-            rec.flush()?;
-        }
+        let active_from = self.step_child(start, &mut p, opts, &mut rec, capture)?;
         let summary = summary_of(&p, &rec, branch.seed, scene.settings.dt);
         Ok(RefinedWorld {
             lineage: self.lineage.child(branch.clone()),
@@ -757,20 +733,132 @@ impl Parent {
             active_from,
         })
     }
+
+    /// Steps a child from the frame `p` holds to its end (see the module docs), recording its
+    /// frames with `rec` (which already holds the frames before) and flushing it; `capture`
+    /// keeps its exact motion from that frame on. Returns, per child body, the frame from which
+    /// it was simulated. The one stepping loop of refinement and of scene edits
+    /// ([`crate::edit`]).
+    pub(crate) fn step_child(
+        &self,
+        start: ChildStart<'_>,
+        p: &mut Progress,
+        opts: RunOptions,
+        rec: &mut Recorder<'_>,
+        capture: Option<&mut Capture<'_>>,
+    ) -> Result<Vec<Option<u32>>, RunError> {
+        let ChildStart {
+            scene,
+            parent_of,
+            active,
+            diverged,
+            ghosts,
+            groups,
+            seed,
+        } = start;
+        let k = p.steps as u32;
+        let mut active_from: Vec<Option<u32>> = active.iter().map(|&a| a.then_some(k)).collect();
+        let margin = 2.0 * p.sim.world.integration_parameters.prediction_distance();
+        let gravity = p.sim.world.gravity.length();
+        let mut capture = capture;
+        if let Some(c) = capture.as_deref_mut() {
+            let sim = &p.sim;
+            c.frame(
+                p,
+                (0..active.len()).map(|i| match parent_of[i] {
+                    Some(j) if !active[i] => self.state(k, j),
+                    _ => sim.state(i),
+                }),
+            );
+        }
+        let mut rng = WorldRng::new(seed, Stream::Perturbation);
+        let mut hooks = ChildHooks {
+            parent: self,
+            radius: radii(scene, &p.sim),
+            parent_radius: radii(&self.scene, &self.fork.sim),
+            parent_of,
+            ghosts,
+            diverged,
+            tolerance: FOLLOW_TOLERANCE_M,
+            active,
+            active_from: &mut active_from,
+            groups,
+            margin,
+            gravity,
+            rec,
+            record: opts.record,
+            capture,
+        };
+        advance(scene, p, &mut rng, opts.perturb, &mut hooks)?;
+        if opts.record {
+            hooks.rec.flush()?;
+        }
+        Ok(active_from)
+    }
+}
+
+/// How a child starts (Figure 4.12): who its bodies are in the parent, which are simulated, and
+/// which ghosts it keeps. A refinement's child has its parent's bodies; a scene edit's
+/// ([`crate::edit`]) has the new scene's, some of them new, and ghosts of bodies it dropped.
+pub(crate) struct ChildStart<'s> {
+    /// The child's scene (its bodies are the child's bodies).
+    pub scene: &'s Scene,
+    /// Per child body, the parent body whose motion it replays while inactive (`None`: the
+    /// parent has no such body; it must be active from the start).
+    pub parent_of: Vec<Option<usize>>,
+    /// Per child body, whether it is simulated from the start.
+    pub active: Vec<bool>,
+    /// Per child body, whether it counts as diverged from its parent motion from the start: a
+    /// new or changed body is not its parent version, so what that version did to its
+    /// neighbours says nothing about what it will do.
+    pub diverged: Vec<bool>,
+    /// Parent bodies the child does not have: their ghosts replay the parent motion and
+    /// activate what they are about to touch from the start (Figure 4.11b).
+    pub ghosts: Vec<usize>,
+    /// [`joint_groups`] of the child's scene.
+    pub groups: Vec<Vec<usize>>,
+    /// The child's perturbation seed (§4.1.2).
+    pub seed: u64,
+}
+
+/// Each body's bounding radius about its centre of mass, where rapier's velocities are: the
+/// shape's radius about its origin plus how far the centre is from it (non-zero for a compound
+/// or an off-centre hull; exactly zero for the primitives).
+fn radii(scene: &Scene, sim: &SimWorld) -> Vec<f32> {
+    scene
+        .bodies
+        .iter()
+        .zip(&sim.bodies)
+        .map(|(b, &h)| {
+            let com = sim.world.bodies[h]
+                .mass_properties()
+                .local_mprops
+                .local_com
+                .length();
+            b.shape.bounding_radius() as f32 + com
+        })
+        .collect()
 }
 
 struct ChildHooks<'a, 'r, 'c, 'k> {
     parent: &'a Parent,
+    /// Per child body, its body in the parent ([`ChildStart::parent_of`]).
+    parent_of: Vec<Option<usize>>,
+    /// Parent bodies whose ghosts alone stand for them ([`ChildStart::ghosts`]).
+    ghosts: Vec<usize>,
     active: Vec<bool>,
     /// Active bodies that have left their parent motion by more than `tolerance` (once, for
-    /// good). Only they can change what happens to an inactive body.
+    /// good), or were never their parent version. Only they can change what happens to an
+    /// inactive body.
     diverged: Vec<bool>,
     /// [`FOLLOW_TOLERANCE_M`].
     tolerance: f32,
     active_from: &'a mut Vec<Option<u32>>,
     groups: Vec<Vec<usize>>,
-    /// Each body's bounding radius about its centre of mass (at most).
+    /// Each child body's bounding radius about its centre of mass (at most).
     radius: Vec<f32>,
+    /// The same for the parent's bodies (their ghosts).
+    parent_radius: Vec<f32>,
     /// Distance at which two bodies count as about to touch (twice rapier's contact prediction).
     margin: f32,
     gravity: f32,
@@ -779,13 +867,20 @@ struct ChildHooks<'a, 'r, 'c, 'k> {
     capture: Option<&'r mut Capture<'k>>,
 }
 
-/// The bodies' shapes at a pose, with their AABB there.
-fn placed<'s>(
+/// The shapes of body `body` of simulator `sim`: a child's own body, or a parent's for a ghost.
+#[derive(Clone, Copy)]
+struct BodyShapes<'s> {
     sim: &'s SimWorld,
     body: usize,
+}
+
+/// The body's shapes at a pose.
+fn placed<'s>(
+    of: BodyShapes<'s>,
     pose: &Pose,
 ) -> impl Iterator<Item = (Pose, &'s dyn rapier3d::parry::shape::Shape)> + 's {
-    let rb = &sim.world.bodies[sim.bodies[body]];
+    let sim = of.sim;
+    let rb = &sim.world.bodies[sim.bodies[of.body]];
     let pose = *pose;
     rb.colliders().iter().filter_map(move |&c| {
         let co = sim.world.colliders.get(c)?;
@@ -794,19 +889,19 @@ fn placed<'s>(
     })
 }
 
-/// The AABB of body `body`'s shapes at `pose` (`None` for a body without colliders).
-fn aabb(sim: &SimWorld, body: usize, pose: &Pose) -> Option<Aabb> {
-    placed(sim, body, pose)
+/// The AABB of a body's shapes at `pose` (`None` for a body without colliders).
+fn aabb(of: BodyShapes<'_>, pose: &Pose) -> Option<Aabb> {
+    placed(of, pose)
         .map(|(x, shape)| shape.compute_aabb(&x))
         .reduce(|a, b| a.merged(&b))
 }
 
 /// Whether bodies `a` (at `pa`) and `b` (at `pb`) are within `reach` of each other. Conservative:
 /// a distance query parry does not support counts as touching.
-fn within(sim: &SimWorld, a: usize, pa: &Pose, b: usize, pb: &Pose, reach: f32) -> bool {
-    for (xa, sa) in placed(sim, a, pa) {
+fn within(a: BodyShapes<'_>, pa: &Pose, b: BodyShapes<'_>, pb: &Pose, reach: f32) -> bool {
+    for (xa, sa) in placed(a, pa) {
         let box_a = sa.compute_aabb(&xa).loosened(reach);
-        for (xb, sb) in placed(sim, b, pb) {
+        for (xb, sb) in placed(b, pb) {
             if !box_a.intersects(&sb.compute_aabb(&xb)) {
                 continue;
             }
@@ -819,16 +914,25 @@ fn within(sim: &SimWorld, a: usize, pa: &Pose, b: usize, pb: &Pose, reach: f32) 
     false
 }
 
-impl ChildHooks<'_, '_, '_, '_> {
-    /// How far body `i` can move in one step at most, from its state `s`.
-    fn reach(&self, i: usize, s: &BodyState, dt: f32) -> f32 {
-        (s.linvel.length() + s.angvel.length() * self.radius[i] + self.gravity * dt) * dt
+impl<'a> ChildHooks<'a, '_, '_, '_> {
+    /// How far a body of bounding radius `radius` can move in one step at most, from its state
+    /// `s`.
+    fn reach(&self, radius: f32, s: &BodyState, dt: f32) -> f32 {
+        (s.linvel.length() + s.angvel.length() * radius + self.gravity * dt) * dt
+    }
+
+    /// Child body `i`'s parent motion at `frame` (`None`: the parent has no such body).
+    fn replayed(&self, frame: u32, i: usize) -> Option<BodyState> {
+        self.parent_of[i].map(|j| self.parent.state(frame, j))
     }
 
     /// How far active body `a` is from its parent motion at this frame: position, rotation at
     /// its bounding radius, and the difference the velocities make over one step.
     fn divergence(&self, p: &Progress, a: usize, frame: u32) -> f32 {
-        let (s, g) = (p.sim.state(a), self.parent.state(frame, a));
+        let Some(g) = self.replayed(frame, a) else {
+            return f32::INFINITY;
+        };
+        let s = p.sim.state(a);
         let r = self.radius[a];
         let dt = p.sim.dt as f32;
         let angle = (s.pose.rotation * g.pose.rotation.inverse())
@@ -840,6 +944,20 @@ impl ChildHooks<'_, '_, '_, '_> {
             + dt * ((s.linvel - g.linvel).length() + r * (s.angvel - g.angvel).length())
     }
 
+    /// Parent body `g`'s ghost as a source this step (Figure 4.11b): where the parent had it,
+    /// with what it could cover in the step.
+    fn ghost(&self, g: usize, frame: u32, dt: f32) -> (BodyShapes<'a>, Pose, f32) {
+        let parent: &'a Parent = self.parent;
+        let at = parent.state(frame, g);
+        let next = parent.state(frame + 1, g);
+        let shapes = BodyShapes {
+            sim: &parent.fork.sim,
+            body: g,
+        };
+        let radius = self.parent_radius.get(g).copied().unwrap_or(0.0);
+        (shapes, at.pose, self.margin + self.reach(radius, &next, dt))
+    }
+
     fn activate(&mut self, p: &mut Progress, body: usize) {
         let frame = p.steps as u32;
         for &b in &self.groups[body] {
@@ -849,11 +967,13 @@ impl ChildHooks<'_, '_, '_, '_> {
             self.active[b] = true;
             self.active_from[b] = Some(frame);
             self.rec.keep[b] = true;
-            let s = self.parent.state(frame, b);
+            let s = self.replayed(frame, b);
             let rb = &mut p.sim.world.bodies[p.sim.bodies[b]];
             rb.set_body_type(RigidBodyType::Dynamic, true);
-            rb.set_linvel(s.linvel, true);
-            rb.set_angvel(s.angvel, true);
+            if let Some(s) = s {
+                rb.set_linvel(s.linvel, true);
+                rb.set_angvel(s.angvel, true);
+            }
         }
     }
 }
@@ -875,26 +995,42 @@ impl StepHooks for ChildHooks<'_, '_, '_, '_> {
             // Figure 4.11a: the active body where it is now (its speed counted twice: a contact
             // this step may speed it up).
             let sa = p.sim.state(a);
-            sources.push((a, sa.pose, self.margin + 2.0 * self.reach(a, &sa, dt)));
+            let shapes = BodyShapes {
+                sim: &p.sim,
+                body: a,
+            };
+            let reach = self.margin + 2.0 * self.reach(self.radius[a], &sa, dt);
+            sources.push((shapes, sa.pose, reach));
             // Figure 4.11b: its ghost, where the parent had it.
-            let ga = self.parent.state(frame, a);
-            let gnext = self.parent.state(frame + 1, a);
-            sources.push((a, ga.pose, self.margin + self.reach(a, &gnext, dt)));
+            if let Some(g) = self.parent_of[a] {
+                sources.push(self.ghost(g, frame, dt));
+            }
+        }
+        // Ghosts of bodies the child does not have.
+        for &g in &self.ghosts {
+            sources.push(self.ghost(g, frame, dt));
         }
         let boxes: Vec<Option<Aabb>> = sources
             .iter()
-            .map(|(a, pose, reach)| aabb(&p.sim, *a, pose).map(|b| b.loosened(*reach)))
+            .map(|(of, pose, reach)| aabb(*of, pose).map(|b| b.loosened(*reach)))
             .collect();
         let mut newly = Vec::new();
         for o in (0..n).filter(|&o| !self.active[o] && !sources.is_empty()) {
-            let so = self.parent.state(frame, o);
-            let reach_o = self.reach(o, &self.parent.state(frame + 1, o), dt);
-            let Some(box_o) = aabb(&p.sim, o, &so.pose).map(|b| b.loosened(reach_o)) else {
+            let (Some(so), Some(next)) = (self.replayed(frame, o), self.replayed(frame + 1, o))
+            else {
                 continue;
             };
-            let hit = sources.iter().zip(&boxes).any(|((a, pose, reach), b)| {
+            let reach_o = self.reach(self.radius[o], &next, dt);
+            let target = BodyShapes {
+                sim: &p.sim,
+                body: o,
+            };
+            let Some(box_o) = aabb(target, &so.pose).map(|b| b.loosened(reach_o)) else {
+                continue;
+            };
+            let hit = sources.iter().zip(&boxes).any(|((of, pose, reach), b)| {
                 b.is_some_and(|b| b.intersects(&box_o))
-                    && within(&p.sim, *a, pose, o, &so.pose, reach + reach_o)
+                    && within(*of, pose, target, &so.pose, reach + reach_o)
             });
             if hit {
                 newly.push(o);
@@ -904,15 +1040,18 @@ impl StepHooks for ChildHooks<'_, '_, '_, '_> {
             self.activate(p, o);
         }
         for i in (0..n).filter(|&i| !self.active[i]) {
-            let next = self.parent.state(frame + 1, i).pose;
-            p.sim.world.bodies[p.sim.bodies[i]].set_next_kinematic_position(next);
+            if let Some(next) = self.replayed(frame + 1, i) {
+                p.sim.world.bodies[p.sim.bodies[i]].set_next_kinematic_position(next.pose);
+            }
         }
     }
 
     fn followed(&self, i: usize, frame: u64) -> Option<Followed> {
-        (!self.active[i]).then(|| Followed {
-            before: self.parent.state(frame as u32 - 1, i),
-            after: self.parent.state(frame as u32, i),
+        if self.active[i] {
+            return None;
+        }
+        Some(Followed {
+            after: self.replayed(frame as u32, i)?,
         })
     }
 
@@ -920,21 +1059,17 @@ impl StepHooks for ChildHooks<'_, '_, '_, '_> {
         let n = self.active.len();
         let frame = p.steps as u32;
         if let Some(c) = self.capture.as_deref_mut() {
-            let parent = self.parent;
-            let active = &self.active;
+            let (parent, parent_of, active) = (self.parent, &self.parent_of, &self.active);
             c.frame(
                 p,
-                (0..n).map(|i| {
-                    if active[i] {
-                        p.sim.state(i)
-                    } else {
-                        // Where the simulator put it (the parent's pose, exactly), moving as
-                        // the parent moved it.
-                        BodyState {
-                            pose: p.sim.state(i).pose,
-                            ..parent.state(frame, i)
-                        }
-                    }
+                (0..n).map(|i| match parent_of[i] {
+                    // Where the simulator put it (the parent's pose, exactly), moving as the
+                    // parent moved it.
+                    Some(j) if !active[i] => BodyState {
+                        pose: p.sim.state(i).pose,
+                        ..parent.state(frame, j)
+                    },
+                    _ => p.sim.state(i),
                 }),
             );
         }

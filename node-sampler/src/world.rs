@@ -512,6 +512,7 @@ impl SimWorld {
             linvel: rb.linvel(),
             angvel: rb.angvel(),
             sleeping: rb.is_sleeping(),
+            in_impact: false,
         }
     }
 }
@@ -538,12 +539,16 @@ pub struct BodyState {
     pub linvel: Vector,
     pub angvel: Vector,
     pub sleeping: bool,
+    /// Whether the stepper counted the body as in an impact at this frame (§4.1.2: the contact
+    /// part of its velocity change above `C_v` / `C_ω`, measured before the perturbation). A body
+    /// that replays this motion counts its impacts from it, as the world it replays did.
+    pub in_impact: bool,
 }
 
 /// Per-body state the stepper carries between steps.
 #[derive(Debug, Clone, Copy, Default)]
 pub(crate) struct Tracker {
-    in_impact: bool,
+    pub(crate) in_impact: bool,
     pub(crate) impacts: u32,
     /// The last step after which the body was above the rest thresholds.
     last_moving_step: Option<u64>,
@@ -604,10 +609,9 @@ impl Progress {
 }
 
 /// A body the simulator does not move itself at a step: it follows a parent world's motion
-/// (refinement's inactive set). Its velocities and sleep state are the parent's.
+/// (refinement's inactive set). Its velocities, sleep state and impacts are the parent's.
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct Followed {
-    pub before: BodyState,
     pub after: BodyState,
 }
 
@@ -655,22 +659,18 @@ pub(crate) fn advance(
             let tracker = &mut p.trackers[i];
             let (v, w, sleeping) = match hooks.followed(i, p.steps) {
                 Some(f) => {
-                    // The parent's own velocity change: the same impacts as the parent counted.
-                    let (v0, w0) = (to_v3(f.before.linvel), to_v3(f.before.angvel));
-                    let (v, w) = (to_v3(f.after.linvel), to_v3(f.after.angvel));
-                    if !f.after.sleeping {
-                        let rate_v = perturb::impact_rate(v0, v, p.sim.gravity, dt);
-                        let rate_w = perturb::impact_rate(w0, w, zero, dt);
-                        let hit =
-                            perturb::norm(rate_v) > s.c_v || perturb::norm(rate_w) > s.c_omega;
-                        if hit && !tracker.in_impact {
-                            tracker.impacts += 1;
-                        }
-                        tracker.in_impact = hit;
-                    } else {
-                        tracker.in_impact = false;
+                    // The parent's own impacts: it measured them before its perturbation, which
+                    // its recorded velocities already hold.
+                    let hit = f.after.in_impact && !f.after.sleeping;
+                    if hit && !tracker.in_impact {
+                        tracker.impacts += 1;
                     }
-                    (v, w, f.after.sleeping)
+                    tracker.in_impact = hit;
+                    (
+                        to_v3(f.after.linvel),
+                        to_v3(f.after.angvel),
+                        f.after.sleeping,
+                    )
                 }
                 None => {
                     let rb = &mut p.sim.world.bodies[p.sim.bodies[i]];

@@ -170,6 +170,13 @@ fn a_kicked_body_hits_an_inactive_one_which_responds() {
     for f in 0..m.frame_count() {
         assert_eq!(bits(&m, f, FAR), bits(pm, f, FAR), "far, frame {f}");
     }
+    // … and the impacts the sampled world counted for it.
+    let sampled = mwb_sampler::run_world(&template, 1, RunOptions::default(), &mut |_| {
+        ControlFlow::Continue(())
+    })
+    .unwrap_or_else(|e| panic!("{e}"));
+    assert!(sampled.impacts[FAR] >= 1, "far lands");
+    assert_eq!(child.summary.impacts[FAR], sampled.impacts[FAR]);
 
     // The child sends only what it re-simulated, on the parent's segment grid.
     assert_eq!(segs[0].seq, child.first_segment);
@@ -424,6 +431,7 @@ fn a_refinement_request_becomes_a_refine_job_or_is_refused() {
             ..Default::default()
         }),
         segments: Vec::new(),
+        parent: None,
     };
     let job = Job {
         id: "j".into(),

@@ -5,7 +5,7 @@
 //! discarding the partial worlds of samplers that left.
 
 use crate::browse::ShardSpec;
-use mwb_proto::v1::{Job, JobState, Message, MotionSegment, WorldDone};
+use mwb_proto::v1::{Job, JobKind, JobState, Message, MotionSegment, WorldDone};
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::sync::Arc;
 
@@ -21,6 +21,33 @@ pub struct StoredWorld {
     pub segments: Vec<MotionSegment>,
     /// Encoded size of the segments and the summary.
     pub bytes: u64,
+    /// A refined world stored as a difference from its parent (§4.5; see
+    /// [`StoredWorld::is_layered`]): the parent, held here for as long as this world is, so a
+    /// parent of a live refined world is never dropped.
+    pub parent: Option<Arc<StoredWorld>>,
+}
+
+impl StoredWorld {
+    /// Whether this world's segments are a difference from its parent: they start past segment
+    /// 0 (`WorldDone.first_segment`) or carry only some bodies (`MotionSegment.bodies`).
+    pub fn is_layered(&self) -> bool {
+        is_layered(&self.done, self.segments.iter())
+    }
+
+    /// The wire form (`q/world/<index>`), with the parent chain of a layered world.
+    pub fn message(&self) -> mwb_proto::v1::World {
+        mwb_proto::v1::World {
+            index: self.index,
+            job_id: self.job_id.clone(),
+            done: Some(self.done.clone()),
+            segments: self.segments.clone(),
+            parent: self.parent.as_ref().map(|p| Box::new(p.message())),
+        }
+    }
+}
+
+fn is_layered<'s>(done: &WorldDone, mut segments: impl Iterator<Item = &'s MotionSegment>) -> bool {
+    done.first_segment > 0 || segments.any(|s| !s.bodies.is_empty())
 }
 
 /// Why a world was refused.
@@ -29,6 +56,9 @@ pub enum Rejection {
     CrcMismatch,
     /// Segments missing or inconsistent with the `WorldDone`.
     Incomplete,
+    /// A refined world sent as a difference from a parent this store does not hold (counted
+    /// with the incomplete ones).
+    NoParent,
     DuplicateSeed,
     MemoryCap,
     UnknownJob,
@@ -104,6 +134,15 @@ pub struct Assembler {
     held_bytes: u64,
     unknown_job_hold_ms: u64,
     pub counters: Counters,
+}
+
+/// The global index of the world a REFINE job refines (its worlds are stored on that world's
+/// shard).
+fn refine_parent(job: &Job) -> Option<u32> {
+    if job.kind() != JobKind::Refine {
+        return None;
+    }
+    job.refine.as_ref().map(|r| r.parent_world)
 }
 
 /// How long a complete world of a job the store has not seen is held for that job, ms.
@@ -362,7 +401,7 @@ impl Assembler {
         let c = &mut self.counters;
         match reason {
             Rejection::CrcMismatch => {} // counted per segment on arrival
-            Rejection::Incomplete => c.incomplete += 1,
+            Rejection::Incomplete | Rejection::NoParent => c.incomplete += 1,
             Rejection::DuplicateSeed => c.duplicates += 1,
             Rejection::MemoryCap => c.refused_memory += 1,
             Rejection::UnknownJob => c.unknown_job += 1,
@@ -387,26 +426,18 @@ impl Assembler {
         let Some(done) = &p.done else {
             return Outcome::Pending;
         };
-        if (p.segments.len() as u64) < u64::from(done.segment_count) {
+        // A refined world may send only its segments from `first_segment` on (§4.5).
+        let Some(own) = done.segment_count.checked_sub(done.first_segment) else {
+            return self.reject(&key, Rejection::Incomplete);
+        };
+        if (p.segments.len() as u64) < u64::from(own) {
             return Outcome::Pending;
         }
         if p.crc_bad {
             return self.reject(&key, Rejection::CrcMismatch);
         }
-        // Complete: segments 0..n, contiguous frames adding up to the announced count.
-        let mut next_frame = 0u64;
-        let mut consistent = p.segments.len() as u64 == u64::from(done.segment_count);
-        let bodies = p.segments.values().next().map_or(0, |s| s.body_count);
-        for (i, (seq, s)) in p.segments.iter().enumerate() {
-            consistent &= *seq as usize == i
-                && u64::from(s.first_frame) == next_frame
-                && s.body_count == bodies
-                && s.seed == done.seed;
-            next_frame += u64::from(s.frame_count);
-        }
-        consistent &=
-            next_frame == u64::from(done.frame_count) && done.impacts.len() == bodies as usize;
-        if !consistent {
+        let layered = is_layered(done, p.segments.values());
+        if !Self::consistent(done, &p.segments, own, layered) {
             return self.reject(&key, Rejection::Incomplete);
         }
         let job_id = key.0.clone();
@@ -423,7 +454,19 @@ impl Assembler {
             return self.reject(&key, Rejection::DuplicateSeed);
         }
         let world_bytes = p.bytes + done.encoded_len() as u64;
-        let owned = self.shard.owns(&job_id, done.seed);
+        // A refined world lives on its parent's shard, whose motion it is composed with.
+        let parent_index = refine_parent(&rec.job);
+        let owned = match parent_index {
+            Some(parent) => self.shard.local(parent).is_some(),
+            None => self.shard.owns(&job_id, done.seed),
+        };
+        let parent = match parent_index {
+            Some(i) if owned && layered => match self.world(i) {
+                Some(w) if w.done.impacts.len() == done.impacts.len() => Some(w),
+                _ => return self.reject(&key, Rejection::NoParent),
+            },
+            _ => None,
+        };
         if owned
             && self.stored_bytes + self.index_bytes + world_bytes + self.index_estimate()
                 > self.cap_bytes
@@ -466,8 +509,79 @@ impl Assembler {
             done,
             segments: p.segments.into_values().collect(),
             bytes: world_bytes,
+            parent,
         }));
         Outcome::Stored { index, state }
+    }
+
+    /// Whether `segments` are exactly the world `done` announces: `own` of them, `seq`
+    /// consecutive from `done.first_segment`, frames contiguous and adding up to the frame count
+    /// (from 0 for a whole world, from where the first one starts for a layered one), the seed
+    /// the summary's; each carries every body of the world, or (layered) the distinct bodies it
+    /// lists, all in range, exactly those active (`WorldDone.active_from`) before it ends.
+    fn consistent(
+        done: &WorldDone,
+        segments: &BTreeMap<u32, MotionSegment>,
+        own: u32,
+        layered: bool,
+    ) -> bool {
+        let bodies = done.impacts.len();
+        let Some(first) = segments.values().next() else {
+            return false;
+        };
+        if segments.len() != own as usize || (!layered && first.first_frame != 0) {
+            return false;
+        }
+        // A layered world's own segments start at or before the first new frame.
+        if layered
+            && done
+                .active_from
+                .iter()
+                .any(|&a| a >= 0 && a < i64::from(first.first_frame))
+        {
+            return false;
+        }
+        let mut next_frame = u64::from(first.first_frame);
+        for (i, (seq, s)) in segments.iter().enumerate() {
+            let carried = if s.bodies.is_empty() {
+                bodies
+            } else {
+                let mut listed = s.bodies.clone();
+                listed.sort_unstable();
+                listed.dedup();
+                if listed.len() != s.bodies.len()
+                    || listed.last().is_some_and(|&b| b as usize >= bodies)
+                {
+                    return false;
+                }
+                s.bodies.len()
+            };
+            if u64::from(*seq) != u64::from(done.first_segment) + i as u64
+                || u64::from(s.first_frame) != next_frame
+                || s.body_count as usize != carried
+                || s.seed != done.seed
+            {
+                return false;
+            }
+            // A layered world carries each body exactly in the segments that end after the
+            // frame it became active (`active_from`, -1: never): no new motion left out, none
+            // claimed for a body that kept its parent's.
+            if layered {
+                if done.active_from.len() != bodies {
+                    return false;
+                }
+                let end = i64::from(s.first_frame) + i64::from(s.frame_count);
+                let carries = |b: usize| s.bodies.is_empty() || s.bodies.contains(&(b as u32));
+                if (0..bodies).any(|b| {
+                    let from = done.active_from[b];
+                    carries(b) != (from >= 0 && from < end)
+                }) {
+                    return false;
+                }
+            }
+            next_frame += u64::from(s.frame_count);
+        }
+        next_frame == u64::from(done.frame_count)
     }
 
     fn hold(&mut self, key: WorldKey, now_ms: u64) -> Outcome {
@@ -853,29 +967,42 @@ mod tests {
         ));
     }
 
-    /// A summary that promises no segments, for a job not known yet, is "complete" and held;
-    /// a segment of that world arriving after it must not upset the held total (it once
-    /// underflowed and stopped the store's applier).
+    /// A world complete by its summary, for a job not known yet, is held; a segment more of
+    /// that world arriving after it must not upset the held total (it once underflowed and
+    /// stopped the store's applier). A summary promising no segments at all is refused.
     #[test]
     fn a_segment_after_a_held_world_releases_what_it_added() {
         let mut a = Assembler::new(1 << 20);
-        let (segs, mut d) = world("late", "n", 0, 1, 1);
-        d.segment_count = 0;
-        d.frame_count = 0;
-        d.impacts.clear();
-        assert_eq!(a.on_done(d, 1), Outcome::Pending);
+        let (mut segs, mut d) = world("late", "n", 0, 1, 2);
+        let extra = segs.pop().unwrap_or_else(|| panic!("two segments"));
+        d.segment_count = 1;
+        d.frame_count = 5;
+        assert_eq!(feed(&mut a, segs, d.clone()), Outcome::Pending);
         assert_eq!(a.held_count(), 1);
-        for s in segs {
-            assert!(matches!(
-                a.on_segment(s, 2),
-                Outcome::Rejected {
-                    reason: Rejection::Incomplete,
-                    ..
-                }
-            ));
-        }
+        assert!(matches!(
+            a.on_segment(extra, 2),
+            Outcome::Rejected {
+                reason: Rejection::Incomplete,
+                ..
+            }
+        ));
         assert_eq!(a.held_count(), 0);
         assert_eq!(a.held_bytes, 0);
+        assert_eq!(a.memory_bytes(), 0);
+        let empty = WorldDone {
+            world_counter: 1,
+            segment_count: 0,
+            frame_count: 0,
+            impacts: Vec::new(),
+            ..d
+        };
+        assert!(matches!(
+            a.on_done(empty, 3),
+            Outcome::Rejected {
+                reason: Rejection::Incomplete,
+                ..
+            }
+        ));
         assert_eq!(a.memory_bytes(), 0);
     }
 

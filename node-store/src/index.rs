@@ -384,6 +384,10 @@ pub enum IndexError {
     NoSummary,
     #[error("world has no segments")]
     Empty,
+    #[error("a refined world stored as a difference, without its parent")]
+    NoParent,
+    #[error("parent world {world}: {what}")]
+    Parent { world: u32, what: String },
     #[error("frame_dt {0} is not a positive number")]
     FrameDt(f64),
     #[error("segment {seq}: {what}")]
@@ -462,6 +466,73 @@ fn round_radius(r: f64) -> f64 {
     if q >= r { q } else { q + PATH_RADIUS_STEP_M }
 }
 
+/// Every body's full-rate decoded motion, and the largest error bound of the payloads it came
+/// from. A refined world stored as a difference (§4.5) is its parent's motion (composed the
+/// same way, recursively) with its own segments laid over it.
+fn full_tracks(
+    stored: &StoredWorld,
+    first: &MotionSegment,
+) -> Result<(Vec<mwb_codec::Track>, f64), IndexError> {
+    let bound = |seq: u32, e_max: f64| {
+        if e_max.is_finite() && e_max >= 0.0 {
+            Ok(e_max)
+        } else {
+            Err(IndexError::Segment {
+                seq,
+                what: "the payload's error bound is not a distance".into(),
+            })
+        }
+    };
+    if stored.is_layered() {
+        let parent = stored.parent.as_deref().ok_or(IndexError::NoParent)?;
+        let parent_first = parent.segments.first().ok_or(IndexError::Empty)?;
+        let (tracks, mut e_max) =
+            full_tracks(parent, parent_first).map_err(|e| IndexError::Parent {
+                world: parent.index,
+                what: e.to_string(),
+            })?;
+        let frames = stored.done.frame_count as usize;
+        let mut layered =
+            mwb_codec::Layered::start(tracks, frames).map_err(|e| IndexError::Segment {
+                seq: first.seq,
+                what: e.to_string(),
+            })?;
+        for s in &stored.segments {
+            let decoded = decode_segment(s)?;
+            e_max = e_max.max(bound(s.seq, decoded.e_max)?);
+            layered
+                .overlay(s.first_frame, &s.bodies, decoded.tracks)
+                .map_err(|e| IndexError::Segment {
+                    seq: s.seq,
+                    what: e.to_string(),
+                })?;
+        }
+        return Ok((layered.finish(), e_max));
+    }
+    let bodies = first.body_count as usize;
+    let mut full: Vec<mwb_codec::Track> = vec![mwb_codec::Track::default(); bodies];
+    let mut e_max = 0f64;
+    for s in &stored.segments {
+        let seg_err = |what: &str| IndexError::Segment {
+            seq: s.seq,
+            what: what.to_owned(),
+        };
+        if s.body_count as usize != bodies {
+            return Err(seg_err("body count differs from segment 0"));
+        }
+        let decoded = decode_segment(s)?;
+        e_max = e_max.max(bound(s.seq, decoded.e_max)?);
+        for (b, track) in decoded.tracks.iter().enumerate() {
+            if track.len() != s.frame_count as usize || track.rotations.len() != track.len() {
+                return Err(seg_err("decoded track length differs from frame count"));
+            }
+            full[b].positions.extend_from_slice(&track.positions);
+            full[b].rotations.extend_from_slice(&track.rotations);
+        }
+    }
+    Ok((full, e_max))
+}
+
 /// Indexes a complete (assembled, CRC-verified) world under global index `world`, with its
 /// job's scene facts (`scene`: rest thresholds, body names; a bare [`RestThresholds`] converts).
 ///
@@ -489,30 +560,8 @@ pub fn index_world(
     if !(dt.is_finite() && dt > 0.0) {
         return Err(IndexError::FrameDt(dt));
     }
-    let bodies = first.body_count as usize;
-    let mut full: Vec<mwb_codec::Track> = vec![mwb_codec::Track::default(); bodies];
-    let mut e_max = 0f64;
-    for s in &stored.segments {
-        let seg_err = |what: &str| IndexError::Segment {
-            seq: s.seq,
-            what: what.to_owned(),
-        };
-        if s.body_count as usize != bodies {
-            return Err(seg_err("body count differs from segment 0"));
-        }
-        let decoded = decode_segment(s)?;
-        if !(decoded.e_max.is_finite() && decoded.e_max >= 0.0) {
-            return Err(seg_err("the payload's error bound is not a distance"));
-        }
-        e_max = e_max.max(decoded.e_max);
-        for (b, track) in decoded.tracks.iter().enumerate() {
-            if track.len() != s.frame_count as usize || track.rotations.len() != track.len() {
-                return Err(seg_err("decoded track length differs from frame count"));
-            }
-            full[b].positions.extend_from_slice(&track.positions);
-            full[b].rotations.extend_from_slice(&track.rotations);
-        }
-    }
+    let (full, e_max) = full_tracks(stored, first)?;
+    let bodies = full.len();
     let mut objects = Vec::with_capacity(bodies);
     let mut all_metrics = Vec::with_capacity(bodies);
     for (b, track) in full.iter().enumerate() {

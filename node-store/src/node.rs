@@ -15,9 +15,7 @@ use mwb_core::browse::api::{Reply, ShardReply, ShardRequest};
 use mwb_core::keys::{Keys, check_identifier, last_chunk, role};
 use mwb_node::bus::{self, Queries, Subscription};
 use mwb_node::{Node, NodeError};
-use mwb_proto::v1::{
-    Job, JobState, Message, MotionSegment, NodeStats, PathsRequest, World, WorldDone,
-};
+use mwb_proto::v1::{Job, JobState, Message, MotionSegment, NodeStats, PathsRequest, WorldDone};
 use std::collections::HashMap;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -737,13 +735,8 @@ async fn serve_worlds(shared: Arc<Shared>, queries: Queries) {
         };
         let world = shared.lock().world(idx);
         if let Some(w) = world {
-            let msg = World {
-                index: w.index,
-                job_id: w.job_id.clone(),
-                done: Some(w.done.clone()),
-                segments: w.segments.clone(),
-            };
-            node.reply(&q, &node.keys().world(idx), msg.encode_to_vec())
+            // A refined world stored as a difference comes with its parent chain.
+            node.reply(&q, &node.keys().world(idx), w.message().encode_to_vec())
                 .await;
         }
     }

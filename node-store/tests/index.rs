@@ -49,6 +49,7 @@ fn sample(scene: &str, seed: u64, encoding: PayloadEncoding) -> (StoredWorld, Ve
             done,
             segments,
             bytes,
+            parent: None,
         },
         truth,
     )

@@ -374,3 +374,59 @@ async fn a_world_that_arrives_before_its_job_is_stored_when_the_job_comes() {
     st.stop();
     close(s).await;
 }
+
+mod common;
+
+/// A refined world stored as a difference (§4.5) comes back from the journal linked to its
+/// parent, served and decoded the same.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_refined_world_comes_back_from_the_journal_composed_over_its_parent() {
+    use mwb_proto::v1::JobKind;
+    let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
+    let journal = dir.path().join("journal");
+    let keys = Keys::new(SPACE).unwrap_or_else(|e| panic!("{e}"));
+    let root = common::root();
+    let (child, _) = common::child(7);
+    let messages = (root.0.len() + child.0.len() + 2) as u64;
+    let s = session().await;
+    let st = store(&s, Some(&journal), vec![]).await;
+    for j in [
+        common::job("s", JobKind::Sample, None),
+        common::refine_job(0),
+    ] {
+        put(&s, keys.job(&j.id), j.encode_to_vec()).await;
+    }
+    until("the jobs", || {
+        st.job_state("s").is_some() && st.job_state("r").is_some()
+    })
+    .await;
+    put_world(&s, &keys, &root).await;
+    until("the root world", || st.world_count() == 1).await;
+    put_world(&s, &keys, &child).await;
+    until("the refined world", || st.world_count() == 2).await;
+    until("the journal's commits", || {
+        st.journal_counters()
+            .is_some_and(|c| c.messages >= messages)
+    })
+    .await;
+    let before = st
+        .world(1)
+        .unwrap_or_else(|| panic!("world 1"))
+        .message()
+        .encode_to_vec();
+    st.stop();
+    close(s).await;
+
+    let s = session().await;
+    let st = store(&s, Some(&journal), vec![]).await;
+    let w = st
+        .world(1)
+        .unwrap_or_else(|| panic!("world 1 after the restart"));
+    assert!(w.is_layered());
+    assert_eq!(w.parent.as_ref().map(|p| p.index), Some(0));
+    assert_eq!(w.message().encode_to_vec(), before);
+    let motion = mwb_export::decode_world(&w.message()).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(motion.tracks.len(), 5);
+    st.stop();
+    close(s).await;
+}

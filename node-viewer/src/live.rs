@@ -707,6 +707,7 @@ async fn fetch_motion(
     let w = World::decode(bytes.as_slice()).map_err(|e| format!("malformed world: {e}"))?;
     let done = w
         .done
+        .as_ref()
         .ok_or_else(|| format!("world {world} has no summary"))?;
     let cached = lock(scenes).get(job).cloned();
     let template = match cached {
@@ -720,13 +721,7 @@ async fn fetch_motion(
     // A refined world is an instance of its root world's scene (§4.5: its seed is its own).
     let seed = done.lineage.as_ref().map_or(done.seed, |l| l.root_seed);
     tokio::task::spawn_blocking(move || {
-        Motion::decode(
-            template.instantiate(seed),
-            done.frame_dt,
-            &w.segments,
-            Some(u64::from(done.frame_count)),
-        )
-        .map_err(|e| e.to_string())
+        Motion::decode(template.instantiate(seed), &w).map_err(|e| e.to_string())
     })
     .await
     .map_err(|e| format!("decoding task failed: {e}"))?

@@ -87,6 +87,7 @@ pub fn sample_one(template: &SceneTemplate, i: u32) -> Result<WorldData, ViewerE
         bytes: 0,
         done,
         segments,
+        parent: None,
     };
     let scene = JobScene {
         rest: RestThresholds::from(template.settings()),
@@ -100,12 +101,7 @@ pub fn sample_one(template: &SceneTemplate, i: u32) -> Result<WorldData, ViewerE
     })?;
     let mut world = WorldData::from_paths(&indexed.paths_message())?;
     world.metrics = indexed.metrics;
-    let motion = Motion::decode(
-        template.instantiate(seed),
-        summary.frame_dt,
-        &stored.segments,
-        Some(u64::from(summary.frame_count)),
-    )?;
+    let motion = Motion::decode(template.instantiate(seed), &stored.message())?;
     world.motion = Some(Arc::new(motion));
     Ok(world)
 }

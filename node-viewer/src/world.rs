@@ -12,7 +12,7 @@ use std::sync::Arc;
 use mwb_codec::Track;
 use mwb_core::browse::{ObjectMetrics, PathTree, Polyline};
 use mwb_core::scene::Scene;
-use mwb_proto::v1::{IndexedPaths, MotionSegment};
+use mwb_proto::v1::{IndexedPaths, World};
 
 use crate::ViewerError;
 use crate::math::{V3, lerp};
@@ -36,21 +36,13 @@ pub struct Motion {
 }
 
 impl Motion {
-    /// Decodes a world's segments (wire form, `seq` order) for `scene`. Every body of the
-    /// scene must have a track and every track every frame.
-    pub fn decode(
-        scene: Scene,
-        frame_dt: f64,
-        segments: &[MotionSegment],
-        expected_frames: Option<u64>,
-    ) -> Result<Self, ViewerError> {
-        let payloads = segments
-            .iter()
-            .map(mwb_export::SegmentPayload::from_proto)
-            .collect::<Result<Vec<_>, _>>()
-            .map_err(|e| ViewerError::Motion(e.to_string()))?;
-        let motion = mwb_export::decode_segments(&payloads, frame_dt, expected_frames)
-            .map_err(|e| ViewerError::Motion(e.to_string()))?;
+    /// Decodes a world as the store serves it (a refined world stored as a difference with its
+    /// parent chain: `mwb_export::decode_world`) for `scene`. Every body of the scene must have
+    /// a track and every track every frame.
+    pub fn decode(scene: Scene, world: &World) -> Result<Self, ViewerError> {
+        let motion =
+            mwb_export::decode_world(world).map_err(|e| ViewerError::Motion(e.to_string()))?;
+        let frame_dt = motion.frame_dt;
         if motion.tracks.len() != scene.bodies.len() {
             return Err(ViewerError::BodyCount {
                 scene: scene.bodies.len(),

@@ -152,6 +152,7 @@ pub fn world_digest(segments: &[MotionSegment], done: &WorldDone) -> u32 {
         angular_speed_growth,
         lineage,
         active_from,
+        first_segment,
     } = done;
     // Nothing for a sampled world (no lineage, no active_from), so their digests stay.
     if let Some(l) = lineage {
@@ -164,6 +165,10 @@ pub fn world_digest(segments: &[MotionSegment], done: &WorldDone) -> u32 {
         }
     }
     active_from.iter().for_each(|x| h.update(&x.to_le_bytes()));
+    // Nothing for a world sent whole (0), so their digests stay.
+    if *first_segment > 0 {
+        h.update(&first_segment.to_le_bytes());
+    }
     for x in [seed, sim_steps, scene_hash] {
         h.update(&x.to_le_bytes());
     }

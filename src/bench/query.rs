@@ -205,6 +205,7 @@ fn sample_pool(
             done,
             segments,
             bytes,
+            parent: None,
         };
         out.push(index_world(&stored, i, rest, tolerance)?);
     }
