@@ -460,12 +460,15 @@ impl Assembler {
             Some(parent) => self.shard.local(parent).is_some(),
             None => self.shard.owns(&job_id, done.seed),
         };
-        let parent = match parent_index {
-            Some(i) if owned && layered => match self.world(i) {
+        // A difference needs the parent it is composed with: held here, with as many bodies
+        // (a difference outside a REFINE job has none).
+        let parent = match (owned && layered, parent_index) {
+            (false, _) => None,
+            (true, Some(i)) => match self.world(i) {
                 Some(w) if w.done.impacts.len() == done.impacts.len() => Some(w),
                 _ => return self.reject(&key, Rejection::NoParent),
             },
-            _ => None,
+            (true, None) => return self.reject(&key, Rejection::NoParent),
         };
         if owned
             && self.stored_bytes + self.index_bytes + world_bytes + self.index_estimate()

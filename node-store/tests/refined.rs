@@ -125,6 +125,17 @@ fn a_refined_world_without_its_parent_here_is_refused() {
         "{out:?}"
     );
     assert_eq!(a.counters.incomplete, 1);
+    // A difference sent for a job that refines nothing has no parent either.
+    let mut a = Assembler::new(1 << 30);
+    a.submit_job(job("r", JobKind::Sample, None));
+    let ((own, done), _) = child(9);
+    assert!(matches!(
+        feed(&mut a, own, done),
+        Outcome::Rejected {
+            reason: Rejection::NoParent,
+            ..
+        }
+    ));
 }
 
 #[test]
