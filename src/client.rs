@@ -4,7 +4,7 @@
 use crate::stall::Watch;
 use anyhow::{Context, Result, anyhow, bail};
 use mwb_core::keys::{Keys, role};
-use mwb_proto::v1::{Encoding, Job, JobKind, JobState, Message, NodeStats, Quality, World};
+use mwb_proto::v1::{Encoding, Job, JobKind, JobState, Message, NodeStats, Quality, Scene, World};
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use zenoh::Session;
@@ -282,6 +282,28 @@ pub async fn fetch_world(session: &Session, keys: &Keys, index: u32) -> Result<O
             let w = World::decode(s.payload().to_bytes().as_ref())
                 .with_context(|| format!("world {index}: malformed reply"))?;
             return Ok(Some(w));
+        }
+    }
+    Ok(None)
+}
+
+/// A scene revision from the stores (`q/scene/<rev>` or `q/scene/latest`), `None` when no
+/// store has it.
+pub async fn fetch_scene(
+    session: &Session,
+    keys: &Keys,
+    what: mwb_core::keys::SceneRev,
+) -> Result<Option<Scene>> {
+    let replies = session
+        .get(keys.scene_query(what))
+        .timeout(Duration::from_secs(2))
+        .await
+        .map_err(|e| anyhow!("scene query: {e}"))?;
+    while let Ok(reply) = replies.recv_async().await {
+        if let Ok(s) = reply.result() {
+            let scene = Scene::decode(s.payload().to_bytes().as_ref())
+                .with_context(|| format!("scene revision {what}: malformed reply"))?;
+            return Ok(Some(scene));
         }
     }
     Ok(None)

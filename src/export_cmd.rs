@@ -290,14 +290,15 @@ fn load_world(index: Option<u32>, world: &World, source: SceneSource<'_>) -> Res
         Some(i) => format!("world {i}"),
         None => format!("seed {}", done.seed),
     };
-    let (file, text) = match source {
-        SceneSource::Text { file, text } => (file.to_owned(), text.to_owned()),
+    let (file, text, job) = match source {
+        SceneSource::Text { file, text } => (file.to_owned(), text.to_owned(), None),
         SceneSource::Job {
-            job: Some(Job { scene: Some(s), .. }),
+            job: Some(job @ Job { scene: Some(s), .. }),
             ..
         } => (
             format!("job {}: scene {:?}", done.job_id, s.name),
             s.toml.clone(),
+            Some(job),
         ),
         SceneSource::Job { lacking, .. } => bail!(
             "{name}: {lacking} does not have the scene of job {:?}: give it with --scene FILE",
@@ -315,8 +316,9 @@ fn load_world(index: Option<u32>, world: &World, source: SceneSource<'_>) -> Res
     let template = SceneTemplate::parse(&text, &file)?;
     // A refined world stored as a difference composes over its parent chain.
     let motion = decode_world(world).with_context(|| format!("{name}: decoding its motion"))?;
-    // A refined world is an instance of its root world's scene (§4.5: its seed is its own).
-    let scene = template.instantiate(done.lineage.as_ref().map_or(done.seed, |l| l.root_seed));
+    // A refined world is an instance of its root world's scene (§4.5: its seed is its own); an
+    // edited world the edit of its parent's instance.
+    let scene = mwb_export::world_instance(&template, job, done)?;
     if scene.bodies.len() != motion.tracks.len() {
         bail!(
             "{name}: {} bodies, its scene {file} has {}",

@@ -19,6 +19,7 @@ pub mod refine_cmd;
 pub mod reverse_cmd;
 pub mod sampler;
 pub mod scene;
+pub mod scene_edit_cmd;
 pub mod stall;
 pub mod status;
 pub mod store;

@@ -78,7 +78,7 @@ async fn run(command: Command) -> Result<()> {
         Command::Reverse(args) => mwb::reverse_cmd::run(args).await,
         Command::Job { command } => mwb::job::run(command).await,
         Command::Status(args) => mwb::status::run(args).await,
-        Command::Scene(args) => mwb::scene::run(args),
+        Command::Scene(args) => mwb::scene::run(args).await,
         Command::Viewer(args) => mwb::viewer_cmd::run(args).await,
         Command::World(args) => mwb::world_cmd::run(args).await,
         Command::Refine(args) => mwb::refine_cmd::run(args).await,

@@ -718,10 +718,18 @@ fn print_reply(
                     "still moving at the end"
                 }
             );
-            println!(
-                "regenerate: {}",
-                crate::world_cmd::regenerate_command(w.world, w.seed)
-            );
+            let edited = w
+                .refined
+                .as_ref()
+                .is_some_and(|r| r.steps.iter().any(|s| s.scene_revision != 0));
+            if edited {
+                println!("regenerate: not yet for a world made by a scene edit");
+            } else {
+                println!(
+                    "regenerate: {}",
+                    crate::world_cmd::regenerate_command(w.world, w.seed)
+                );
+            }
             println!(
                 "satisfies {} constraint(s); {}",
                 w.constraints_satisfied,
@@ -738,6 +746,13 @@ fn print_reply(
                     r.root_seed, r.root_job
                 );
                 for s in &r.steps {
+                    if s.scene_revision != 0 {
+                        println!(
+                            "  from frame 0: its scene edited to revision {}, seed {:#018x}",
+                            s.scene_revision, s.seed
+                        );
+                        continue;
+                    }
                     let objects: Vec<String> = s.objects.iter().map(label).collect();
                     println!(
                         "  from frame {} (t = {:.3} s): {} re-simulated, seed {:#018x}",

@@ -163,7 +163,8 @@ async fn refine(
             RequestError::NoSummary { .. }
             | RequestError::Backward { .. }
             | RequestError::Regenerate { .. }
-            | RequestError::NotRegenerated { .. } => anyhow!("--{e}"),
+            | RequestError::NotRegenerated { .. }
+            | RequestError::Lineage { .. } => anyhow!("--{e}"),
             e => anyhow!("{e}"),
         })?;
     let id = match &args.id {

@@ -1,5 +1,6 @@
 //! `mwb scene`: check a scene file — parse, validate, instantiate one world; `mwb scene preview`
-//! draws it as it starts, before any world is sampled.
+//! draws it as it starts, before any world is sampled; `mwb scene edit` edits the scene of kept
+//! worlds ([`crate::scene_edit_cmd`]).
 
 use std::path::PathBuf;
 
@@ -25,6 +26,11 @@ pub enum SceneAction {
     /// Draw the scene as it starts (statics, and bodies where the instance of --seed places
     /// them) to a PNG, without sampling a world: `mwb scene preview tower --out tower.png`.
     Preview(PreviewArgs),
+    /// Edit the scene of kept worlds (§4.5 from frame 0): add, remove or change bodies, or give
+    /// a whole revision file; the edit is published as a new scene revision and each world gets
+    /// children that re-simulate only what the edit reaches:
+    /// `mwb scene edit --world 42 --remove brick --worlds 20 --wait`.
+    Edit(crate::scene_edit_cmd::EditArgs),
 }
 
 /// Arguments of `mwb scene preview`.
@@ -47,9 +53,10 @@ pub struct PreviewArgs {
 }
 
 /// Prints one line: what the scene holds, or the first error with its file and line.
-pub fn run(args: SceneArgs) -> Result<()> {
+pub async fn run(args: SceneArgs) -> Result<()> {
     match args.action {
         Some(SceneAction::Preview(p)) => preview(p),
+        Some(SceneAction::Edit(e)) => crate::scene_edit_cmd::run(e).await,
         None => check(args.scene.as_deref().unwrap_or_default(), args.seed),
     }
 }

@@ -140,7 +140,14 @@ pub fn regenerate(
             let parent = mwb_sampler::node::lineage_from_wire(&Lineage {
                 steps: before.to_vec(),
                 ..l.clone()
-            });
+            })?;
+            if last.scene_revision != 0 {
+                bail!(
+                    "--seed {seed:#x}: a world made by a scene edit (revision {}) cannot be \
+                     regenerated yet",
+                    last.scene_revision
+                );
+            }
             let parent = mwb_sampler::refine::regenerate(
                 &template,
                 &parent,

@@ -1,8 +1,9 @@
 //! `mwb refine` against a running cluster (store and sampler as OS processes): a sampled world is
 //! refined from the first frame a picked body enters a box; the refined worlds are stored,
 //! browsable (`mwb query list` counts them) and exportable, start as their parent did, and can be
-//! refined again; every bad request is refused before anything is submitted, naming what is
-//! wrong.
+//! refined again; kept worlds get children of an edited scene (`mwb scene edit`, a published
+//! revision applied again); every bad request is refused before anything is submitted, naming
+//! what is wrong.
 
 mod common;
 
@@ -203,6 +204,102 @@ async fn refine_a_stored_world_then_its_child() {
         );
     }
 
+    // Scene edits (§4.5 from frame 0): world 0 without its brick, published as revision 1.
+    let e = bus.json(&[
+        "scene",
+        "edit",
+        "--world",
+        "0",
+        "--remove",
+        "brick",
+        "--worlds",
+        "2",
+        "--id",
+        "edited",
+        "--wait",
+        "--timeout",
+        "120",
+        "--json",
+    ]);
+    assert_eq!(
+        (u(&e, "revision"), e["published"].as_bool()),
+        (1, Some(true)),
+        "{e}"
+    );
+    assert_eq!(e["removed"], serde_json::json!(["brick"]), "{e}");
+    assert_eq!(e["jobs"][0]["job"], "edited", "{e}");
+    assert_eq!(e["jobs"][0]["done"].as_u64(), Some(2), "{e}");
+    let list = bus.json(&["query", "list", "--session", "edit-test", "--json"]);
+    assert_eq!(list["worlds"].as_u64(), Some(8), "{list}");
+    // Exportable as worlds of the edited scene: four bodies, each starting where its parent
+    // started (unchanged bodies keep the parent's random draws).
+    let edited_csv = dir.path().join("edited.csv");
+    bus.ok(&[
+        "export",
+        "--world",
+        "6",
+        "--format",
+        "csv",
+        "--out",
+        &p(&edited_csv),
+    ]);
+    let by_name = |rows: Vec<String>| -> std::collections::BTreeMap<String, String> {
+        rows.iter()
+            .filter_map(|r| {
+                // time,body,name,pose…: keyed by name, the body index dropped.
+                let f: Vec<&str> = r.splitn(4, ',').collect();
+                (f.len() == 4).then(|| (f[2].to_owned(), f[3].to_owned()))
+            })
+            .collect()
+    };
+    let (mut parent_rows, edited_rows) = (by_name(a.clone()), by_name(first_frame(&edited_csv)));
+    assert!(parent_rows.remove("brick").is_some());
+    assert_eq!(
+        edited_rows, parent_rows,
+        "an edited world starts where its parent did"
+    );
+    // The same revision applied to another kept world.
+    let again = bus.json(&[
+        "scene",
+        "edit",
+        "--world",
+        "1",
+        "--revision",
+        "1",
+        "--worlds",
+        "1",
+        "--wait",
+        "--timeout",
+        "120",
+        "--json",
+    ]);
+    assert_eq!(
+        (u(&again, "revision"), again["published"].as_bool()),
+        (1, Some(false))
+    );
+    assert_eq!(again["jobs"][0]["done"].as_u64(), Some(1), "{again}");
+    // Refused, naming what is wrong: a revision nobody has, a body the scene lacks, an edit of
+    // the settings, a world made by an edit (to edit or to refine).
+    let e = bus.fails(&["scene", "edit", "--world", "0", "--revision", "9"]);
+    assert!(e.contains("--revision 9: no store has it"), "{e}");
+    let e = bus.fails(&["scene", "edit", "--world", "0", "--remove", "anvil"]);
+    assert!(e.contains("anvil"), "{e}");
+    let longer = dir.path().join("longer.toml");
+    let text = mwb_core::scene::builtin::TUMBLE.replace("end_time = 6.0", "end_time = 7.0");
+    std::fs::write(&longer, text).unwrap_or_else(|e| panic!("{e}"));
+    let e = bus.fails(&["scene", "edit", "--world", "0", "--file", &p(&longer)]);
+    assert!(e.contains("settings: `end_time` changed"), "{e}");
+    let e = bus.fails(&["scene", "edit", "--world", "6", "--remove", "die"]);
+    assert!(
+        e.contains("--world 6") && e.contains("scene edit (revision 1)"),
+        "{e}"
+    );
+    let e = bus.fails(&["refine", "--world", "6", "--objects", "0", slab]);
+    assert!(
+        e.contains("--world 6") && e.contains("scene edit (revision 1)"),
+        "{e}"
+    );
+
     // Refusals, before anything is submitted.
     let e = bus.fails(&["refine", "--world", "99", "--objects", "0", slab]);
     assert!(e.contains("--world 99: no store holds it"), "{e}");
@@ -231,5 +328,5 @@ async fn refine_a_stored_world_then_its_child() {
     assert!(e.contains("--camera"), "{e}");
     let jobs = bus.ok(&["job", "list", "--json"]);
     let jobs: Value = serde_json::from_str(jobs.trim()).unwrap_or_else(|e| panic!("{e}"));
-    assert_eq!(jobs.as_array().map(Vec::len), Some(3), "{jobs}");
+    assert_eq!(jobs.as_array().map(Vec::len), Some(5), "{jobs}");
 }

@@ -38,6 +38,51 @@ pub fn last_chunk(key: &str) -> &str {
     key.rsplit('/').next().unwrap_or("")
 }
 
+/// The word a `q/scene/<rev>` query uses for the highest revision the store holds.
+pub const LATEST: &str = "latest";
+
+/// Which scene revision a key names: `scene/<rev>` (always a number) or `q/scene/<rev>` (a
+/// number or [`LATEST`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum SceneRev {
+    Latest,
+    Number(u64),
+}
+
+/// A key chunk that names no scene revision.
+#[derive(Debug, Error, PartialEq, Eq)]
+#[error("scene revision {value:?} is neither a number nor {LATEST:?}")]
+pub struct BadSceneRev {
+    pub value: String,
+}
+
+impl SceneRev {
+    /// Reads a key chunk: [`LATEST`], or a revision in plain decimal (no sign, no leading
+    /// zero), so that one revision has exactly one key.
+    pub fn parse(chunk: &str) -> Result<Self, BadSceneRev> {
+        if chunk == LATEST {
+            return Ok(Self::Latest);
+        }
+        let canonical = chunk.bytes().all(|b| b.is_ascii_digit())
+            && !(chunk.len() > 1 && chunk.starts_with('0'));
+        match chunk.parse::<u64>() {
+            Ok(n) if canonical => Ok(Self::Number(n)),
+            _ => Err(BadSceneRev {
+                value: chunk.to_owned(),
+            }),
+        }
+    }
+}
+
+impl std::fmt::Display for SceneRev {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Latest => f.write_str(LATEST),
+            Self::Number(n) => write!(f, "{n}"),
+        }
+    }
+}
+
 /// Node roles, as they appear in `alive/<role>/<node>` and `stats/<role>/<node>`.
 pub mod role {
     pub const SAMPLER: &str = "sampler";
@@ -69,8 +114,21 @@ impl Keys {
     pub fn all(&self) -> String {
         format!("{}/**", self.prefix)
     }
+    /// Where a client publishes scene revision `revision` (`Scene`); the store keeps every one.
     pub fn scene(&self, revision: u64) -> String {
         format!("{}/scene/{revision}", self.prefix)
+    }
+    /// Every scene revision (what the store subscribes to).
+    pub fn scenes(&self) -> String {
+        format!("{}/scene/*", self.prefix)
+    }
+    /// A scene revision the store holds, or its latest: `q/scene/<rev>`, `q/scene/latest`.
+    pub fn scene_query(&self, rev: SceneRev) -> String {
+        format!("{}/q/scene/{rev}", self.prefix)
+    }
+    /// What the store declares for [`scene_query`](Self::scene_query).
+    pub fn scene_queries(&self) -> String {
+        format!("{}/q/scene/*", self.prefix)
     }
     pub fn job(&self, job: &str) -> String {
         format!("{}/job/{job}", self.prefix)
@@ -191,5 +249,51 @@ mod tests {
         assert_eq!(k.split(&seg), Some(vec!["seg", "j1", "n1", "7", "2"]));
         assert_eq!(k.split("mwb/other/seg/x"), None);
         assert_eq!(k.job_state("j"), "mwb/demo/job/j/state");
+    }
+
+    #[test]
+    fn scene_keys() {
+        let k = Keys::new("demo").unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(k.scene(3), "mwb/demo/scene/3");
+        assert_eq!(k.scenes(), "mwb/demo/scene/*");
+        assert_eq!(k.scene_query(SceneRev::Number(12)), "mwb/demo/q/scene/12");
+        assert_eq!(k.scene_query(SceneRev::Latest), "mwb/demo/q/scene/latest");
+        assert_eq!(k.scene_queries(), "mwb/demo/q/scene/*");
+        // A query key reads back as the revision it was built from.
+        for rev in [
+            SceneRev::Latest,
+            SceneRev::Number(0),
+            SceneRev::Number(u64::MAX),
+        ] {
+            assert_eq!(SceneRev::parse(last_chunk(&k.scene_query(rev))), Ok(rev));
+        }
+        assert_eq!(
+            SceneRev::parse(last_chunk(&k.scene(7))),
+            Ok(SceneRev::Number(7))
+        );
+    }
+
+    #[test]
+    fn scene_revisions_have_one_spelling() {
+        for bad in [
+            "",
+            "*",
+            "**",
+            "03",
+            "+3",
+            "-1",
+            "3.0",
+            "Latest",
+            "18446744073709551616",
+        ] {
+            let e = SceneRev::parse(bad).err();
+            assert_eq!(
+                e.as_ref().map(ToString::to_string),
+                Some(format!(
+                    "scene revision {bad:?} is neither a number nor \"latest\""
+                )),
+                "{bad}"
+            );
+        }
     }
 }

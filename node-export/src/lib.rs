@@ -48,10 +48,12 @@
 
 pub mod foxglove;
 pub mod glb;
+pub mod instance;
 pub mod mesh;
 pub mod motion;
 pub mod table;
 
+pub use instance::world_instance;
 pub use motion::{
     Motion, MotionError, SegmentPayload, decode_payload, decode_segments, decode_world, is_layered,
 };

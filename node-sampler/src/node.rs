@@ -26,10 +26,23 @@ pub type SamplerError = mwb_node::NodeError;
 pub struct Forward;
 
 /// A job as a sampler runs it: the validated scene, and for a REFINE job its parent world
-/// regenerated once and forked at the branch frame (every child of the job starts from it).
+/// regenerated once and forked at the branch frame (every child of the job starts from it), or
+/// for a scene edit the parent regenerated and matched to the edited scene.
 pub struct Prepared {
     pub template: SceneTemplate,
     pub refine: Option<RefineJob>,
+    pub edit: Option<EditJob>,
+}
+
+/// What the worlds of a scene-edit job (a REFINE job with `parent_scene`) share: the parent
+/// regenerated exactly in its own scene, the edited scene instantiated as the parent's root was,
+/// and how their bodies match.
+pub struct EditJob {
+    pub parent: Parent,
+    pub scene: mwb_core::scene::Scene,
+    pub diff: crate::edit::SceneDiff,
+    pub root_job: String,
+    pub revision: u64,
 }
 
 /// What a REFINE job's worlds share.
@@ -53,6 +66,30 @@ pub enum PrepareError {
         #[source]
         source: RefineError,
     },
+    #[error("job {job}: parent world {world}: {source}")]
+    Lineage {
+        job: String,
+        world: u32,
+        #[source]
+        source: LineageError,
+    },
+    #[error("job {job}: editing parent world {world}: {source}")]
+    Edit {
+        job: String,
+        world: u32,
+        #[source]
+        source: crate::edit::EditError,
+    },
+}
+
+/// Lineages this binary cannot regenerate.
+#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+pub enum LineageError {
+    #[error(
+        "lineage step {step} is a scene edit (revision {revision}): a world made by a scene edit \
+         cannot be regenerated, refined or edited again yet"
+    )]
+    Edited { step: usize, revision: u64 },
 }
 
 /// Why one world failed.
@@ -62,23 +99,36 @@ pub enum WorldError {
     Run(#[from] RunError),
     #[error(transparent)]
     Refine(#[from] RefineError),
+    #[error(transparent)]
+    Edit(#[from] crate::edit::EditError),
 }
 
-/// A lineage from the wire (the root job's name is kept apart).
-pub fn lineage_from_wire(l: &mwb_proto::v1::Lineage) -> Lineage {
-    Lineage {
-        root_seed: l.root_seed,
-        steps: l
-            .steps
-            .iter()
-            .map(|s| Branch {
+/// A lineage from the wire (the root job's name is kept apart). A scene-edit step is refused:
+/// regenerating an edited world would need the edited revision's text.
+pub fn lineage_from_wire(l: &mwb_proto::v1::Lineage) -> Result<Lineage, LineageError> {
+    let steps = l
+        .steps
+        .iter()
+        .enumerate()
+        .map(|(step, s)| {
+            if s.scene_revision != 0 {
+                return Err(LineageError::Edited {
+                    step,
+                    revision: s.scene_revision,
+                });
+            }
+            Ok(Branch {
                 frame: s.frame,
                 objects: s.objects.clone(),
                 seed: s.seed,
                 kicks: Vec::new(),
             })
-            .collect(),
-    }
+        })
+        .collect::<Result<_, _>>()?;
+    Ok(Lineage {
+        root_seed: l.root_seed,
+        steps,
+    })
 }
 
 /// A lineage on the wire.
@@ -93,6 +143,7 @@ pub fn lineage_to_wire(root_job: &str, l: &Lineage) -> mwb_proto::v1::Lineage {
                 frame: s.frame,
                 objects: s.objects.clone(),
                 seed: s.seed,
+                scene_revision: 0,
             })
             .collect(),
     }
@@ -112,13 +163,16 @@ impl WorkerKind for Forward {
     }
 
     /// Parses the scene; for a REFINE job also regenerates the parent world from its lineage
-    /// and forks it at the branch frame (§4.5), once for all the job's worlds.
+    /// and forks it at the branch frame (§4.5), once for all the job's worlds; for a scene edit
+    /// (a REFINE job with the parent's own scene) regenerates the parent in its scene and matches
+    /// its bodies to the job's, the edited one.
     fn prepare(&self, job: &Job, scene: &Scene) -> Result<Prepared, PrepareError> {
         let template = SceneTemplate::parse(&scene.toml, &format!("job {} scene", job.id))?;
         if job.kind() != JobKind::Refine {
             return Ok(Prepared {
                 template,
                 refine: None,
+                edit: None,
             });
         }
         let Some(r) = job.refine.as_ref() else {
@@ -126,18 +180,50 @@ impl WorkerKind for Forward {
                 job: job.id.clone(),
             });
         };
-        let lineage = r.parent.as_ref().map(lineage_from_wire).unwrap_or_default();
-        let parent = regenerate(&template, &lineage, &BranchAt::Frame(r.branch_frame)).map_err(
-            |source| PrepareError::Refine {
-                job: job.id.clone(),
-                world: r.parent_world,
+        let (id, world) = (job.id.clone(), r.parent_world);
+        let lineage = match &r.parent {
+            Some(l) => lineage_from_wire(l).map_err(|source| PrepareError::Lineage {
+                job: id.clone(),
+                world,
                 source,
-            },
-        )?;
+            })?,
+            None => Lineage::default(),
+        };
+        let refine_err = |source| PrepareError::Refine {
+            job: id.clone(),
+            world,
+            source,
+        };
         let root_job = r
             .parent
             .as_ref()
             .map_or_else(|| r.parent_job.clone(), |l| l.root_job.clone());
+        if let Some(parent_scene) = &r.parent_scene {
+            let old =
+                SceneTemplate::parse(&parent_scene.toml, &format!("job {} parent scene", job.id))?;
+            let parent = regenerate(&old, &lineage, &BranchAt::Frame(0)).map_err(refine_err)?;
+            let edited = template.instantiate_edit(lineage.root_seed, &old, parent.scene());
+            let diff = crate::edit::diff(parent.scene(), &edited).map_err(|source| {
+                PrepareError::Edit {
+                    job: id.clone(),
+                    world,
+                    source,
+                }
+            })?;
+            return Ok(Prepared {
+                template,
+                refine: None,
+                edit: Some(EditJob {
+                    parent,
+                    scene: edited,
+                    diff,
+                    root_job,
+                    revision: scene.revision,
+                }),
+            });
+        }
+        let parent = regenerate(&template, &lineage, &BranchAt::Frame(r.branch_frame))
+            .map_err(refine_err)?;
         Ok(Prepared {
             template,
             refine: Some(RefineJob {
@@ -145,6 +231,7 @@ impl WorkerKind for Forward {
                 objects: r.objects.clone(),
                 root_job,
             }),
+            edit: None,
         })
     }
 
@@ -164,6 +251,12 @@ impl WorkerKind for Forward {
         };
         let mut emit =
             |seg: Segment| emit(segment_message(&w.job.id, w.node, w.counter, w.seed, seg));
+        if let Some(e) = &prepared.edit {
+            // Recorded whole, as a world of the edited scene.
+            let child =
+                crate::edit::edit_child(&e.parent, &e.scene, &e.diff, w.seed, opts, &mut emit)?;
+            return Ok(edited_done(&w.job.id, w.node, w.counter, e, &child));
+        }
         let Some(r) = &prepared.refine else {
             let summary = run_world(&prepared.template, w.seed, opts, &mut emit)?;
             return Ok(world_done(&w.job.id, w.node, w.counter, &summary));
@@ -248,6 +341,33 @@ pub fn refined_done(
     }
 }
 
+/// The wire summary of world `(job, node, counter)` of a scene-edit job: its lineage is the
+/// parent's and one step more, the edit (frame 0, the edited revision, this world's seed).
+pub fn edited_done(
+    job_id: &str,
+    node: &str,
+    counter: u64,
+    edit: &EditJob,
+    child: &crate::edit::EditedWorld,
+) -> WorldDone {
+    let mut lineage = lineage_to_wire(&edit.root_job, &child.parent);
+    lineage.steps.push(mwb_proto::v1::RefineStep {
+        frame: 0,
+        objects: Vec::new(),
+        seed: child.summary.seed,
+        scene_revision: edit.revision.max(1),
+    });
+    WorldDone {
+        lineage: Some(lineage),
+        active_from: child
+            .active_from
+            .iter()
+            .map(|a| a.map_or(-1, i64::from))
+            .collect(),
+        ..world_done(job_id, node, counter, &child.summary)
+    }
+}
+
 /// The wire form of a recorded segment of world `(job, node, counter)`: the payload (codec or
 /// quantised frames, as the job asked) with its CRC and, beside it, the low-resolution paths.
 pub fn segment_message(
@@ -302,6 +422,81 @@ mod tests {
         }
     }
 
+    /// A scene-edit job (REFINE with the parent's scene): its worlds are whole worlds of the
+    /// edited scene whose lineage ends with the edit; an edit of a static is refused when the
+    /// job is prepared, naming it; a lineage holding an edit cannot be regenerated.
+    #[test]
+    fn a_scene_edit_job_makes_whole_worlds_of_the_edited_scene() {
+        let added = format!(
+            "{TUMBLE}\n[[body]]\nname = \"ball\"\nshape = \"sphere\"\nradius = 0.1\n\
+             material = \"wood\"\nposition = [9, 1, 9]\n"
+        );
+        let mut j = job(JobKind::Refine, &added);
+        if let Some(s) = j.scene.as_mut() {
+            s.revision = 4;
+        }
+        j.refine = Some(mwb_proto::v1::Refinement {
+            parent_job: "root".into(),
+            parent_world: 3,
+            parent: Some(mwb_proto::v1::Lineage {
+                root_job: "root".into(),
+                root_seed: 5,
+                steps: Vec::new(),
+            }),
+            parent_scene: Some(Scene {
+                toml: TUMBLE.into(),
+                ..Default::default()
+            }),
+            ..Default::default()
+        });
+        let scene = j.scene.clone().unwrap_or_default();
+        let prepared = Forward
+            .prepare(&j, &scene)
+            .unwrap_or_else(|e| panic!("{e}"));
+        let w = WorldTask {
+            job: &j,
+            node: "n",
+            counter: 0,
+            seed: 77,
+        };
+        let mut segs = Vec::new();
+        let done = Forward
+            .run(&w, &prepared, &mut |s| {
+                segs.push(s);
+                ControlFlow::Continue(())
+            })
+            .unwrap_or_else(|e| panic!("{e}"));
+        let lineage = done.lineage.clone().unwrap_or_default();
+        let last = lineage.steps.last().cloned().unwrap_or_default();
+        assert_eq!((last.frame, last.seed, last.scene_revision), (0, 77, 4));
+        assert_eq!(done.active_from, vec![-1, -1, -1, -1, -1, 0]);
+        assert_eq!(done.first_segment, 0);
+        assert!(
+            segs.iter()
+                .all(|s| s.bodies.is_empty() && s.body_count == 6)
+        );
+        assert_eq!(
+            lineage_from_wire(&lineage),
+            Err(LineageError::Edited {
+                step: 0,
+                revision: 4
+            })
+        );
+        // The ground moved: not an edit of bodies.
+        let moved = TUMBLE.replacen("[[static]]", "[[static]]\nposition = [0, -0.5, 0]", 1);
+        let mut k = job(JobKind::Refine, &moved);
+        k.refine = j.refine.clone();
+        let err = Forward
+            .prepare(&k, &k.scene.clone().unwrap_or_default())
+            .err()
+            .map(|e| e.to_string());
+        assert!(
+            err.as_deref()
+                .is_some_and(|e| e.contains("statics: `ground` changed")),
+            "{err:?}"
+        );
+    }
+
     #[test]
     fn sample_and_refine_jobs_are_ours_reverse_jobs_are_not() {
         assert!(Forward::takes(JobKind::Sample));
@@ -340,6 +535,7 @@ mod tests {
             }),
             objects: vec![1],
             branch_frame: 30,
+            parent_scene: None,
         });
         let prepared = Forward
             .prepare(&j, &scene)

@@ -4,7 +4,8 @@
 //! branch frame t_min, so that a request that cannot be done is refused before anything is
 //! submitted, naming what is wrong. `mwb refine` and the viewer both use it.
 
-use crate::node::lineage_from_wire;
+use crate::edit::{BodyEdit, EditError, SceneDiff, body_changes, diff};
+use crate::node::{LineageError, lineage_from_wire};
 use crate::refine::{BranchAt, RefineError, regenerate};
 use mwb_core::browse::api::SceneBodies;
 use mwb_core::browse::{Frustum, ObjectsError, object_label, resolve_objects};
@@ -37,6 +38,18 @@ pub enum RequestError {
         world: u32,
         #[source]
         source: RefineError,
+    },
+    #[error("world {world}: {source}")]
+    Lineage {
+        world: u32,
+        #[source]
+        source: LineageError,
+    },
+    #[error("world {world}: the edit: {source}")]
+    Edit {
+        world: u32,
+        #[source]
+        source: EditError,
     },
     #[error(
         "world {world}: this binary regenerates it with {ours} frames, the store holds {stored} \
@@ -93,20 +106,24 @@ impl RefinePlan {
                 parent: Some(self.lineage.clone()),
                 objects: self.objects.clone(),
                 branch_frame: self.branch_frame,
+                parent_scene: None,
             }),
         }
     }
 }
 
-/// Checks a request against stored world `world` (as fetched, `q/world/<i>`) of job
-/// `parent_job` (as served, `q/job/<job>`): resolves `objects` (indices or names) in its scene,
-/// regenerates it and finds the first frame any picked body's centre is inside `frustum`.
-pub fn plan(
-    world: &World,
-    parent_job: &Job,
-    objects: &str,
-    frustum: Frustum,
-) -> Result<RefinePlan, RequestError> {
+/// What a request needs of the stored world it starts from.
+struct Stored<'w> {
+    index: u32,
+    done: &'w mwb_proto::v1::WorldDone,
+    scene: Scene,
+    template: SceneTemplate,
+    lineage: Lineage,
+}
+
+/// Stored world `world` of job `parent_job` as a parent: a forward world, its job's scene, its
+/// lineage (a root world's is its job and seed).
+fn stored<'w>(world: &'w World, parent_job: &Job) -> Result<Stored<'w>, RequestError> {
     let index = world.index;
     let done = world
         .done
@@ -130,6 +147,35 @@ pub fn plan(
         root_seed: done.seed,
         steps: Vec::new(),
     });
+    Ok(Stored {
+        index,
+        done,
+        scene,
+        template,
+        lineage,
+    })
+}
+
+/// Checks a request against stored world `world` (as fetched, `q/world/<i>`) of job
+/// `parent_job` (as served, `q/job/<job>`): resolves `objects` (indices or names) in its scene,
+/// regenerates it and finds the first frame any picked body's centre is inside `frustum`.
+pub fn plan(
+    world: &World,
+    parent_job: &Job,
+    objects: &str,
+    frustum: Frustum,
+) -> Result<RefinePlan, RequestError> {
+    let Stored {
+        index,
+        done,
+        scene,
+        template,
+        lineage,
+    } = stored(world, parent_job)?;
+    let wire_lineage = lineage_from_wire(&lineage).map_err(|source| RequestError::Lineage {
+        world: index,
+        source,
+    })?;
     let instance = template.instantiate(lineage.root_seed);
     let names: Vec<String> = instance.bodies.iter().map(|b| b.name.clone()).collect();
     let objects = resolve_objects(
@@ -144,7 +190,7 @@ pub fn plan(
         objects: objects.clone(),
         frustum: Box::new(frustum),
     };
-    let parent = regenerate(&template, &lineage_from_wire(&lineage), &at).map_err(|e| match e {
+    let parent = regenerate(&template, &wire_lineage, &at).map_err(|e| match e {
         RefineError::NeverInside { frames, .. } => RequestError::NeverInside {
             objects: objects
                 .iter()
@@ -159,15 +205,7 @@ pub fn plan(
             source,
         },
     })?;
-    if parent.motion().frame_count() != done.frame_count {
-        return Err(RequestError::NotRegenerated {
-            world: index,
-            ours: parent.motion().frame_count(),
-            stored: done.frame_count,
-            made_by: done.provenance.clone(),
-            this: crate::provenance(),
-        });
-    }
+    same_world(index, done, parent.motion().frame_count())?;
     Ok(RefinePlan {
         parent_world: index,
         parent_job: world.job_id.clone(),
@@ -176,6 +214,151 @@ pub fn plan(
         objects,
         branch_frame: parent.branch_frame(),
         frame_dt: instance.settings.dt,
+        encoding: parent_job.encoding,
+        quality: parent_job.quality,
+    })
+}
+
+/// A parent this binary regenerated to `ours` frames is the stored one (`done`).
+fn same_world(index: u32, done: &mwb_proto::v1::WorldDone, ours: u32) -> Result<(), RequestError> {
+    if ours != done.frame_count {
+        return Err(RequestError::NotRegenerated {
+            world: index,
+            ours,
+            stored: done.frame_count,
+            made_by: done.provenance.clone(),
+            this: crate::provenance(),
+        });
+    }
+    Ok(())
+}
+
+/// A checked scene edit of one stored world: what its REFINE job (with the parent's scene)
+/// needs.
+#[derive(Debug, Clone)]
+pub struct EditPlan {
+    pub parent_world: u32,
+    pub parent_job: String,
+    /// The parent's own (root) scene, which regenerates it.
+    pub parent_scene: Scene,
+    pub lineage: Lineage,
+    /// The edited scene's text.
+    pub toml: String,
+    pub name: String,
+    /// How the edited scene's bodies match the parent's.
+    pub diff: SceneDiff,
+    /// Per body of the edited scene: its name and, for a modified one, what changed.
+    pub bodies: Vec<(String, BodyEdit, Vec<&'static str>)>,
+    /// Names of the parent's bodies the edit removes.
+    pub removed: Vec<String>,
+    pub encoding: i32,
+    pub quality: i32,
+}
+
+impl EditPlan {
+    /// The edited scene as revision `revision`.
+    pub fn scene(&self, revision: u64) -> Scene {
+        Scene {
+            revision,
+            name: self.name.clone(),
+            toml: self.toml.clone(),
+            content_hash: mwb_core::content_hash(&self.toml),
+        }
+    }
+
+    /// The scene-edit job for `worlds` children, of the edited scene's revision `revision`.
+    pub fn job(
+        &self,
+        id: String,
+        revision: u64,
+        worlds: u32,
+        priority: i32,
+        created_unix_ms: u64,
+    ) -> Job {
+        Job {
+            id,
+            revision: 1,
+            kind: JobKind::Refine as i32,
+            scene: Some(self.scene(revision)),
+            target_worlds: worlds,
+            priority,
+            created_unix_ms,
+            cancelled: false,
+            encoding: self.encoding,
+            quality: self.quality,
+            refine: Some(Refinement {
+                parent_job: self.parent_job.clone(),
+                parent_world: self.parent_world,
+                parent: Some(self.lineage.clone()),
+                objects: Vec::new(),
+                branch_frame: 0,
+                parent_scene: Some(self.parent_scene.clone()),
+            }),
+        }
+    }
+}
+
+/// Checks a scene edit of stored world `world` (as fetched) of job `parent_job` (as served):
+/// the edited scene `toml` (named `file` in errors) parses, the world regenerates, and the
+/// edit is one of its bodies only (`edit::diff`: statics, settings and joints refused by name).
+pub fn plan_edit(
+    world: &World,
+    parent_job: &Job,
+    toml: &str,
+    file: &str,
+) -> Result<EditPlan, RequestError> {
+    let Stored {
+        index,
+        done,
+        scene,
+        template,
+        lineage,
+    } = stored(world, parent_job)?;
+    let wire_lineage = lineage_from_wire(&lineage).map_err(|source| RequestError::Lineage {
+        world: index,
+        source,
+    })?;
+    let edited = SceneTemplate::parse(toml, file)?;
+    let parent = regenerate(&template, &wire_lineage, &BranchAt::Frame(0)).map_err(|source| {
+        RequestError::Regenerate {
+            world: index,
+            source,
+        }
+    })?;
+    same_world(index, done, parent.motion().frame_count())?;
+    let old = parent.scene();
+    let new = edited.instantiate_edit(lineage.root_seed, &template, old);
+    let diff = diff(old, &new).map_err(|source| RequestError::Edit {
+        world: index,
+        source,
+    })?;
+    let bodies = new
+        .bodies
+        .iter()
+        .zip(&diff.bodies)
+        .map(|(b, e)| {
+            let changed = match *e {
+                BodyEdit::Modified(j) => body_changes(old, &old.bodies[j], &new, b),
+                BodyEdit::Same(_) | BodyEdit::Added => Vec::new(),
+            };
+            (b.name.clone(), *e, changed)
+        })
+        .collect();
+    let removed = diff
+        .removed
+        .iter()
+        .map(|&j| old.bodies[j].name.clone())
+        .collect();
+    Ok(EditPlan {
+        parent_world: index,
+        parent_job: world.job_id.clone(),
+        parent_scene: scene,
+        lineage,
+        toml: toml.to_owned(),
+        name: new.name.clone(),
+        diff,
+        bodies,
+        removed,
         encoding: parent_job.encoding,
         quality: parent_job.quality,
     })

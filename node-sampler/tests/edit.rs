@@ -470,3 +470,42 @@ fn edits_that_cannot_be_applied_are_refused_naming_the_field() {
     });
     assert!(matches!(e, Err(EditError::StaleDiff)), "{e:?}");
 }
+
+/// Removing a body from a scene with random draws keeps every other body's draws: the edited
+/// scene is instantiated as an edit of the parent's instance (`instantiate_edit`), where a plain
+/// instance would draw again for every body after the removed one — another world.
+#[test]
+fn removing_a_body_from_a_randomised_scene_keeps_the_others_draws() {
+    let src = builtin::TUMBLE;
+    let start = src
+        .find("[[body]]\nname = \"brick\"")
+        .unwrap_or_else(|| panic!("tumble has a brick"));
+    let end = start
+        + src[start..]
+            .find("[[body]]\nname = \"die\"")
+            .unwrap_or_else(|| panic!("and a die after it"));
+    let text = format!("{}{}", &src[..start], &src[end..]);
+    let (old, new) = (parse(src), parse(&text));
+    let seed = 0xfeed;
+    let parent = parent_of(src, seed);
+    let before = parent.scene();
+    let plain = new.instantiate(seed);
+    assert_ne!(
+        plain.bodies[2].linvel, before.bodies[3].linvel,
+        "draws shift"
+    );
+    let edited = new.instantiate_edit(seed, &old, before);
+    assert_eq!(edited.bodies[2], before.bodies[3], "the die");
+    assert_eq!(edited.bodies[3], before.bodies[4], "the slab");
+    let d = diff(before, &edited).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(
+        d.bodies,
+        vec![
+            BodyEdit::Same(0),
+            BodyEdit::Same(1),
+            BodyEdit::Same(3),
+            BodyEdit::Same(4)
+        ]
+    );
+    assert_eq!(d.removed, vec![2]);
+}

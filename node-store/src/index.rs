@@ -634,6 +634,7 @@ pub fn index_world(
                         frame: s.frame,
                         objects: s.objects.clone(),
                         seed: s.seed,
+                        scene_revision: s.scene_revision,
                     })
                     .collect(),
                 active_from: done

@@ -37,7 +37,7 @@
 
 use crate::assembly::Assembler;
 use mwb_core::keys::Keys;
-use mwb_proto::v1::{Job, JobState, Message, MotionSegment, WorldDone};
+use mwb_proto::v1::{Job, JobState, Message, MotionSegment, Scene, WorldDone};
 use mwb_record::reader::Damage;
 use mwb_record::{
     BusMessage, Family, RecordingInfo, RecordingReader, RecordingWriter, WriteError, WriterOptions,
@@ -71,6 +71,8 @@ pub enum StoreInput {
     State(JobState),
     Segment(MotionSegment),
     Done(WorldDone),
+    /// A scene revision put on `scene/<rev>` (the store keeps every revision).
+    Scene(Scene),
 }
 
 /// What one file gave back.
@@ -164,6 +166,7 @@ pub fn read_store_input(path: &Path, states: bool, mut sink: impl FnMut(StoreInp
             Family::Job => Job::decode(p).ok().map(StoreInput::Job),
             Family::Segment => MotionSegment::decode(p).ok().map(StoreInput::Segment),
             Family::Done => WorldDone::decode(p).ok().map(StoreInput::Done),
+            Family::Scene => Scene::decode(p).ok().map(StoreInput::Scene),
             Family::JobState if states => JobState::decode(p).ok().map(StoreInput::State),
             Family::JobState => {
                 r.states_ignored += 1;

@@ -8,6 +8,7 @@
 //! * [`spatial`] — pure: per object index, a bounding-volume hierarchy over every world's path
 //!   pieces (4 segments each, referring to the world's path), so a constraint visits only the
 //!   parts of paths near it.
+//! * [`scenes`] — pure: every scene revision of the space (`scene/<rev>`), never overwritten.
 //! * [`journal`] — the store's durable journal (MCAP files via `mwb-record`) and loading
 //!   recordings into a store.
 //! * [`node`] — the bus node around them.
@@ -17,6 +18,7 @@ pub mod browse;
 pub mod index;
 pub mod journal;
 pub mod node;
+pub mod scenes;
 pub mod spatial;
 
 pub use assembly::{Assembler, Outcome, Rejection, StoredWorld};
@@ -24,3 +26,4 @@ pub use browse::{Shard, ShardBytes, ShardSpec};
 pub use index::{IndexError, IndexedWorld, index_world};
 pub use journal::{FileReport, Journal, JournalCounters, JournalError, StartReport};
 pub use node::{DEFAULT_MEMORY_CAP_MIB, StoreConfig, StoreError, StoreHandle, run_store};
+pub use scenes::{Offered, SceneRefusal, SceneRevisions};

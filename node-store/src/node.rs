@@ -1,6 +1,6 @@
-//! The store node: subscribes to segments, world summaries and jobs; serves open jobs, held
-//! jobs, job states, worlds by index, the browsing index's paths, browsing requests and
-//! statistics as queryables; publishes job
+//! The store node: subscribes to segments, world summaries, jobs and (the authority) scene
+//! revisions; serves open jobs, held jobs, job states, scene revisions, worlds by index, the
+//! browsing index's paths, browsing requests and statistics as queryables; publishes job
 //! states and stats. [`run_store`] declares what the node listens to and starts one task per
 //! duty; each task is a function below.
 
@@ -11,11 +11,14 @@ use crate::journal::{
     Journal, JournalCounters, JournalError, MAX_BATCH, StartReport, StoreInput, checkpoint,
     read_store_input,
 };
+use crate::scenes::{Offered, SceneRefusal, SceneRevisions, scene_from_put};
 use mwb_core::browse::api::{Reply, ShardReply, ShardRequest};
-use mwb_core::keys::{Keys, check_identifier, last_chunk, role};
+use mwb_core::keys::{Keys, SceneRev, check_identifier, last_chunk, role};
 use mwb_node::bus::{self, Queries, Subscription};
 use mwb_node::{Node, NodeError};
-use mwb_proto::v1::{Job, JobState, Message, MotionSegment, NodeStats, PathsRequest, WorldDone};
+use mwb_proto::v1::{
+    Job, JobState, Message, MotionSegment, NodeStats, PathsRequest, Scene, WorldDone,
+};
 use std::collections::HashMap;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -108,6 +111,8 @@ struct Shared {
     index_failures: AtomicU64,
     /// The journal's counts after its last commit (`None`: no journal).
     journal: Mutex<Option<JournalCounters>>,
+    /// Every scene revision (the authority's; empty on the other shards).
+    scenes: Mutex<SceneRevisions>,
 }
 
 impl Shared {
@@ -117,6 +122,41 @@ impl Shared {
 
     fn browse(&self) -> MutexGuard<'_, Shard> {
         self.browse.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    fn scenes(&self) -> MutexGuard<'_, SceneRevisions> {
+        self.scenes.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// A scene revision put on the bus: kept if new; dropped and counted if refused (a
+    /// conflict is logged as a warning, naming both hashes).
+    fn offer_put_scene(&self, scene: Scene) -> Option<Offered> {
+        let revision = scene.revision;
+        let offered = self.scenes().offer(scene);
+        match &offered {
+            Ok(Offered::New) => info!(revision, "scene revision"),
+            Ok(Offered::Same) => {}
+            Err(e) => {
+                self.node.count_malformed();
+                if matches!(e, SceneRefusal::Conflict { .. }) {
+                    warn!(error = %e, "scene put refused");
+                } else {
+                    debug!(error = %e, "scene put refused");
+                }
+            }
+        }
+        offered.ok()
+    }
+
+    /// The scene a job carries. Not counted when refused: the job itself is applied (and
+    /// today every job `mwb job submit` makes claims revision 1 of the scene it samples).
+    fn learn_scene(&self, job: &str, scene: Scene) {
+        let revision = scene.revision;
+        match self.scenes().offer(scene) {
+            Ok(Offered::New) => info!(revision, %job, "scene revision from a job"),
+            Ok(Offered::Same) => {}
+            Err(e) => debug!(%job, error = %e, "a job's scene is not kept as a revision"),
+        }
     }
 
     /// A statistics snapshot (`worlds_per_s` is the publisher's to measure).
@@ -181,6 +221,15 @@ impl StoreHandle {
     pub fn held_worlds(&self) -> usize {
         self.shared.lock().held_count()
     }
+    /// A scene revision the store holds, or its latest (the authority shard; the others hold
+    /// none).
+    pub fn scene(&self, rev: SceneRev) -> Option<Scene> {
+        self.shared.scenes().at(rev).cloned()
+    }
+    /// Scene revisions held.
+    pub fn scene_count(&self) -> usize {
+        self.shared.scenes().len()
+    }
     /// What the store read at start (journal files, recordings) and what it skipped.
     pub fn start_report(&self) -> &StartReport {
         &self.started
@@ -206,6 +255,8 @@ enum Incoming {
     State(JobState),
     Done(WorldDone),
     Job(Job),
+    /// A scene revision put on `scene/<rev>`, its key checked (the authority only).
+    Scene(Scene),
     /// A job state read back from the journal.
     Restored(JobState),
     Left(String),
@@ -229,6 +280,7 @@ pub async fn run_store(session: Session, cfg: StoreConfig) -> Result<StoreHandle
         browse: Mutex::new(Shard::new(cfg.shard, node.id())),
         index_failures: AtomicU64::new(0),
         journal: Mutex::new(None),
+        scenes: Mutex::new(SceneRevisions::default()),
     });
     // The journal and the recordings are read before the node subscribes or answers.
     let mut applier = Applier::new(shared.clone(), &cfg, keys.clone());
@@ -242,15 +294,18 @@ pub async fn run_store(session: Session, cfg: StoreConfig) -> Result<StoreHandle
     // Job-level answers come from one shard only (shard 0, the authority), so that a client
     // never mixes job states of different shards; the other shards follow its job states.
     let authority = cfg.shard.is_authority();
-    let (job_queries, state_queries, authority_states) = if authority {
-        let jobs = node.queryable(keys.jobs()).await?;
+    // Scene revisions too: one shard keeps them all, so "latest" has one answer.
+    let (job_queries, state_queries, authority_states, scene_puts, scene_queries) = if authority {
         (
-            Some(jobs),
+            Some(node.queryable(keys.jobs()).await?),
             Some(node.queryable(keys.job_states()).await?),
             None,
+            Some(node.subscribe(keys.scenes()).await?),
+            Some(node.queryable(keys.scene_queries()).await?),
         )
     } else {
-        (None, None, Some(node.subscribe(keys.job_states()).await?))
+        let states = node.subscribe(keys.job_states()).await?;
+        (None, None, Some(states), None, None)
     };
     let browse_queries = node.queryable(keys.shard_browse_all(node.id())).await?;
     let world_queries = node.queryable(keys.worlds()).await?;
@@ -266,6 +321,7 @@ pub async fn run_store(session: Session, cfg: StoreConfig) -> Result<StoreHandle
         let shared = shared.clone();
         move || shared.stats()
     };
+    let scene_tx = tx.clone();
     let mut tasks = vec![
         tokio::spawn(bus::hold(token)),
         tokio::spawn(bus::forward(node.clone(), segments, tx.clone(), |m| {
@@ -292,6 +348,10 @@ pub async fn run_store(session: Session, cfg: StoreConfig) -> Result<StoreHandle
     if let Some(q) = state_queries {
         tasks.push(tokio::spawn(serve_job_states(shared.clone(), q)));
     }
+    if let (Some(sub), Some(q)) = (scene_puts, scene_queries) {
+        tasks.push(tokio::spawn(forward_scenes(node.clone(), sub, scene_tx)));
+        tasks.push(tokio::spawn(serve_scenes(shared.clone(), q)));
+    }
     info!(node = %node.id(), space = %cfg.space, cap = cfg.memory_cap_bytes, "store started");
     Ok(StoreHandle {
         shared,
@@ -310,6 +370,28 @@ async fn watch_departures(sub: Subscription, tx: mpsc::Sender<Incoming>) {
                 .is_err()
         {
             break;
+        }
+    }
+}
+
+/// Scene revisions put on `scene/<rev>` (the authority only): a payload that is not a `Scene`
+/// or whose revision is not its key's is dropped and counted here; the applier offers the rest
+/// to the table.
+async fn forward_scenes(node: Arc<Node>, sub: Subscription, tx: mpsc::Sender<Incoming>) {
+    while let Ok(s) = sub.recv_async().await {
+        if s.kind() != SampleKind::Put {
+            continue;
+        }
+        match scene_from_put(s.key_expr().as_str(), &s.payload().to_bytes()) {
+            Ok(scene) => {
+                if tx.send(Incoming::Scene(scene)).await.is_err() {
+                    break;
+                }
+            }
+            Err(e) => {
+                node.count_malformed();
+                debug!(error = %e, "scene put dropped");
+            }
         }
     }
 }
@@ -447,6 +529,7 @@ impl Applier {
             StoreInput::State(st) => Incoming::Restored(st),
             StoreInput::Segment(s) => Incoming::Segment(s),
             StoreInput::Done(d) => Incoming::Done(d),
+            StoreInput::Scene(scene) => Incoming::Scene(scene),
         };
         let (_, worlds) = self.take(msg);
         for w in &worlds {
@@ -529,8 +612,28 @@ impl Applier {
         match msg {
             Incoming::Segment(m) => outcomes.push(t.on_segment(m, now)),
             Incoming::Done(m) => outcomes.push(t.on_done(m, now)),
+            Incoming::Scene(scene) => {
+                let record = self
+                    .journal
+                    .is_some()
+                    .then(|| (self.keys.scene(scene.revision), scene.encode_to_vec()));
+                // Read back at start like jobs (and revisions also come back with the jobs
+                // that carry them).
+                if self.shared.offer_put_scene(scene) == Some(Offered::New)
+                    && let (Some(journal), Some((key, bytes))) = (self.journal.as_mut(), record)
+                {
+                    journal.append(key, bytes);
+                }
+            }
             Incoming::Job(j) => {
                 info!(job = %j.id, target = j.target_worlds, cancelled = j.cancelled, "job");
+                // A job carries its scene: how revisions come back from the journal (and from
+                // the authority after a restart, or a recording).
+                if self.authority
+                    && let Some(scene) = j.scene.as_ref().filter(|s| s.revision > 0)
+                {
+                    self.shared.learn_scene(&j.id, scene.clone());
+                }
                 self.rest
                     .entry(j.id.clone())
                     .or_insert_with(|| rest_thresholds(&j));
@@ -706,6 +809,25 @@ async fn serve_open_jobs(shared: Arc<Shared>, queries: Queries) {
             if intersects(q.key_expr(), &key) {
                 node.reply(&q, &key, j.encode_to_vec()).await;
             }
+        }
+    }
+}
+
+/// A scene revision, or the latest (authority only); an unknown revision gets no answer (like
+/// `q/job` for an unknown job), a key that names no revision an error naming it.
+async fn serve_scenes(shared: Arc<Shared>, queries: Queries) {
+    let node = &shared.node;
+    while let Ok(q) = queries.recv_async().await {
+        let rev = match SceneRev::parse(last_chunk(q.key_expr().as_str())) {
+            Ok(rev) => rev,
+            Err(e) => {
+                node.reply_err(&q, &e.to_string()).await;
+                continue;
+            }
+        };
+        let scene = shared.scenes().at(rev).map(Message::encode_to_vec);
+        if let Some(bytes) = scene {
+            node.reply(&q, &node.keys().scene_query(rev), bytes).await;
         }
     }
 }

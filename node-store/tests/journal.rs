@@ -4,59 +4,18 @@
 //! a world that arrives before its job is stored when the job comes (no pause needed in a
 //! replay).
 
+mod common;
+
+use common::{close, put, session, until};
 use mwb_core::keys::Keys;
 use mwb_proto::v1::{Job, Message, MotionSegment, WorldDone};
 use mwb_store::{StoreConfig, StoreHandle, run_store};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU32, Ordering};
-use std::time::{Duration, Instant};
-use zenoh::qos::CongestionControl;
+use std::time::Duration;
 
 const SPACE: &str = "journaltest";
-
-/// A session of its own (no listen, no connect, no scouting): puts reach the store on it.
-async fn session() -> zenoh::Session {
-    let mut c = zenoh::Config::default();
-    for (k, v) in [
-        ("mode", "\"peer\""),
-        ("scouting/multicast/enabled", "false"),
-        ("scouting/gossip/enabled", "false"),
-        ("listen/endpoints", "[]"),
-    ] {
-        c.insert_json5(k, v).unwrap_or_else(|e| panic!("{k}: {e}"));
-    }
-    tokio::time::timeout(Duration::from_secs(20), zenoh::open(c))
-        .await
-        .unwrap_or_else(|_| panic!("open timed out"))
-        .unwrap_or_else(|e| panic!("{e}"))
-}
-
-async fn close(s: zenoh::Session) {
-    tokio::time::timeout(Duration::from_secs(10), s.close())
-        .await
-        .unwrap_or_else(|_| panic!("close timed out"))
-        .unwrap_or_else(|e| panic!("{e}"));
-}
-
-async fn put(s: &zenoh::Session, key: String, bytes: Vec<u8>) {
-    tokio::time::timeout(
-        Duration::from_secs(10),
-        s.put(key, bytes)
-            .congestion_control(CongestionControl::Block),
-    )
-    .await
-    .unwrap_or_else(|_| panic!("put timed out"))
-    .unwrap_or_else(|e| panic!("{e}"));
-}
-
-async fn until(what: &str, mut f: impl FnMut() -> bool) {
-    let deadline = Instant::now() + Duration::from_secs(30);
-    while !f() {
-        assert!(Instant::now() < deadline, "timed out waiting for {what}");
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
-}
 
 fn job(id: &str, target: u32) -> Job {
     Job {
@@ -375,8 +334,6 @@ async fn a_world_that_arrives_before_its_job_is_stored_when_the_job_comes() {
     close(s).await;
 }
 
-mod common;
-
 /// A refined world stored as a difference (§4.5) comes back from the journal linked to its
 /// parent, served and decoded the same.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -387,7 +344,8 @@ async fn a_refined_world_comes_back_from_the_journal_composed_over_its_parent() 
     let keys = Keys::new(SPACE).unwrap_or_else(|e| panic!("{e}"));
     let root = common::root();
     let (child, _) = common::child(7);
-    let messages = (root.0.len() + child.0.len() + 2) as u64;
+    // Two jobs and their states, then each world's segments, summary and job state.
+    let messages = (root.0.len() + child.0.len() + 8) as u64;
     let s = session().await;
     let st = store(&s, Some(&journal), vec![]).await;
     for j in [

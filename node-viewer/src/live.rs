@@ -144,7 +144,14 @@ impl Drop for LiveLink {
     }
 }
 
-type SceneCache = Arc<Mutex<HashMap<String, Result<Arc<SceneTemplate>, String>>>>;
+type SceneCache = Arc<Mutex<HashMap<String, Result<Arc<JobScene>, String>>>>;
+
+/// A job's scene as the viewer draws its worlds: the template, and the job (a scene-edit job's
+/// worlds are instances of the edited scene made from its parent's, `mwb_export::world_instance`).
+struct JobScene {
+    template: SceneTemplate,
+    job: Job,
+}
 
 struct Bus {
     session: Session,
@@ -558,7 +565,8 @@ impl Bus {
             }
             let template = lock(&self.scenes).get(job).cloned();
             match template {
-                Some(Ok(t)) => {
+                Some(Ok(js)) => {
+                    let t = &js.template;
                     self.scene_sent = true;
                     let first = t.instantiate(0);
                     self.emit(Msg::Scene {
@@ -676,7 +684,7 @@ async fn job_scene(
     keys: &Keys,
     timeout: Duration,
     job: &str,
-) -> Result<Arc<SceneTemplate>, String> {
+) -> Result<Arc<JobScene>, String> {
     let replies = get_all(session, &keys.held_job(job), None, timeout).await?;
     let bytes = replies
         .first()
@@ -685,10 +693,14 @@ async fn job_scene(
         Job::decode(bytes.as_slice()).map_err(|e| format!("job {job}: malformed reply: {e}"))?;
     let scene = job_msg
         .scene
+        .as_ref()
         .ok_or_else(|| format!("job {job}: it carries no scene"))?;
-    SceneTemplate::parse(&scene.toml, &scene.name)
-        .map(Arc::new)
-        .map_err(|e| format!("job {job}: its scene cannot be drawn here: {e}"))
+    let template = SceneTemplate::parse(&scene.toml, &scene.name)
+        .map_err(|e| format!("job {job}: its scene cannot be drawn here: {e}"))?;
+    Ok(Arc::new(JobScene {
+        template,
+        job: job_msg,
+    }))
 }
 
 /// Fetches world `world` from the store and decodes its motion for its scene instance.
@@ -710,7 +722,7 @@ async fn fetch_motion(
         .as_ref()
         .ok_or_else(|| format!("world {world} has no summary"))?;
     let cached = lock(scenes).get(job).cloned();
-    let template = match cached {
+    let js = match cached {
         Some(t) => t?,
         None => {
             let t = job_scene(session, keys, timeout, job).await;
@@ -718,11 +730,11 @@ async fn fetch_motion(
             t?
         }
     };
-    // A refined world is an instance of its root world's scene (§4.5: its seed is its own).
-    let seed = done.lineage.as_ref().map_or(done.seed, |l| l.root_seed);
-    tokio::task::spawn_blocking(move || {
-        Motion::decode(template.instantiate(seed), &w).map_err(|e| e.to_string())
-    })
-    .await
-    .map_err(|e| format!("decoding task failed: {e}"))?
+    // A refined world is an instance of its root world's scene (§4.5: its seed is its own), an
+    // edited one the edit of its parent's.
+    let scene = mwb_export::world_instance(&js.template, Some(&js.job), done)
+        .map_err(|e| format!("job {job}: {e}"))?;
+    tokio::task::spawn_blocking(move || Motion::decode(scene, &w).map_err(|e| e.to_string()))
+        .await
+        .map_err(|e| format!("decoding task failed: {e}"))?
 }

@@ -81,7 +81,7 @@ pub fn sample_job(
         revision: 1,
         kind: JobKind::Sample as i32,
         scene: Some(Scene {
-            revision: 1,
+            revision: 0,
             name: template.name().to_owned(),
             toml: text.to_owned(),
             content_hash: mwb_core::content_hash(text),

@@ -162,6 +162,10 @@ pub fn world_digest(segments: &[MotionSegment], done: &WorldDone) -> u32 {
             h.update(&step.frame.to_le_bytes());
             h.update(&step.seed.to_le_bytes());
             step.objects.iter().for_each(|o| h.update(&o.to_le_bytes()));
+            // Nothing for a refinement (0), so refined worlds keep their digests.
+            if step.scene_revision != 0 {
+                h.update(&step.scene_revision.to_le_bytes());
+            }
         }
     }
     active_from.iter().for_each(|x| h.update(&x.to_le_bytes()));

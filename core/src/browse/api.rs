@@ -175,6 +175,13 @@ pub struct RefineStep {
     pub frame: u32,
     pub objects: Vec<u32>,
     pub seed: u64,
+    /// A scene edit: the scene revision the world's scene became (0: a refinement).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub scene_revision: u64,
+}
+
+fn is_zero(x: &u64) -> bool {
+    *x == 0
 }
 
 /// A shard's (or, merged, node-query's) answer.

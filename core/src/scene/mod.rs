@@ -12,6 +12,7 @@
 //! ```
 
 pub mod builtin;
+pub mod edit_text;
 mod error;
 mod generators;
 pub mod model;

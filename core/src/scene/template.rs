@@ -365,6 +365,53 @@ impl SceneTemplate {
         super::parse::parse(Source { text: src, file })
     }
 
+    /// Instance `seed` of this template as an edit of `parent`, the same instance of the
+    /// template `before` the edit was made from: a body whose definition did not change (its
+    /// entry's shape, pose and velocity distributions, its material's, and its placement, matched
+    /// by instance name) keeps the state `parent` sampled for it, and so does a material whose
+    /// definition did not change; the rest is sampled from `seed`. Draws are sequential, so a
+    /// plain [`instantiate`](Self::instantiate) of the edited template would give every body
+    /// after a removed or added one other random draws — another world, not this one edited.
+    pub fn instantiate_edit(&self, seed: u64, before: &SceneTemplate, parent: &Scene) -> Scene {
+        let mut out = self.instantiate(seed);
+        for (m, t) in out.materials.iter_mut().zip(&self.materials) {
+            let old = before.materials.iter().position(|o| o == t);
+            if let Some(p) = old.and_then(|i| parent.materials.get(i)) {
+                *m = p.clone();
+            }
+        }
+        let old_defs = before.instance_definitions();
+        for ((b, at), body) in self.instance_definitions().into_iter().zip(&mut out.bodies) {
+            let same = old_defs.iter().any(|(ob, oat)| {
+                *oat == at
+                    && ob.shape == b.shape
+                    && ob.position == b.position
+                    && ob.rotation == b.rotation
+                    && ob.linvel == b.linvel
+                    && ob.angvel == b.angvel
+                    && before.materials.get(ob.material) == self.materials.get(b.material)
+            });
+            let old = parent.bodies.iter().find(|p| p.name == at.name);
+            let Some(old) = old.filter(|_| same) else {
+                continue;
+            };
+            // The parent's draws; the material index is this scene's.
+            *body = Body {
+                material: body.material,
+                ..old.clone()
+            };
+        }
+        out
+    }
+
+    /// Every body instance in order: its entry and its placement.
+    fn instance_definitions(&self) -> Vec<(&BodyT, &Placement)> {
+        self.bodies
+            .iter()
+            .flat_map(|t| t.placements.iter().map(move |at| (t, at)))
+            .collect()
+    }
+
     /// The concrete scene of the world with this seed.
     ///
     /// Distributions are drawn from `WorldRng::new(seed, Stream::Scene)` in this order:

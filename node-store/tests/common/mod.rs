@@ -1,5 +1,7 @@
 //! A sampled world and a refined child of it (§4.5) as samplers send them, for the tests of
-//! refined worlds stored as differences (`refined.rs`, `journal.rs`).
+//! refined worlds stored as differences (`refined.rs`, `journal.rs`); and the bus helpers of
+//! the tests that run a store on a session of their own (`journal.rs`, `scenes.rs`): every
+//! await under a timeout.
 #![allow(dead_code)]
 
 use mwb_core::scene::{SceneTemplate, builtin};
@@ -8,6 +10,8 @@ use mwb_sampler::node::{lineage_to_wire, refined_done};
 use mwb_sampler::refine::{BranchAt, Lineage, regenerate};
 use mwb_sampler::{RunOptions, run_world, segment_message, world_done};
 use std::ops::ControlFlow;
+use std::time::{Duration, Instant};
+use zenoh::qos::CongestionControl;
 
 pub const ROOT_SEED: u64 = 0x5eed;
 pub const BRANCH: u32 = 150;
@@ -78,6 +82,71 @@ pub fn refine_job(parent_world: u32) -> Job {
             parent: Some(lineage_to_wire("s", &Lineage::root(ROOT_SEED))),
             objects: vec![0],
             branch_frame: BRANCH,
+            parent_scene: None,
         }),
     )
+}
+
+/// A session of its own (peer, no listen, no connect, no scouting): puts and queries reach a
+/// store running on it.
+pub async fn session() -> zenoh::Session {
+    let mut c = zenoh::Config::default();
+    for (k, v) in [
+        ("mode", "\"peer\""),
+        ("scouting/multicast/enabled", "false"),
+        ("scouting/gossip/enabled", "false"),
+        ("listen/endpoints", "[]"),
+    ] {
+        c.insert_json5(k, v).unwrap_or_else(|e| panic!("{k}: {e}"));
+    }
+    tokio::time::timeout(Duration::from_secs(20), zenoh::open(c))
+        .await
+        .unwrap_or_else(|_| panic!("open timed out"))
+        .unwrap_or_else(|e| panic!("{e}"))
+}
+
+pub async fn close(s: zenoh::Session) {
+    tokio::time::timeout(Duration::from_secs(10), s.close())
+        .await
+        .unwrap_or_else(|_| panic!("close timed out"))
+        .unwrap_or_else(|e| panic!("{e}"));
+}
+
+pub async fn put(s: &zenoh::Session, key: String, bytes: Vec<u8>) {
+    tokio::time::timeout(
+        Duration::from_secs(10),
+        s.put(key, bytes)
+            .congestion_control(CongestionControl::Block),
+    )
+    .await
+    .unwrap_or_else(|_| panic!("put timed out"))
+    .unwrap_or_else(|e| panic!("{e}"));
+}
+
+pub async fn until(what: &str, mut f: impl FnMut() -> bool) {
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while !f() {
+        assert!(Instant::now() < deadline, "timed out waiting for {what}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+/// Every answer to a get on `key` within `wait`: a reply's payload, or an error reply's
+/// message.
+pub async fn ask(s: &zenoh::Session, key: String, wait: Duration) -> Vec<Result<Vec<u8>, String>> {
+    let replies = tokio::time::timeout(Duration::from_secs(10), s.get(key).timeout(wait))
+        .await
+        .unwrap_or_else(|_| panic!("get timed out"))
+        .unwrap_or_else(|e| panic!("{e}"));
+    let mut answers = Vec::new();
+    // The channel closes once every queryable answered, or when `wait` has passed.
+    while let Ok(Ok(r)) =
+        tokio::time::timeout(wait + Duration::from_secs(5), replies.recv_async()).await
+    {
+        answers.push(match r.result() {
+            Ok(sample) => Ok(sample.payload().to_bytes().into_owned()),
+            Err(e) => Err(String::from_utf8_lossy(&e.payload().to_bytes()).into_owned()),
+        });
+    }
+    answers
 }
