@@ -287,6 +287,22 @@ pub async fn fetch_world(session: &Session, keys: &Keys, index: u32) -> Result<O
     Ok(None)
 }
 
+/// How a submitted job is run and followed (`mwb job submit`, `mwb refine`, `mwb scene edit`).
+#[derive(Debug, Clone, clap::Args)]
+pub struct FollowArgs {
+    #[arg(long, default_value_t = 0)]
+    pub priority: i32,
+    /// Follow the job until it closes.
+    #[arg(long)]
+    pub wait: bool,
+    /// Give up waiting after this many seconds.
+    #[arg(long)]
+    pub timeout: Option<u64>,
+    /// Print the result as one JSON line.
+    #[arg(long)]
+    pub json: bool,
+}
+
 /// A scene revision from the stores (`q/scene/<rev>` or `q/scene/latest`), `None` when no
 /// store has it.
 pub async fn fetch_scene(

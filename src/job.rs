@@ -39,20 +39,11 @@ pub struct SubmitArgs {
     pub scene: String,
     #[arg(long, default_value_t = 100)]
     pub worlds: u32,
-    #[arg(long, default_value_t = 0)]
-    pub priority: i32,
     /// Job id [default: <scene name>-<time>].
     #[arg(long)]
     pub id: Option<String>,
-    /// Follow the job until it closes.
-    #[arg(long)]
-    pub wait: bool,
-    /// Give up waiting after this many seconds.
-    #[arg(long)]
-    pub timeout: Option<u64>,
-    /// Print the job's state as one JSON line.
-    #[arg(long)]
-    pub json: bool,
+    #[command(flatten)]
+    pub follow: client::FollowArgs,
     #[command(flatten)]
     pub motion: client::MotionArgs,
 }
@@ -103,11 +94,11 @@ impl Summary for Submitted {
 async fn submit(args: SubmitArgs) -> Result<()> {
     let keys = Keys::new(&args.bus.space)?;
     let (file, text) = client::load_scene(&args.scene)?;
-    let mut job = client::make_job(&file, &text, args.worlds, args.priority, args.id)?;
+    let mut job = client::make_job(&file, &text, args.worlds, args.follow.priority, args.id)?;
     args.motion.apply(&mut job);
     let session = args.bus.open(args.bus.client_default()).await?;
     let mut state = client::submit_job(&session, &keys, &job).await?;
-    if !args.json {
+    if !args.follow.json {
         eprintln!(
             "submitted job {} ({} worlds of {})",
             job.id, args.worlds, file
@@ -121,7 +112,7 @@ async fn submit(args: SubmitArgs) -> Result<()> {
             "warning: no {role} node is alive in space {:?}: the job waits until one joins \
              (`mwb {role} --connect <store endpoint>`){}",
             args.bus.space,
-            if args.wait {
+            if args.follow.wait {
                 format!(
                     "; --wait gives up in {} s",
                     crate::stall::STALL_GRACE.as_secs()
@@ -131,14 +122,14 @@ async fn submit(args: SubmitArgs) -> Result<()> {
             }
         );
     }
-    if args.wait {
-        let bar = (!args.json && std::io::IsTerminal::is_terminal(&std::io::stderr()))
+    if args.follow.wait {
+        let bar = (!args.follow.json && std::io::IsTerminal::is_terminal(&std::io::stderr()))
             .then(|| client::progress_bar(args.worlds));
         let waited = client::wait_job(
             &session,
             &keys,
             &job.id,
-            args.timeout.map(Duration::from_secs),
+            args.follow.timeout.map(Duration::from_secs),
             |st| {
                 if let Some(b) = &bar {
                     b.set_position(u64::from(st.worlds_done));
@@ -159,8 +150,8 @@ async fn submit(args: SubmitArgs) -> Result<()> {
     }
     crate::bus::close(session).await;
     let submitted = Submitted::new(&job.id, &state);
-    if args.json || args.wait {
-        crate::output::print(&submitted, args.json)
+    if args.follow.json || args.follow.wait {
+        crate::output::print(&submitted, args.follow.json)
     } else {
         // Without --wait the id is the result, for scripts to follow the job by.
         crate::output::out(&format!("{}\n", job.id))

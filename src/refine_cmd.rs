@@ -44,20 +44,11 @@ pub struct RefineArgs {
     /// Refined worlds wanted.
     #[arg(long, default_value_t = 50)]
     pub worlds: u32,
-    #[arg(long, default_value_t = 0)]
-    pub priority: i32,
     /// Job id [default: <parent job>-w<world>-<time>].
     #[arg(long)]
     pub id: Option<String>,
-    /// Follow the job until it closes.
-    #[arg(long)]
-    pub wait: bool,
-    /// Give up waiting after this many seconds.
-    #[arg(long)]
-    pub timeout: Option<u64>,
-    /// Print the result as one JSON line.
-    #[arg(long)]
-    pub json: bool,
+    #[command(flatten)]
+    pub follow: client::FollowArgs,
 }
 
 /// What `mwb refine` did.
@@ -132,7 +123,7 @@ pub async fn run(args: RefineArgs) -> Result<()> {
     let session = args.bus.open(args.bus.client_default()).await?;
     let result = refine(&session, &keys, &args, frustum).await;
     crate::bus::close(session).await;
-    crate::output::print(&result?, args.json)
+    crate::output::print(&result?, args.follow.json)
 }
 
 async fn refine(
@@ -177,10 +168,15 @@ async fn refine(
         ),
     };
     mwb_core::keys::check_identifier("job id", &id)?;
-    let job = plan.job(id.clone(), args.worlds, args.priority, client::unix_ms());
+    let job = plan.job(
+        id.clone(),
+        args.worlds,
+        args.follow.priority,
+        client::unix_ms(),
+    );
     let branch_frame = plan.branch_frame;
     let mut state = client::submit_job(session, keys, &job).await?;
-    if !args.json {
+    if !args.follow.json {
         eprintln!(
             "submitted job {id}: {} worlds refining world {} from frame {branch_frame} \
              (t = {:.3} s)",
@@ -189,12 +185,12 @@ async fn refine(
             plan.branch_time_s()
         );
     }
-    if args.wait {
+    if args.follow.wait {
         state = client::wait_job(
             session,
             keys,
             &id,
-            args.timeout.map(Duration::from_secs),
+            args.follow.timeout.map(Duration::from_secs),
             |_| {},
         )
         .await?;

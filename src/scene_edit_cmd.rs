@@ -48,20 +48,11 @@ pub struct EditArgs {
     /// Children per edited world.
     #[arg(long, default_value_t = 10)]
     pub worlds: u32,
-    #[arg(long, default_value_t = 0)]
-    pub priority: i32,
     /// Job id (one world), or its prefix (`<id>-w<world>`) [default: edit-r<rev>-w<world>-<time>].
     #[arg(long)]
     pub id: Option<String>,
-    /// Follow the jobs until they close.
-    #[arg(long)]
-    pub wait: bool,
-    /// Give up waiting after this many seconds.
-    #[arg(long)]
-    pub timeout: Option<u64>,
-    /// Print the result as one JSON line.
-    #[arg(long)]
-    pub json: bool,
+    #[command(flatten)]
+    pub follow: client::FollowArgs,
 }
 
 /// What `mwb scene edit` did.
@@ -91,14 +82,26 @@ pub struct EditJob {
 
 impl Summary for Edited {
     fn table(&self) -> String {
+        let list = |v: &[String]| {
+            if v.is_empty() {
+                "none".to_owned()
+            } else {
+                v.join(", ")
+            }
+        };
+        let modified: Vec<String> = self
+            .modified
+            .iter()
+            .map(|(name, fields)| format!("{name} ({})", fields.join(", ")))
+            .collect();
         let mut t = format!(
-            "scene {:?} revision {}{}: added {:?}, removed {:?}, modified {:?}\n",
+            "scene {:?} revision {}{}: added {}; removed {}; changed {}\n",
             self.scene,
             self.revision,
             if self.published { " (published)" } else { "" },
-            self.added,
-            self.removed,
-            self.modified
+            list(&self.added),
+            list(&self.removed),
+            list(&modified)
         );
         for j in &self.jobs {
             t += &format!(
@@ -127,7 +130,7 @@ pub async fn run(args: EditArgs) -> Result<()> {
     let session = args.bus.open(args.bus.client_default()).await?;
     let result = edit(&session, &keys, &args, &edits).await;
     crate::bus::close(session).await;
-    crate::output::print(&result?, args.json)
+    crate::output::print(&result?, args.follow.json)
 }
 
 /// The text edits of `--remove`, `--add-body`, `--set`, in that order.
@@ -225,9 +228,15 @@ async fn edit(
             (None, _) => format!("edit-r{revision}-w{}-{stamp:x}", plan.parent_world),
         };
         mwb_core::keys::check_identifier("job id", &id)?;
-        let job = plan.job(id.clone(), revision, args.worlds, args.priority, stamp);
+        let job = plan.job(
+            id.clone(),
+            revision,
+            args.worlds,
+            args.follow.priority,
+            stamp,
+        );
         let state = client::submit_job(session, keys, &job).await?;
-        if !args.json {
+        if !args.follow.json {
             eprintln!(
                 "submitted job {id}: {} worlds editing world {} (scene revision {revision})",
                 args.worlds, plan.parent_world
@@ -237,12 +246,12 @@ async fn edit(
     }
     let mut out = Vec::new();
     for (id, parent_world, mut state) in jobs {
-        if args.wait {
+        if args.follow.wait {
             state = client::wait_job(
                 session,
                 keys,
                 &id,
-                args.timeout.map(Duration::from_secs),
+                args.follow.timeout.map(Duration::from_secs),
                 |_| {},
             )
             .await?;

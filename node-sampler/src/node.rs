@@ -449,23 +449,7 @@ mod tests {
             }),
             ..Default::default()
         });
-        let scene = j.scene.clone().unwrap_or_default();
-        let prepared = Forward
-            .prepare(&j, &scene)
-            .unwrap_or_else(|e| panic!("{e}"));
-        let w = WorldTask {
-            job: &j,
-            node: "n",
-            counter: 0,
-            seed: 77,
-        };
-        let mut segs = Vec::new();
-        let done = Forward
-            .run(&w, &prepared, &mut |s| {
-                segs.push(s);
-                ControlFlow::Continue(())
-            })
-            .unwrap_or_else(|e| panic!("{e}"));
+        let (segs, done) = run_one(&j, 0, 77);
         let lineage = done.lineage.clone().unwrap_or_default();
         let last = lineage.steps.last().cloned().unwrap_or_default();
         assert_eq!((last.frame, last.seed, last.scene_revision), (0, 77, 4));
@@ -495,6 +479,26 @@ mod tests {
                 .is_some_and(|e| e.contains("statics: `ground` changed")),
             "{err:?}"
         );
+    }
+
+    /// Prepares job `j` and runs its world `seed` (counter `counter`): the segments and summary.
+    fn run_one(j: &Job, counter: u64, seed: u64) -> (Vec<MotionSegment>, WorldDone) {
+        let scene = j.scene.clone().unwrap_or_default();
+        let prepared = Forward.prepare(j, &scene).unwrap_or_else(|e| panic!("{e}"));
+        let w = WorldTask {
+            job: j,
+            node: "n",
+            counter,
+            seed,
+        };
+        let mut segs = Vec::new();
+        let done = Forward
+            .run(&w, &prepared, &mut |s| {
+                segs.push(s);
+                ControlFlow::Continue(())
+            })
+            .unwrap_or_else(|e| panic!("{e}"));
+        (segs, done)
     }
 
     #[test]
@@ -537,22 +541,7 @@ mod tests {
             branch_frame: 30,
             parent_scene: None,
         });
-        let prepared = Forward
-            .prepare(&j, &scene)
-            .unwrap_or_else(|e| panic!("{e}"));
-        let w = WorldTask {
-            job: &j,
-            node: "n",
-            counter: 0,
-            seed: 99,
-        };
-        let mut segs = Vec::new();
-        let done = Forward
-            .run(&w, &prepared, &mut |s| {
-                segs.push(s);
-                ControlFlow::Continue(())
-            })
-            .unwrap_or_else(|e| panic!("{e}"));
+        let (segs, done) = run_one(&j, 0, 99);
         let lineage = done.lineage.clone().unwrap_or_default();
         assert_eq!((lineage.root_job.as_str(), lineage.root_seed), ("root", 5));
         assert_eq!(lineage.steps.len(), 1);
@@ -580,9 +569,13 @@ mod tests {
     #[test]
     fn a_world_runs_to_its_summary_and_stops_when_emit_breaks() {
         let j = job(JobKind::Sample, TUMBLE);
-        let scene = j.scene.clone().unwrap_or_default();
+        let (segs, done) = run_one(&j, 4, 17);
+        assert_eq!(done.seed, 17);
+        assert_eq!((done.job_id.as_str(), done.world_counter), ("j", 4));
+        assert_eq!(done.segment_count as usize, segs.len());
+        assert!(segs.iter().all(|s| s.node_id == "n" && s.seed == 17));
         let template = Forward
-            .prepare(&j, &scene)
+            .prepare(&j, &j.scene.clone().unwrap_or_default())
             .unwrap_or_else(|e| panic!("{e}"));
         let w = WorldTask {
             job: &j,
@@ -590,17 +583,6 @@ mod tests {
             counter: 4,
             seed: 17,
         };
-        let mut segs = Vec::new();
-        let done = Forward
-            .run(&w, &template, &mut |s| {
-                segs.push(s);
-                ControlFlow::Continue(())
-            })
-            .unwrap_or_else(|e| panic!("{e}"));
-        assert_eq!(done.seed, 17);
-        assert_eq!((done.job_id.as_str(), done.world_counter), ("j", 4));
-        assert_eq!(done.segment_count as usize, segs.len());
-        assert!(segs.iter().all(|s| s.node_id == "n" && s.seed == 17));
         assert!(matches!(
             Forward.run(&w, &template, &mut |_| ControlFlow::Break(())),
             Err(WorldError::Run(RunError::Stopped))

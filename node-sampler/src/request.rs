@@ -119,6 +119,8 @@ struct Stored<'w> {
     scene: Scene,
     template: SceneTemplate,
     lineage: Lineage,
+    /// `lineage` as this binary regenerates it (refused when it holds a scene edit).
+    wire_lineage: crate::refine::Lineage,
 }
 
 /// Stored world `world` of job `parent_job` as a parent: a forward world, its job's scene, its
@@ -147,12 +149,17 @@ fn stored<'w>(world: &'w World, parent_job: &Job) -> Result<Stored<'w>, RequestE
         root_seed: done.seed,
         steps: Vec::new(),
     });
+    let wire_lineage = lineage_from_wire(&lineage).map_err(|source| RequestError::Lineage {
+        world: index,
+        source,
+    })?;
     Ok(Stored {
         index,
         done,
         scene,
         template,
         lineage,
+        wire_lineage,
     })
 }
 
@@ -171,11 +178,8 @@ pub fn plan(
         scene,
         template,
         lineage,
+        wire_lineage,
     } = stored(world, parent_job)?;
-    let wire_lineage = lineage_from_wire(&lineage).map_err(|source| RequestError::Lineage {
-        world: index,
-        source,
-    })?;
     let instance = template.instantiate(lineage.root_seed);
     let names: Vec<String> = instance.bodies.iter().map(|b| b.name.clone()).collect();
     let objects = resolve_objects(
@@ -313,11 +317,8 @@ pub fn plan_edit(
         scene,
         template,
         lineage,
+        wire_lineage,
     } = stored(world, parent_job)?;
-    let wire_lineage = lineage_from_wire(&lineage).map_err(|source| RequestError::Lineage {
-        world: index,
-        source,
-    })?;
     let edited = SceneTemplate::parse(toml, file)?;
     let parent = regenerate(&template, &wire_lineage, &BranchAt::Frame(0)).map_err(|source| {
         RequestError::Regenerate {
