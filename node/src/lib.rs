@@ -8,6 +8,8 @@
 //!   congestion control; giving up jobs whose worlds keep failing. A kind of worker (forward
 //!   sampler, reverse stepper, refinement) implements [`WorkerKind`] — which jobs it takes,
 //!   how a job's scene is prepared, how a job and a seed become segments and a summary.
+//! * [`room`] — back-pressure: workers take no new world while a store is full (from the
+//!   stores' statistics).
 //! * [`job`] — jobs as clients make them: a scene argument read, a sampling job built.
 //! * [`wire`] — the wire forms all producers of worlds share (segment messages, the job's
 //!   codec preset).
@@ -75,6 +77,7 @@
 mod board;
 pub mod bus;
 pub mod job;
+pub mod room;
 pub mod wire;
 pub mod worker;
 

@@ -12,12 +12,13 @@
 
 use crate::board::{Board, Ended, Picked};
 use crate::bus::{self, Node, NodeError, Subscription};
+use crate::room::StoreRoom;
 use mwb_core::rng::world_seed;
 use mwb_proto::v1::{Job, JobKind, JobState, Message, MotionSegment, NodeStats, Scene, WorldDone};
 use std::ops::ControlFlow;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
 use tracing::{debug, info, warn};
@@ -135,6 +136,10 @@ struct Shared<K: WorkerKind> {
     node: Arc<Node>,
     board: Mutex<Board<K::Scene>>,
     control: Arc<Control>,
+    /// The stores' room (back-pressure: no new world while a store is full).
+    room: Mutex<StoreRoom>,
+    /// Whether the workers are paused for a full store (logged when it changes).
+    paused: AtomicBool,
 }
 
 impl<K: WorkerKind> Shared<K> {
@@ -149,8 +154,27 @@ impl<K: WorkerKind> Shared<K> {
         self.control.wake.notify_all();
     }
 
-    /// The next world to compute, or `None` after waiting a while for one.
+    /// Why no new world may start: a store is full ([`crate::room`]).
+    fn store_full(&self) -> Option<String> {
+        let room = self.room.lock().unwrap_or_else(|p| p.into_inner());
+        let why = room.full(Instant::now()).map(str::to_owned);
+        let was = self.paused.swap(why.is_some(), Ordering::Relaxed);
+        match (&why, was) {
+            (Some(w), false) => info!(why = %w, "pausing: a store is full"),
+            (None, true) => info!("resuming: the stores have room"),
+            _ => {}
+        }
+        why
+    }
+
+    /// The next world to compute, or `None` after waiting a while for one (or while a store is
+    /// full: back-pressure instead of worlds that would be refused).
     fn next_world(&self) -> Option<Picked<K::Scene>> {
+        if self.store_full().is_some() {
+            let board = self.lock();
+            let _ = self.control.wake.wait_timeout(board, IDLE_WAIT);
+            return None;
+        }
         let mut board = self.lock();
         let picked = board.pick();
         if picked.is_none() {
@@ -249,7 +273,12 @@ pub async fn run_workers<K: WorkerKind>(
         node: node.clone(),
         board: Mutex::new(Board::new(K::takes, K::GIVE_UP_AFTER)),
         control: control.clone(),
+        room: Mutex::new(StoreRoom::default()),
+        paused: AtomicBool::new(false),
     });
+    let stores = node
+        .subscribe(node.keys().stats(mwb_core::keys::role::STORE, "*"))
+        .await?;
     let (out, rx) = mpsc::channel::<Put>(cfg.queue.max(1));
     let workers = cfg.workers.max(1);
     let stats = {
@@ -264,6 +293,7 @@ pub async fn run_workers<K: WorkerKind>(
             tokio::spawn(publish(node.clone(), rx)),
             tokio::spawn(follow_jobs(shared.clone(), jobs)),
             tokio::spawn(follow_states(shared.clone(), states)),
+            tokio::spawn(follow_stores(shared.clone(), stores)),
             tokio::spawn(refresh(shared.clone(), cfg.refresh)),
             tokio::spawn(bus::publish_stats(node.clone(), stats)),
         ],
@@ -298,6 +328,18 @@ async fn follow_jobs<K: WorkerKind>(shared: Arc<Shared<K>>, sub: Subscription) {
 async fn follow_states<K: WorkerKind>(shared: Arc<Shared<K>>, sub: Subscription) {
     bus::apply(shared.node.clone(), sub, |st: JobState| {
         shared.lock().apply_state(&st);
+    })
+    .await;
+}
+
+/// The stores' statistics: their room under the memory cap.
+async fn follow_stores<K: WorkerKind>(shared: Arc<Shared<K>>, sub: Subscription) {
+    bus::apply(shared.node.clone(), sub, |st: NodeStats| {
+        shared
+            .room
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .observe(&st, Instant::now());
     })
     .await;
 }

@@ -1,0 +1,136 @@
+//! The memory cap under a flood: a store whose cap holds a few hundred worlds, a sampler, a job
+//! of far more. Once the store is full the sampler pauses — back-pressure read from the stores'
+//! statistics — instead of computing worlds that would be refused; the store holds no more than
+//! its cap; and it keeps answering queries.
+
+use mwb_core::keys::Keys;
+use mwb_proto::v1::{Message, World};
+use std::time::{Duration, Instant};
+use zenoh::qos::CongestionControl;
+
+/// A session of its own (peer, no listen, no scouting): the store and the sampler share it.
+async fn session() -> zenoh::Session {
+    let mut c = zenoh::Config::default();
+    for (k, v) in [
+        ("mode", "\"peer\""),
+        ("scouting/multicast/enabled", "false"),
+        ("scouting/gossip/enabled", "false"),
+        ("listen/endpoints", "[]"),
+    ] {
+        c.insert_json5(k, v).unwrap_or_else(|e| panic!("{k}: {e}"));
+    }
+    tokio::time::timeout(Duration::from_secs(20), zenoh::open(c))
+        .await
+        .unwrap_or_else(|_| panic!("open timed out"))
+        .unwrap_or_else(|e| panic!("{e}"))
+}
+
+async fn until(what: &str, limit: Duration, mut f: impl FnMut() -> bool) {
+    let deadline = Instant::now() + limit;
+    while !f() {
+        assert!(Instant::now() < deadline, "timed out waiting for {what}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_full_store_pauses_the_samplers_and_keeps_answering() {
+    let s = session().await;
+    let space = format!("flood{}", std::process::id());
+    let keys = Keys::new(&space).unwrap_or_else(|e| panic!("{e}"));
+    let cap = 1u64 << 20;
+    let store = tokio::time::timeout(
+        Duration::from_secs(30),
+        mwb_store::run_store(
+            s.clone(),
+            mwb_store::StoreConfig {
+                space: space.clone(),
+                memory_cap_bytes: cap,
+                ..Default::default()
+            },
+        ),
+    )
+    .await
+    .unwrap_or_else(|_| panic!("store start timed out"))
+    .unwrap_or_else(|e| panic!("{e}"));
+    let sampler = tokio::time::timeout(
+        Duration::from_secs(30),
+        mwb_sampler::run_sampler(
+            s.clone(),
+            mwb_sampler::SamplerConfig {
+                space: space.clone(),
+                workers: 1,
+                ..Default::default()
+            },
+        ),
+    )
+    .await
+    .unwrap_or_else(|_| panic!("sampler start timed out"))
+    .unwrap_or_else(|e| panic!("{e}"));
+    let job = mwb::client::make_job(
+        "tumble",
+        mwb_core::scene::builtin::TUMBLE,
+        1_000_000,
+        0,
+        Some("flood".into()),
+    )
+    .unwrap_or_else(|e| panic!("{e}"));
+    tokio::time::timeout(
+        Duration::from_secs(10),
+        s.put(keys.job("flood"), job.encode_to_vec())
+            .congestion_control(CongestionControl::Block),
+    )
+    .await
+    .unwrap_or_else(|_| panic!("put timed out"))
+    .unwrap_or_else(|e| panic!("{e}"));
+
+    until(
+        "the store to refuse a world for memory",
+        Duration::from_secs(120),
+        || store.stats().refused_memory > 0,
+    )
+    .await;
+    // The refusal reaches the sampler with the store's next statistics (every second).
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let (worlds, refused) = (sampler.worlds(), store.stats().refused_memory);
+    tokio::time::sleep(Duration::from_secs(4)).await;
+    let (worlds_after, refused_after) = (sampler.worlds(), store.stats().refused_memory);
+    // Unpaused, one worker computes a tumble world in a few milliseconds: hundreds in 4 s.
+    assert!(
+        worlds_after - worlds <= 4,
+        "the sampler went on: {worlds} → {worlds_after} worlds in 4 s"
+    );
+    assert!(
+        refused_after - refused <= 4,
+        "refusals went on: {refused} → {refused_after}"
+    );
+    let stats = store.stats();
+    assert!(
+        stats.memory_bytes <= cap,
+        "the store holds {} bytes, its cap is {cap}",
+        stats.memory_bytes
+    );
+    assert!(store.world_count() > 10, "{} worlds", store.world_count());
+    // Still answering.
+    let replies = tokio::time::timeout(Duration::from_secs(10), s.get(keys.world(0)))
+        .await
+        .unwrap_or_else(|_| panic!("query timed out"))
+        .unwrap_or_else(|e| panic!("{e}"));
+    let reply = tokio::time::timeout(Duration::from_secs(10), replies.recv_async())
+        .await
+        .unwrap_or_else(|_| panic!("no answer within 10 s"))
+        .unwrap_or_else(|e| panic!("{e}"));
+    let bytes = reply
+        .result()
+        .unwrap_or_else(|e| panic!("{e:?}"))
+        .payload()
+        .to_bytes();
+    let world = World::decode(bytes.as_ref()).unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(world.index, 0);
+    sampler.stop().await;
+    store.stop();
+    tokio::time::timeout(Duration::from_secs(10), s.close())
+        .await
+        .unwrap_or_else(|_| panic!("close timed out"))
+        .unwrap_or_else(|e| panic!("{e}"));
+}
