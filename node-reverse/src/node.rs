@@ -104,7 +104,6 @@ pub fn segment_message(
         body_count: seg.body_count,
         encoding: Encoding::SplineV1,
         payload: seg.payload,
-        lowres: seg.lowres,
     };
     mwb_node::segment_message(job_id, node, counter, seed, body)
 }

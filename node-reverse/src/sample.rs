@@ -34,7 +34,7 @@
 
 use std::ops::ControlFlow;
 
-use mwb_codec::{EncodeParams, LowResPath, MotionModel, Quality, Track, encode_world};
+use mwb_codec::{EncodeParams, MotionModel, Quality, Track, encode_world};
 use mwb_core::perturb;
 use mwb_core::scene::{Scene, SceneTemplate};
 use mwb_proto::v1::WorldDone;
@@ -167,8 +167,6 @@ pub struct Segment {
     /// An `mwb-codec` world stream of this segment's frames, one object per body
     /// (`ENCODING_SPLINE_V1`).
     pub payload: Vec<u8>,
-    /// The few-Hz path of each body over this segment (frames relative to `first_frame`).
-    pub lowres: Vec<LowResPath>,
 }
 
 /// What a backward world looks like played forward, and how plausible it is.
@@ -399,7 +397,6 @@ pub fn sample_world(
             frame_count: (end - start) as u32,
             body_count: n as u32,
             payload: encoded.bytes,
-            lowres: encoded.lowres,
         };
         segment_count += 1;
         if emit(seg).is_break() {

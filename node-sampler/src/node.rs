@@ -384,7 +384,6 @@ pub fn segment_message(
         body_count,
         bodies,
         payload,
-        lowres,
         encoding,
     } = seg;
     let encoding = match encoding {
@@ -399,7 +398,6 @@ pub fn segment_message(
         body_count,
         encoding,
         payload,
-        lowres,
     };
     mwb_node::segment_message(job_id, node, counter, seed, body)
 }

@@ -8,8 +8,7 @@
 //! whose low-resolution path travels beside it.
 
 use mwb_codec::{
-    EncodeParams, LowResPath, MotionModel, Quality, RotationDynamics, Track,
-    encode_world_with_dynamics,
+    EncodeParams, MotionModel, Quality, RotationDynamics, Track, encode_world_with_dynamics,
 };
 use mwb_core::frames::Pose as FramePose;
 use mwb_core::perturb::{self, V3};
@@ -98,8 +97,6 @@ pub struct Segment {
     /// An `mwb-codec` world stream of this segment's frames, one object per body in scene order
     /// (`ENCODING_SPLINE_V1` on the wire).
     pub payload: Vec<u8>,
-    /// The few-Hz path of each body over this segment (frames relative to `first_frame`).
-    pub lowres: Vec<LowResPath>,
     /// How `payload` is encoded.
     pub encoding: PayloadEncoding,
 }
@@ -740,7 +737,6 @@ pub(crate) fn advance(
 /// bodies become one self-contained codec world (or quantised frames), emitted at once.
 pub(crate) struct Recorder<'a> {
     opts: RunOptions,
-    dt: f64,
     frames_per_segment: usize,
     params: EncodeParams,
     dynamics: Option<RotationDynamics>,
@@ -768,7 +764,6 @@ impl<'a> Recorder<'a> {
         let frames_per_segment = frames_per_segment(scene);
         Self {
             opts,
-            dt: s.dt,
             frames_per_segment,
             params: EncodeParams::from_quality(opts.quality, s.dt, motion_model(scene)),
             dynamics: rotation_dynamics(scene, sim),
@@ -825,12 +820,10 @@ impl<'a> Recorder<'a> {
             (&tracks, dynamics)
         };
         let n = selected.len();
-        let (payload, lowres) = match self.opts.encoding {
+        let payload = match self.opts.encoding {
             // Each segment is its own codec world, so it decodes without its neighbours.
             PayloadEncoding::Spline => {
-                let encoded =
-                    encode_world_with_dynamics(selected, &self.params, dynamics.as_ref())?;
-                (encoded.bytes, encoded.lowres)
+                encode_world_with_dynamics(selected, &self.params, dynamics.as_ref())?.bytes
             }
             PayloadEncoding::QuantisedFrames => {
                 let frames = frame_count as usize;
@@ -842,17 +835,7 @@ impl<'a> Recorder<'a> {
                         })
                     })
                     .collect();
-                let lowres = selected
-                    .iter()
-                    .map(|t| {
-                        LowResPath::from_positions(
-                            &t.positions,
-                            self.dt,
-                            mwb_codec::DEFAULT_LOWRES_HZ,
-                        )
-                    })
-                    .collect();
-                (mwb_core::frames::encode(&poses, n)?, lowres)
+                mwb_core::frames::encode(&poses, n)?
             }
         };
         (self.observe)(selected);
@@ -868,7 +851,6 @@ impl<'a> Recorder<'a> {
                 chosen.iter().map(|&b| b as u32).collect()
             },
             payload,
-            lowres,
             encoding: self.opts.encoding,
         };
         for t in self.pending.iter_mut() {

@@ -540,7 +540,7 @@ fn full_tracks(
 /// object gets an error-bounded polyline ([`Polyline::simplify`], deviation ≤ `tolerance`),
 /// stored grid-rounded ([`IndexedObject::new`]); its never-miss radius is the codec's e_max
 /// plus the measured deviation plus the measured rounding.
-/// (The 4 Hz low-res path that travels with the segments is meant for instant display: a
+/// (A 4 Hz low-res path — old recordings carry one beside each segment — would not do: a
 /// bouncing box strays decimetres from it, which would widen every query box as much.)
 /// Metrics come from the same full-rate track; impact counts from the world summary; rest
 /// thresholds from the job's scene.

@@ -57,7 +57,6 @@
 //!             body_count: 0,
 //!             encoding: Encoding::SplineV1,
 //!             payload: Vec::new(),
-//!             lowres: Vec::new(),
 //!         };
 //!         if emit(segment_message(&w.job.id, w.node, w.counter, w.seed, body)).is_break() {
 //!             return Err(Stopped);

@@ -26,12 +26,11 @@ pub struct SegmentBody {
     /// How `payload` is encoded.
     pub encoding: Encoding,
     pub payload: Vec<u8>,
-    /// The few-Hz path of each body over this segment.
-    pub lowres: Vec<mwb_codec::LowResPath>,
 }
 
-/// The wire form of segment `body` of world `(job, node, counter)`: the payload with its CRC32
-/// and, beside it, the low-resolution paths.
+/// The wire form of segment `body` of world `(job, node, counter)`: the payload with its CRC32.
+/// No low-resolution path goes beside it any more: viewers draw the store's error-bounded index
+/// paths (`q/paths`), and the 4 Hz path was about half of a stored tumble world's segment bytes.
 pub fn segment_message(
     job_id: &str,
     node: &str,
@@ -51,33 +50,8 @@ pub fn segment_message(
         bodies: body.bodies,
         encoding: body.encoding as i32,
         crc32: crc32fast::hash(&body.payload),
-        lowres: Some(lowres_message(&body.lowres, mwb_codec::DEFAULT_LOWRES_HZ)),
+        lowres: None,
         payload: body.payload,
-    }
-}
-
-/// A segment's low-resolution paths on the wire: the vertex frames once (they are the same for
-/// every body of a segment), then every body's vertices.
-fn lowres_message(paths: &[mwb_codec::LowResPath], hz: f64) -> LowResPath {
-    LowResPath {
-        hz,
-        frames: paths.first().map(|p| p.frames.clone()).unwrap_or_default(),
-        xyz: paths
-            .iter()
-            .flat_map(|p| p.positions.iter().flatten().copied())
-            .collect(),
-        // Rounded up, so the bound stays a bound in f32.
-        max_deviation: paths
-            .iter()
-            .map(|p| {
-                let d = p.max_deviation as f32;
-                if f64::from(d) < p.max_deviation {
-                    d.next_up()
-                } else {
-                    d
-                }
-            })
-            .collect(),
     }
 }
 
@@ -204,12 +178,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn deviations_round_up_and_the_crc_covers_the_payload() {
-        let path = mwb_codec::LowResPath {
-            frames: vec![0, 4],
-            positions: vec![[0.0, 1.0, 2.0], [3.0, 4.0, 5.0]],
-            max_deviation: 0.1,
-        };
+    fn the_crc_covers_the_payload_and_no_low_res_path_is_sent() {
         let msg = segment_message(
             "j",
             "n",
@@ -223,17 +192,11 @@ mod tests {
                 body_count: 1,
                 encoding: Encoding::SplineV1,
                 payload: vec![1, 2, 3],
-                lowres: vec![path],
             },
         );
         assert_eq!(msg.crc32, crc32fast::hash(&[1, 2, 3]));
         assert_eq!(msg.encoding, Encoding::SplineV1 as i32);
-        let lowres = msg.lowres.unwrap_or_default();
-        assert_eq!(lowres.frames, [0, 4]);
-        assert_eq!(lowres.xyz, [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]);
-        // 0.1 is not an f32: the f32 sent is the next one up, never below the true bound.
-        assert!(f64::from(lowres.max_deviation[0]) >= 0.1);
-        assert!(lowres.max_deviation[0] > 0.1f32.next_down());
+        assert_eq!(msg.lowres, None);
     }
 
     #[test]
@@ -251,7 +214,6 @@ mod tests {
                 body_count: 1,
                 encoding: Encoding::SplineV1,
                 payload: vec![1, 2, 3],
-                lowres: Vec::new(),
             },
         );
         let done = WorldDone {

@@ -62,7 +62,6 @@ impl WorkerKind for Trivial {
                 body_count: 1,
                 encoding: Encoding::SplineV1,
                 payload: vec![7; 5],
-                lowres: Vec::new(),
             };
             if emit(segment_message(&w.job.id, w.node, w.counter, w.seed, body)).is_break() {
                 return Err(Refused::Stopped);
