@@ -8,17 +8,9 @@ use mwb_proto::v1::{Message, World};
 use std::time::{Duration, Instant};
 use zenoh::qos::CongestionControl;
 
-/// A session of its own (peer, no listen, no scouting): the store and the sampler share it.
+/// A session of its own (isolated: no listen, no scouting): the store and the sampler share it.
 async fn session() -> zenoh::Session {
-    let mut c = zenoh::Config::default();
-    for (k, v) in [
-        ("mode", "\"peer\""),
-        ("scouting/multicast/enabled", "false"),
-        ("scouting/gossip/enabled", "false"),
-        ("listen/endpoints", "[]"),
-    ] {
-        c.insert_json5(k, v).unwrap_or_else(|e| panic!("{k}: {e}"));
-    }
+    let c = mwb_node::bus::isolated_config();
     tokio::time::timeout(Duration::from_secs(20), zenoh::open(c))
         .await
         .unwrap_or_else(|_| panic!("open timed out"))

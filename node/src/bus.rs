@@ -263,6 +263,25 @@ pub async fn apply<M: Message + Default>(
     }
 }
 
+/// The configuration of a session that talks only to the sessions of its own process: a peer
+/// with scouting off and no listener (nodes started on one session reach each other; nothing
+/// outside does). For in-process tests and benches.
+pub fn isolated_config() -> zenoh::Config {
+    let mut c = zenoh::Config::default();
+    for (k, v) in [
+        ("mode", "\"peer\""),
+        ("scouting/multicast/enabled", "false"),
+        ("scouting/gossip/enabled", "false"),
+        ("listen/endpoints", "[]"),
+    ] {
+        // Fixed keys and values that zenoh's schema accepts (checked by the tests that use it).
+        if let Err(e) = c.insert_json5(k, v) {
+            warn!(key = k, error = %e, "isolated session config");
+        }
+    }
+    c
+}
+
 /// Publishes `stats()` on `stats/<role>/<node>` every [`STATS_EVERY`], with `worlds_per_s`
 /// measured between consecutive snapshots.
 pub async fn publish_stats(node: Arc<Node>, stats: impl Fn() -> NodeStats) {

@@ -90,15 +90,7 @@ pub fn refine_job(parent_world: u32) -> Job {
 /// A session of its own (peer, no listen, no connect, no scouting): puts and queries reach a
 /// store running on it.
 pub async fn session() -> zenoh::Session {
-    let mut c = zenoh::Config::default();
-    for (k, v) in [
-        ("mode", "\"peer\""),
-        ("scouting/multicast/enabled", "false"),
-        ("scouting/gossip/enabled", "false"),
-        ("listen/endpoints", "[]"),
-    ] {
-        c.insert_json5(k, v).unwrap_or_else(|e| panic!("{k}: {e}"));
-    }
+    let c = mwb_node::bus::isolated_config();
     tokio::time::timeout(Duration::from_secs(20), zenoh::open(c))
         .await
         .unwrap_or_else(|_| panic!("open timed out"))
