@@ -91,13 +91,10 @@ impl RefinePlan {
     pub fn job(&self, id: String, worlds: u32, priority: i32, created_unix_ms: u64) -> Job {
         Job {
             id,
-            revision: 1,
-            kind: JobKind::Refine as i32,
             scene: Some(self.scene.clone()),
             target_worlds: worlds,
             priority,
             created_unix_ms,
-            cancelled: false,
             encoding: self.encoding,
             quality: self.quality,
             refine: Some(Refinement {
@@ -108,6 +105,7 @@ impl RefinePlan {
                 branch_frame: self.branch_frame,
                 parent_scene: None,
             }),
+            ..refine_job()
         }
     }
 }
@@ -223,6 +221,17 @@ pub fn plan(
     })
 }
 
+/// What every REFINE job (refinement or scene edit) announces the same way: its first revision,
+/// not cancelled.
+fn refine_job() -> Job {
+    Job {
+        revision: 1,
+        kind: JobKind::Refine as i32,
+        cancelled: false,
+        ..Job::default()
+    }
+}
+
 /// A parent this binary regenerated to `ours` frames is the stored one (`done`).
 fn same_world(index: u32, done: &mwb_proto::v1::WorldDone, ours: u32) -> Result<(), RequestError> {
     if ours != done.frame_count {
@@ -281,13 +290,10 @@ impl EditPlan {
     ) -> Job {
         Job {
             id,
-            revision: 1,
-            kind: JobKind::Refine as i32,
             scene: Some(self.scene(revision)),
             target_worlds: worlds,
             priority,
             created_unix_ms,
-            cancelled: false,
             encoding: self.encoding,
             quality: self.quality,
             refine: Some(Refinement {
@@ -298,6 +304,7 @@ impl EditPlan {
                 branch_frame: 0,
                 parent_scene: Some(self.parent_scene.clone()),
             }),
+            ..refine_job()
         }
     }
 }

@@ -9,11 +9,9 @@ mod common;
 use common::{close, put, session, until};
 use mwb_core::keys::Keys;
 use mwb_proto::v1::{Job, Message, MotionSegment, WorldDone};
-use mwb_store::{StoreConfig, StoreHandle, run_store};
+use mwb_store::{StoreConfig, StoreHandle};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU32, Ordering};
-use std::time::Duration;
 
 const SPACE: &str = "journaltest";
 
@@ -81,25 +79,16 @@ async fn put_world(s: &zenoh::Session, keys: &Keys, w: &(Vec<MotionSegment>, Wor
 }
 
 async fn store(s: &zenoh::Session, journal: Option<&Path>, load: Vec<PathBuf>) -> StoreHandle {
-    // A store of its own name each time (stores follow each other on one session).
-    static N: AtomicU32 = AtomicU32::new(0);
-    let node_id = format!("store{}", N.fetch_add(1, Ordering::Relaxed));
-    tokio::time::timeout(
-        Duration::from_secs(60),
-        run_store(
-            s.clone(),
-            StoreConfig {
-                space: SPACE.into(),
-                journal: journal.map(Path::to_owned),
-                load,
-                node_id: Some(node_id),
-                ..Default::default()
-            },
-        ),
+    common::start_store(
+        s,
+        StoreConfig {
+            space: SPACE.into(),
+            journal: journal.map(Path::to_owned),
+            load,
+            ..Default::default()
+        },
     )
     .await
-    .unwrap_or_else(|_| panic!("store start timed out"))
-    .unwrap_or_else(|e| panic!("{e}"))
 }
 
 /// Every stored world as (job, seed) → its encoded summary and segments.

@@ -9,9 +9,8 @@ mod common;
 use common::{ask, close, put, session, until};
 use mwb_core::keys::{Keys, SceneRev};
 use mwb_proto::v1::{Job, Message, Scene};
-use mwb_store::{ShardSpec, StoreConfig, StoreHandle, run_store};
+use mwb_store::{ShardSpec, StoreConfig, StoreHandle};
 use std::path::Path;
-use std::sync::atomic::{AtomicU32, Ordering};
 use std::time::Duration;
 
 const SPACE: &str = "scenetest";
@@ -32,25 +31,16 @@ fn scene(revision: u64, toml: &str) -> Scene {
 }
 
 async fn store(s: &zenoh::Session, journal: Option<&Path>, shard: ShardSpec) -> StoreHandle {
-    // A store of its own name each time (stores follow each other on one session).
-    static N: AtomicU32 = AtomicU32::new(0);
-    let node_id = format!("store{}", N.fetch_add(1, Ordering::Relaxed));
-    tokio::time::timeout(
-        Duration::from_secs(60),
-        run_store(
-            s.clone(),
-            StoreConfig {
-                space: SPACE.into(),
-                journal: journal.map(Path::to_owned),
-                node_id: Some(node_id),
-                shard,
-                ..Default::default()
-            },
-        ),
+    common::start_store(
+        s,
+        StoreConfig {
+            space: SPACE.into(),
+            journal: journal.map(Path::to_owned),
+            shard,
+            ..Default::default()
+        },
     )
     .await
-    .unwrap_or_else(|_| panic!("store start timed out"))
-    .unwrap_or_else(|e| panic!("{e}"))
 }
 
 async fn put_scene(s: &zenoh::Session, scene: &Scene) {

@@ -142,3 +142,27 @@ pub async fn ask(s: &zenoh::Session, key: String, wait: Duration) -> Vec<Result<
     }
     answers
 }
+
+/// Starts a store on `s` under a name of its own (stores follow each other on one session):
+/// `cfg` with a fresh `node_id`.
+pub async fn start_store(
+    s: &zenoh::Session,
+    cfg: mwb_store::StoreConfig,
+) -> mwb_store::StoreHandle {
+    use std::sync::atomic::{AtomicU32, Ordering};
+    static N: AtomicU32 = AtomicU32::new(0);
+    let node_id = format!("store{}", N.fetch_add(1, Ordering::Relaxed));
+    tokio::time::timeout(
+        Duration::from_secs(60),
+        mwb_store::run_store(
+            s.clone(),
+            mwb_store::StoreConfig {
+                node_id: Some(node_id),
+                ..cfg
+            },
+        ),
+    )
+    .await
+    .unwrap_or_else(|_| panic!("store start timed out"))
+    .unwrap_or_else(|e| panic!("{e}"))
+}
