@@ -4,6 +4,7 @@
 use crate::stall::Watch;
 use anyhow::{Context, Result, anyhow, bail};
 use mwb_core::keys::{Keys, role};
+use mwb_core::scene::SimPreset;
 use mwb_proto::v1::{Encoding, Job, JobKind, JobState, Message, NodeStats, Quality, Scene, World};
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
@@ -569,15 +570,22 @@ pub fn job_rate(st: &JobState) -> f64 {
     }
 }
 
-/// How a job's worlds are encoded: the sampler's speed-versus-size knobs.
+/// How a job's worlds are simulated and encoded: the sampler's speed-versus-accuracy and
+/// speed-versus-size knobs.
 #[derive(Debug, Clone, Copy, Default, clap::Args)]
 pub struct MotionArgs {
     /// Segment payload: the spline codec (small) or quantised frames (cheap to produce).
     #[arg(long, value_enum, default_value_t = EncodingArg::Spline)]
     pub encoding: EncodingArg,
-    /// Codec error bounds: draft 5 mm / 5 mrad, standard 1 mm / 1 mrad, final 0.1 mm / 0.1 mrad.
-    #[arg(long, value_enum, default_value_t = QualityArg::Standard)]
-    pub quality: QualityArg,
+    /// Codec error bounds: draft 5 mm / 5 mrad, standard 1 mm / 1 mrad, final 0.1 mm / 0.1 mrad
+    /// [default: the simulation preset's: draft → draft, final → final, else standard].
+    #[arg(long, value_enum)]
+    pub quality: Option<QualityArg>,
+    /// Simulation preset (substeps, iterations, CCD, sleeping; docs/scene-format.md), written
+    /// into the job's scene; `auto` runs a short calibration and picks the cheapest preset
+    /// within the scene's tolerance [default: the scene's `sim`, else standard].
+    #[arg(long, value_enum)]
+    pub sim: Option<SimArg>,
 }
 
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum)]
@@ -595,14 +603,55 @@ pub enum QualityArg {
     Final,
 }
 
+/// `--sim`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum SimArg {
+    Draft,
+    Standard,
+    Final,
+    Auto,
+}
+
+impl From<SimArg> for SimPreset {
+    fn from(s: SimArg) -> Self {
+        match s {
+            SimArg::Draft => SimPreset::Draft,
+            SimArg::Standard => SimPreset::Standard,
+            SimArg::Final => SimPreset::Final,
+            SimArg::Auto => SimPreset::Auto,
+        }
+    }
+}
+
 impl MotionArgs {
-    /// Sets the job's encoding and quality.
+    /// The scene text the job carries: `--sim` written into it, a preset of `auto` (from the
+    /// flag or the scene) resolved by calibration, and the scene checked for what the simulator
+    /// cannot do faithfully ([`crate::sim::resolve_checked`]: warnings printed, refusals an
+    /// error).
+    pub fn resolve_scene(&self, file: &str, text: &str) -> Result<String> {
+        crate::sim::resolve_checked(file, text, self.sim.map(SimPreset::from))
+    }
+
+    /// Sets the job's encoding and quality; without `--quality`, the codec preset follows the
+    /// simulation preset of the job's scene.
     pub fn apply(&self, job: &mut Job) {
         job.encoding = match self.encoding {
             EncodingArg::Spline => Encoding::SplineV1,
             EncodingArg::Frames => Encoding::QuantisedFramesV1,
         } as i32;
-        job.quality = Quality::from(self.quality) as i32;
+        let quality = self.quality.unwrap_or_else(|| {
+            let preset = job.scene.as_ref().and_then(|s| {
+                mwb_core::scene::SceneTemplate::parse(&s.toml, "job scene")
+                    .ok()
+                    .map(|t| t.settings().sim)
+            });
+            match preset {
+                Some(SimPreset::Draft) => QualityArg::Draft,
+                Some(SimPreset::Final | SimPreset::Reference) => QualityArg::Final,
+                _ => QualityArg::Standard,
+            }
+        });
+        job.quality = Quality::from(quality) as i32;
     }
 }
 

@@ -193,6 +193,7 @@ pub async fn run_demo_with(
 ) -> Result<DemoSummary> {
     let keys = Keys::new(&bus.space)?;
     let (file, text) = client::load_scene(&opts.scene)?;
+    let text = opts.motion.resolve_scene(&file, &text)?;
     let mut job = client::make_job(&file, &text, opts.worlds, 0, None)?;
     opts.motion.apply(&mut job);
     // Staying to be browsed needs a known port.
@@ -360,6 +361,7 @@ pub async fn run_demo_with(
             order: Order::Ascending,
             k: 1,
             all_worlds: false,
+            plausible_only: false,
         },
         Duration::from_secs(10),
     )

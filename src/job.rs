@@ -94,6 +94,7 @@ impl Summary for Submitted {
 async fn submit(args: SubmitArgs) -> Result<()> {
     let keys = Keys::new(&args.bus.space)?;
     let (file, text) = client::load_scene(&args.scene)?;
+    let text = args.motion.resolve_scene(&file, &text)?;
     let mut job = client::make_job(&file, &text, args.worlds, args.follow.priority, args.id)?;
     args.motion.apply(&mut job);
     let session = args.bus.open(args.bus.client_default()).await?;

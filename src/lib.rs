@@ -20,6 +20,7 @@ pub mod reverse_cmd;
 pub mod sampler;
 pub mod scene;
 pub mod scene_edit_cmd;
+pub mod sim;
 pub mod stall;
 pub mod status;
 pub mod store;

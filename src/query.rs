@@ -49,6 +49,9 @@ pub enum RankBy {
     EnergyGrowth,
     /// Backward worlds: rad/s of angular speed gained going back (§5.3.1; least first).
     AngularSpeedGrowth,
+    /// Backward worlds: metres by which the worst body breaks the plausibility definition of
+    /// docs/reverse.md (≤ 0: plausible; most plausible first).
+    Plausibility,
 }
 
 #[derive(Debug, Subcommand)]
@@ -115,6 +118,9 @@ pub enum QueryCommand {
         /// Rank every world, not only the survivors.
         #[arg(long)]
         all: bool,
+        /// Only worlds measured plausible (backward and mixed worlds; docs/reverse.md).
+        #[arg(long)]
+        plausible: bool,
         /// With `--by orientation-error`: the goal orientation as a world-frame quaternion
         /// `x,y,z,w` (e.g. `0,0,0,1`: upright as modelled) instead of each object's start.
         #[arg(long, allow_hyphen_values = true)]
@@ -300,6 +306,7 @@ pub async fn run(command: QueryCommand) -> Result<()> {
             order,
             k,
             all,
+            plausible,
             goal,
         } => {
             let goal = match (&goal, by) {
@@ -315,7 +322,10 @@ pub async fn run(command: QueryCommand) -> Result<()> {
                 RankBy::TimeToRest => Some(Metric::TimeToRest),
                 RankBy::Impacts => Some(Metric::Impacts),
                 RankBy::OrientationError => Some(Metric::OrientationError),
-                RankBy::Constraints | RankBy::EnergyGrowth | RankBy::AngularSpeedGrowth => None,
+                RankBy::Constraints
+                | RankBy::EnergyGrowth
+                | RankBy::AngularSpeedGrowth
+                | RankBy::Plausibility => None,
             };
             let aggregate = match aggregate {
                 Some(AggregateArg::Sum) => Aggregate::Sum,
@@ -327,6 +337,9 @@ pub async fn run(command: QueryCommand) -> Result<()> {
                 RankBy::Constraints => Ok(RankKey::ConstraintsSatisfied),
                 RankBy::EnergyGrowth => Ok(RankKey::World {
                     metric: WorldMetric::EnergyGrowth,
+                }),
+                RankBy::Plausibility => Ok(RankKey::World {
+                    metric: WorldMetric::PlausibilityExcess,
                 }),
                 RankBy::AngularSpeedGrowth => Ok(RankKey::World {
                     metric: WorldMetric::AngularSpeedGrowth,
@@ -367,6 +380,7 @@ pub async fn run(command: QueryCommand) -> Result<()> {
                             order,
                             k,
                             all_worlds: all || matches!(by, RankBy::Constraints),
+                            plausible_only: plausible,
                         })
                         .await
                 }
@@ -437,6 +451,7 @@ fn rank_headline(key: &RankKey, order: Order, names: &[String]) -> String {
         RankKey::World { metric } => {
             let what = match metric {
                 WorldMetric::EnergyGrowth => "energy growth going back",
+                WorldMetric::PlausibilityExcess => "plausibility excess",
                 WorldMetric::AngularSpeedGrowth => "angular-speed growth going back",
             };
             format!("ranked by {what} [{}] (per world); {order}", metric.unit())
@@ -775,6 +790,15 @@ fn print_reply(
                     r.active_from.len(),
                     new[..new.len().min(SHOWN)].join(", "),
                     if new.len() > SHOWN { ", …" } else { "" }
+                );
+            }
+            if let (Some(p), Some(x)) = (
+                w.world_metrics.plausible,
+                w.world_metrics.plausibility_excess,
+            ) {
+                println!(
+                    "plausible: {} (worst body {x:+.3} m beyond the definition of docs/reverse.md)",
+                    if p { "yes" } else { "no" }
                 );
             }
             if let Some(e) = w.world_metrics.energy_growth {

@@ -19,7 +19,7 @@ use crate::output::Summary;
 use anyhow::{Context, Result, bail};
 use mwb_core::keys::Keys;
 use mwb_proto::v1::{Job, JobKind, JobState, Quality};
-use mwb_reverse::scene::{builtin, world_from_scene};
+use mwb_reverse::scene::builtin;
 use mwb_reverse::settings_toml::parse_reverse_scene;
 use std::time::{Duration, Instant};
 
@@ -29,7 +29,7 @@ pub struct ReverseArgs {
     #[command(flatten)]
     pub bus: BusArgs,
     /// Final-state scene: a TOML file, or a shipped reverse scene (word, stack, balls,
-    /// balls_small, crash, crash_mixed, gate). The run goes back `[settings] end_time` seconds; a `[reverse]`
+    /// balls_small, crash, crash_mixed, gate, lorem). The run goes back `[settings] end_time` seconds; a `[reverse]`
     /// table may make it mixed and add hints. Without it, the node serves reverse jobs from the
     /// bus until Ctrl-C.
     #[arg(long)]
@@ -64,10 +64,7 @@ pub struct ReverseArgs {
 
 /// Shipped reverse scenes with a `[reverse]` table, which the plain scene parser (and so
 /// `builtin::ALL`'s users) refuses: only `mwb reverse` and the reverse nodes read them.
-pub const WITH_REVERSE_TABLE: &[(&str, &str)] = &[(
-    "crash_mixed",
-    include_str!("../scenes/reverse/crash_mixed.toml"),
-)];
+pub const WITH_REVERSE_TABLE: &[(&str, &str)] = &[("crash_mixed", builtin::CRASH_MIXED)];
 
 /// Reads a final-state scene argument: a path to a TOML file, or the name of a shipped
 /// reverse scene (`scenes/reverse/`).
@@ -96,8 +93,10 @@ pub fn load_reverse_scene(arg: &str) -> Result<(String, String)> {
 }
 
 /// A reverse job for `target` worlds of the final-state scene text. Checks first that the
-/// reverse stepper can build the scene and that its `[reverse]` table is valid, so a bad scene
-/// fails here and not on every node.
+/// reverse stepper can build the scene, that its `[reverse]` table is valid and that its state
+/// is one a backward run may start from (`mwb_reverse::validate`: overlapping bodies and violated
+/// joints are refused, a body at rest in mid-air is warned about, by name), so a bad scene fails
+/// here and not on every node.
 pub fn make_reverse_job(
     file: &str,
     text: &str,
@@ -108,8 +107,11 @@ pub fn make_reverse_job(
 ) -> Result<Job> {
     let (template, _) =
         parse_reverse_scene(text, file).with_context(|| format!("{file}: not a reverse scene"))?;
-    world_from_scene(&template.instantiate(0))
-        .with_context(|| format!("{file}: not a reverse scene"))?;
+    let warnings = mwb_reverse::validate::check_scene(&template.instantiate(0))
+        .with_context(|| format!("{file}: refused as the given state of a backward run"))?;
+    for w in warnings {
+        eprintln!("mwb reverse: {file}: warning: {w}");
+    }
     // The job carries the whole text, `[reverse]` table included, for the nodes.
     let mut job = client::make_job(file, text, target, priority, id)?;
     job.kind = JobKind::Reverse as i32;

@@ -18,6 +18,10 @@ pub struct SceneArgs {
     pub scene: Option<String>,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Simulation preset to check the scene under [default: the scene's own]; `auto` runs the
+    /// calibration a job submission would and prints its table.
+    #[arg(long, value_enum)]
+    pub sim: Option<client::SimArg>,
 }
 
 /// What else `mwb scene` does.
@@ -57,12 +61,17 @@ pub async fn run(args: SceneArgs) -> Result<()> {
     match args.action {
         Some(SceneAction::Preview(p)) => preview(p),
         Some(SceneAction::Edit(e)) => crate::scene_edit_cmd::run(e).await,
-        None => check(args.scene.as_deref().unwrap_or_default(), args.seed),
+        None => check(
+            args.scene.as_deref().unwrap_or_default(),
+            args.seed,
+            args.sim.map(Into::into),
+        ),
     }
 }
 
-fn check(scene: &str, seed: u64) -> Result<()> {
+fn check(scene: &str, seed: u64, sim: Option<mwb_core::scene::SimPreset>) -> Result<()> {
     let (file, text) = client::load_scene(scene)?;
+    let text = crate::sim::resolve(&file, &text, sim)?;
     let t = mwb_core::scene::SceneTemplate::parse(&text, &file)?;
     let s = t.instantiate(seed);
     println!(
@@ -74,6 +83,17 @@ fn check(scene: &str, seed: u64) -> Result<()> {
         s.materials.len(),
         if t.has_distributions() { "yes" } else { "no" }
     );
+    println!(
+        "simulation: {}",
+        mwb_sampler::plan::SimPlan::of(&s).describe()
+    );
+    let found = crate::sim::findings(&t);
+    for f in &found {
+        println!("{}", crate::sim::finding_line(&file, f));
+    }
+    if mwb_sampler::limits::refuses(&found) {
+        anyhow::bail!("{file}: the simulator cannot do this scene faithfully (see above)");
+    }
     Ok(())
 }
 

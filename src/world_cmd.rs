@@ -68,6 +68,8 @@ pub struct Regenerated {
     pub impacts: u64,
     pub perturbations: u32,
     pub payload_bytes: u64,
+    /// The simulation plan it ran with (`WorldDone.sim`: preset, substeps, CCD, …).
+    pub sim: String,
     /// [`mwb_node::world_digest`] as `0x` and eight hex digits.
     pub digest: String,
     /// With `--check N`: the stored world compared with, its digest, and whether they agree.
@@ -310,6 +312,7 @@ pub async fn run(args: WorldArgs) -> Result<()> {
         impacts: done.impacts.iter().map(|&i| u64::from(i)).sum(),
         perturbations: done.perturbations,
         payload_bytes: world.segments.iter().map(|s| s.payload.len() as u64).sum(),
+        sim: world.done.sim.clone(),
         digest: digest_text(digest),
         stored_world: None,
         stored_digest: None,

@@ -291,6 +291,7 @@ async fn a_reverse_job_is_sampled_stored_and_plays_forward_into_the_final_state(
         order: Order::Ascending,
         k: WORLDS as usize,
         all_worlds: false,
+        plausible_only: false,
     };
     let reply = within("rank", T, query.request("t", request))
         .await

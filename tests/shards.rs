@@ -126,6 +126,7 @@ async fn by_constraints(q: &QueryHandle) -> Vec<mwb_core::browse::Ranked> {
             order: Order::Descending,
             k: 10_000,
             all_worlds: true,
+            plausible_only: false,
         },
     )
     .await
@@ -171,6 +172,7 @@ async fn answers(q: &QueryHandle, seed_of: &BTreeMap<u32, u64>) -> Answers {
         order,
         k: 7,
         all_worlds: false,
+        plausible_only: false,
     };
     let Reply::Ranking { rows, .. } = ask(
         q,

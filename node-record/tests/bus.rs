@@ -483,9 +483,20 @@ async fn a_replayed_session_gives_a_fresh_store_the_same_worlds_byte_for_byte() 
     assert!(st.closed);
     assert_eq!(st.worlds_done, worlds);
     let mut store_bytes = 0;
+    // Matched by (node, counter), not by store index: a store numbers worlds as they complete,
+    // and two worlds finishing together may complete in either order in each store.
+    let key = |w: &mwb_store::StoredWorld| (w.done.node_id.clone(), w.done.world_counter);
+    let fresh_worlds: std::collections::HashMap<_, _> = (0..stored as u32)
+        .map(|i| {
+            let w = fresh.world(i).unwrap();
+            (key(&w), w)
+        })
+        .collect();
     for i in 0..stored as u32 {
         let w1 = store.world(i).unwrap();
-        let w2 = fresh.world(i).unwrap();
+        let w2 = fresh_worlds
+            .get(&key(&w1))
+            .unwrap_or_else(|| panic!("world {i} ({:?}) not replayed", key(&w1)));
         assert_eq!(w1.job_id, w2.job_id);
         assert_eq!(
             w1.done.encode_to_vec(),

@@ -129,6 +129,21 @@ pub struct BackwardChoices {
     /// (§5.3.1 advises small friction coefficients for reversibility). The contact set keeps
     /// the material's value, so [`BackwardReport::forward_residual`] measures the departure.
     pub friction_scale: BTreeMap<(usize, Partner), f64>,
+    /// Per body, a restitution floor used by the backward decision at every contact of the
+    /// body (the larger of it and the pair's): the energy-budget heuristic
+    /// ([`crate::run::Heuristics::energy_budget`]) raises it to 1 for a body that has gained as
+    /// much as it may, so that it gains no more. Departures are measured as for
+    /// [`Self::restitution`].
+    pub body_restitution: BTreeMap<usize, f64>,
+    /// As [`Self::body_restitution`], but only at the body's contacts whose normal is more than
+    /// 45° from the vertical (walls, sides of other bodies): a bounce off the ground may still
+    /// gain height going back, which a fall explains, but not speed along it.
+    pub body_side_restitution: BTreeMap<usize, f64>,
+    /// Per body, a scale in `[0, 1]` of the friction coefficient of every contact of the body
+    /// (the smaller of the two bodies' applies, times the pair's [`Self::friction_scale`]): the
+    /// energy-budget heuristic sets 0 for a body whose speed a fall can no longer explain, since
+    /// reversed friction is what speeds it up.
+    pub body_friction_scale: BTreeMap<usize, f64>,
     /// The stacking heuristic of §5.3.3: a resting contact between two bodies that are not
     /// free to bounce (or between such a body and static geometry) is held, allowing the
     /// normal impulse to pull, so a stack does not fly apart when stepped backward. `None`:
@@ -197,8 +212,11 @@ pub struct ContactChoice {
     /// Goal earlier tangential velocity along `tangent_u` (sticking contacts).
     pub tangent_goal: f64,
     /// Friction coefficient the decision used: the contact's, times
-    /// [`BackwardChoices::friction_scale`].
+    /// [`BackwardChoices::friction_scale`] and [`BackwardChoices::body_friction_scale`].
     pub mu: f64,
+    /// Rolling-resistance arm (m) the decision used: the contact's, times
+    /// [`BackwardChoices::body_friction_scale`].
+    pub rolling: f64,
 }
 
 /// What a backward step did; enough to replay it forward.
@@ -326,6 +344,7 @@ impl World {
             Vec::new()
         };
         let lifted = self.lifted_contacts(&set, choices);
+        let up = (-self.gravity).try_normalize(1e-12);
 
         // Figure 5.5, per contact.
         let mut decisions = Vec::with_capacity(set.contacts.len());
@@ -362,12 +381,41 @@ impl World {
             let spin = self.relative_angular_velocity(&set.contacts[k]);
             let c = &mut set.contacts[k];
             rolling_slip.push(c.rolling > 0.0 && c.align_rolling(&spin, delta));
+            let partner_body = match c.partner {
+                Partner::Body(p) => Some(p),
+                Partner::Static(_) => None,
+            };
+            let this_body = c.body;
+            let bodies_here = [Some(this_body), partner_body];
+            let per_body = |map: &BTreeMap<usize, f64>| -> Vec<f64> {
+                bodies_here
+                    .iter()
+                    .flatten()
+                    .filter_map(|b| map.get(b).copied())
+                    .filter(|x| x.is_finite())
+                    .map(|x| x.clamp(0.0, 1.0))
+                    .collect()
+            };
             let alpha = choices
                 .restitution
                 .get(&(c.body, c.partner))
                 .copied()
                 .filter(|a| a.is_finite())
                 .map_or(c.restitution, |a| a.clamp(0.0, 1.0));
+            let alpha = per_body(&choices.body_restitution)
+                .into_iter()
+                .fold(alpha, f64::max);
+            let side = up.is_some_and(|u| c.normal.dot(&u).abs() < std::f64::consts::FRAC_1_SQRT_2);
+            let alpha = if side {
+                per_body(&choices.body_side_restitution)
+                    .into_iter()
+                    .fold(alpha, f64::max)
+            } else {
+                alpha
+            };
+            let body_mu = per_body(&choices.body_friction_scale)
+                .into_iter()
+                .fold(1.0, f64::min);
             let elastic_floor = alpha * eps * (1.0 + 1e-9) + f64::EPSILON;
             if v_n < -delta {
                 approaching += 1;
@@ -402,6 +450,7 @@ impl World {
                 }
             };
             let mu = c.friction
+                * body_mu
                 * choices
                     .friction_scale
                     .get(&(c.body, c.partner))
@@ -414,6 +463,7 @@ impl World {
                 normal_goal,
                 tangent_goal,
                 mu,
+                rolling: c.rolling * body_mu,
             });
         }
 
@@ -477,7 +527,6 @@ impl World {
                     joint_impulses[k] = 0.0;
                 }
                 outcome.write_impulses(
-                    &set,
                     (&decisions, &rolling_slip),
                     (&mut impulses, &mut joint_impulses),
                 );
@@ -598,7 +647,7 @@ impl World {
                     FrictionCase::Sticking => rn,
                 };
                 match &rolling {
-                    Some([r0, _, _]) if rolling_slip[k] => fold(&slid, r0, c.rolling),
+                    Some([r0, _, _]) if rolling_slip[k] => fold(&slid, r0, d.rolling),
                     _ => slid,
                 }
             };
@@ -639,7 +688,7 @@ impl World {
                 dirs.push(row);
                 kinds.push(RowKind::Friction {
                     normal,
-                    mu: c.rolling,
+                    mu: d.rolling,
                 });
                 b.push(-row_velocity(&row, vel));
                 vars.push(Var::Roll(k, axis));
@@ -969,7 +1018,6 @@ impl IslandOutcome {
     /// Writes the island's impulses, in the forward sense, into `impulses`.
     fn write_impulses(
         &self,
-        set: &ContactSet,
         (decisions, rolling_slip): (&[ContactChoice], &[bool]),
         (impulses, joint_impulses): (&mut [ContactImpulse], &mut [f64]),
     ) {
@@ -984,7 +1032,7 @@ impl IslandOutcome {
                         impulses[k].tangent_u = -decisions[k].mu * x[j];
                     }
                     if rolling_slip[k] && decisions[k].normal != NormalCase::Held {
-                        impulses[k].rolling[0] = -set.contacts[k].rolling * x[j];
+                        impulses[k].rolling[0] = -decisions[k].rolling * x[j];
                     }
                 }
                 Var::Roll(k, axis) => impulses[k].rolling[axis] = x[j],

@@ -1,14 +1,56 @@
-//! The reverse benchmark behind `mwb bench reverse` (issue 5, "Measure"): cost of a backward
-//! step against a forward step of the same stepper on the same scene, the round-trip error, the
-//! energy growth of sampled worlds (§5.3.1) and the wall time of the big ball scene (§5.4.1).
-//! Plain data, no serde: the CLI decides how to print it.
+//! The reverse benchmark behind `mwb bench reverse` (issue 5, "Measure"; issue 20): cost of a
+//! backward step against a forward step of the same stepper on the same scene, the round-trip
+//! error, the energy growth of sampled worlds (§5.3.1), the wall time of the big ball scene
+//! (§5.4.1), the fraction of plausible worlds per shipped reverse scene ([`crate::plausible`])
+//! and the 3037-ball "Lorem ipsum" world. Plain data, no serde: the CLI decides how to print it.
 
+use std::collections::BTreeMap;
 use std::time::Instant;
 
 use crate::chain::{ChainLearning, ContactChain};
-use crate::run::{Heuristics, ReverseSettings, run_backward};
+use crate::run::{Frame, Heuristics, ReverseSettings, run_backward};
+use crate::sample::{ReverseScene, SampleError, run_world};
 use crate::scene::{SceneConvertError, builtin, world_from_toml};
 use crate::{BackwardChoices, World};
+
+/// Why the bench could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum BenchError {
+    /// A scene did not convert.
+    #[error(transparent)]
+    Scene(#[from] SceneConvertError),
+    /// A shipped scene could not be prepared or sampled.
+    #[error("scene {scene}: {source}")]
+    Sample {
+        /// The scene's name.
+        scene: String,
+        /// Why.
+        source: Box<SampleError>,
+    },
+}
+
+/// Scenes with more bodies than this count as big: they get
+/// [`BenchOptions::big_scene_worlds`] worlds instead of [`BenchOptions::scene_worlds`].
+pub const BIG_SCENE_BODIES: usize = 500;
+
+/// In lorem.toml (generate.py): half the inside of a bin (m), the walls' height (m) and the
+/// ball radius (m). A ball is *in its cell* when its centre is within the half-width of the
+/// cell's centre and below the walls' top plus a radius.
+pub const LOREM_CELL_HALF: f64 = 0.065;
+/// See [`LOREM_CELL_HALF`].
+pub const LOREM_WALL_TOP: f64 = 0.04;
+/// See [`LOREM_CELL_HALF`].
+pub const LOREM_BALL_RADIUS: f64 = 0.02;
+
+/// The shipped reverse scenes whose worlds the bench samples for `plausible_fraction`.
+pub fn shipped_scenes() -> Vec<(String, String)> {
+    builtin::ALL
+        .iter()
+        .filter(|(n, _)| *n != "lorem")
+        .chain(&[("crash_mixed", builtin::CRASH_MIXED)])
+        .map(|(n, t)| ((*n).to_owned(), (*t).to_owned()))
+        .collect()
+}
 
 /// Alternating forward/backward timing rounds; the fastest round of each is reported.
 const TIMING_ROUNDS: usize = 5;
@@ -32,6 +74,15 @@ pub struct BenchOptions {
     pub balls_measure_departure: bool,
     /// First seed.
     pub seed: u64,
+    /// `(name, TOML)` of the scenes whose worlds are sampled (as `mwb reverse` samples them:
+    /// their own `end_time`, chain, hints and mode) for the per-scene plausible fraction.
+    pub scenes: Vec<(String, String)>,
+    /// Worlds per scene.
+    pub scene_worlds: usize,
+    /// Worlds per big scene (more than [`BIG_SCENE_BODIES`] bodies).
+    pub big_scene_worlds: usize,
+    /// The lorem scene (TOML); `None` skips it.
+    pub lorem_scene: Option<String>,
 }
 
 impl Default for BenchOptions {
@@ -45,6 +96,10 @@ impl Default for BenchOptions {
             balls_duration: 3.0,
             balls_measure_departure: false,
             seed: 1,
+            scenes: shipped_scenes(),
+            scene_worlds: 20,
+            big_scene_worlds: 20,
+            lorem_scene: Some(builtin::LOREM.to_owned()),
         }
     }
 }
@@ -86,6 +141,174 @@ pub struct ReverseBench {
     pub balls_learn_seconds: f64,
     /// Energy growth (m) of the ball world.
     pub balls_energy_growth: f64,
+    /// 95th percentile of the same energy growths as `energy_growth_p50`.
+    pub energy_growth_p95: f64,
+    /// 95th percentile of the same peak angular speeds as `angular_speed_peak_p50`.
+    pub angular_speed_peak_p95: f64,
+    /// Per shipped scene, the numbers of its sampled worlds.
+    pub scenes: BTreeMap<String, ScenePlausibility>,
+    /// The lorem world (`None` when skipped).
+    pub lorem: Option<LoremBench>,
+}
+
+/// The plausibility of one scene's sampled worlds.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ScenePlausibility {
+    /// Worlds sampled.
+    pub worlds: usize,
+    /// Fraction of them that are plausible ([`crate::plausible`]).
+    pub plausible_fraction: f64,
+    /// Median excess (m; ≤ 0: plausible).
+    pub excess_p50: f64,
+    /// Median and 95th percentile of energy growth (m).
+    pub energy_growth_p50: f64,
+    /// See `energy_growth_p50`.
+    pub energy_growth_p95: f64,
+    /// 95th percentile of the peak angular speed (rad/s).
+    pub angular_speed_peak_p95: f64,
+    /// Wall time of all its worlds (s).
+    pub seconds: f64,
+}
+
+/// The 3037-ball world of §5.4.1.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LoremBench {
+    /// Balls (3037).
+    pub balls: usize,
+    /// Wall time of its run on one core (s), chain learning included.
+    pub seconds: f64,
+    /// Backward steps.
+    pub steps: usize,
+    /// The world is plausible.
+    pub plausible: bool,
+    /// Its excess (m) and the body that decides it.
+    pub excess_m: f64,
+    /// Balls that, played forward, start outside every bin and end in their cell, ÷ all.
+    pub cells_correct: f64,
+    /// Balls outside every bin in the first frame, ÷ all.
+    pub left_bins: f64,
+    /// Bodies the plausibility test finds implausible.
+    pub implausible_balls: usize,
+    /// Energy growth (m).
+    pub energy_growth: f64,
+}
+
+fn percentile(mut v: Vec<f64>, q: f64) -> f64 {
+    v.retain(|x| !x.is_nan());
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    let k = ((v.len() - 1) as f64 * q).round() as usize;
+    v[k.min(v.len() - 1)]
+}
+
+/// Per body, its cell: the horizontal position of its centre in the last frame. `in_cell`:
+/// within [`LOREM_CELL_HALF`] of that and below the walls' top plus a radius.
+fn in_cell(frame: &Frame, last: &Frame, b: usize, up: &nalgebra::Vector3<f64>) -> bool {
+    let (Some(p), Some(c)) = (frame.poses.get(b), last.poses.get(b)) else {
+        return false;
+    };
+    let d = p.position - c.position;
+    let horizontal = d - up * up.dot(&d);
+    horizontal.amax() < LOREM_CELL_HALF && up.dot(&p.position) < LOREM_WALL_TOP + LOREM_BALL_RADIUS
+}
+
+/// Whether any cell of `cells` (last-frame centres) holds `p`.
+fn in_any_cell(
+    p: &nalgebra::Vector3<f64>,
+    cells: &[nalgebra::Vector3<f64>],
+    up: &nalgebra::Vector3<f64>,
+) -> bool {
+    up.dot(p) < LOREM_WALL_TOP + LOREM_BALL_RADIUS
+        && cells.iter().any(|c| {
+            let d = p - c;
+            (d - up * up.dot(&d)).amax() < LOREM_CELL_HALF
+        })
+}
+
+/// Samples `worlds` worlds of one prepared scene; `t` started before its preparation.
+fn scene_plausibility(
+    name: &str,
+    scene: &ReverseScene,
+    worlds: usize,
+    seed: u64,
+    t: Instant,
+) -> Result<ScenePlausibility, BenchError> {
+    let err = |source| BenchError::Sample {
+        scene: name.to_owned(),
+        source: Box::new(source),
+    };
+    let (mut plausible, mut excess, mut growth, mut spin) = (0, vec![], vec![], vec![]);
+    for k in 0..worlds as u64 {
+        let run = run_world(scene, seed.wrapping_add(k)).map_err(err)?;
+        let r = &run.report;
+        plausible += usize::from(r.plausibility.plausible);
+        excess.push(r.plausibility.excess_m);
+        growth.push(r.energy_growth);
+        spin.push(r.angular_speed_peak);
+    }
+    Ok(ScenePlausibility {
+        worlds,
+        plausible_fraction: if worlds > 0 {
+            plausible as f64 / worlds as f64
+        } else {
+            f64::NAN
+        },
+        excess_p50: median(excess),
+        energy_growth_p50: median(growth.clone()),
+        energy_growth_p95: percentile(growth, 0.95),
+        angular_speed_peak_p95: percentile(spin, 0.95),
+        seconds: t.elapsed().as_secs_f64(),
+    })
+}
+
+/// The lorem world: one run, as `mwb reverse` samples it.
+pub fn lorem_bench(text: &str, seed: u64) -> Result<LoremBench, BenchError> {
+    let err = |source| BenchError::Sample {
+        scene: "lorem".to_owned(),
+        source: Box::new(source),
+    };
+    let t = Instant::now();
+    let scene = ReverseScene::prepare(text, "lorem").map_err(err)?;
+    let run = run_world(&scene, seed).map_err(err)?;
+    let seconds = t.elapsed().as_secs_f64();
+    let up = nalgebra::Vector3::new(0.0, 1.0, 0.0);
+    let (Some(first), Some(last)) = (run.frames.first(), run.frames.last()) else {
+        return Err(err(SampleError::Setting {
+            name: "end_time",
+            value: 0.0,
+        }));
+    };
+    let balls = last.poses.len();
+    let cells: Vec<_> = last.poses.iter().map(|p| p.position).collect();
+    let left: Vec<bool> = first
+        .poses
+        .iter()
+        .map(|p| !in_any_cell(&p.position, &cells, &up))
+        .collect();
+    let correct = (0..balls)
+        .filter(|&b| left[b] && in_cell(last, last, b, &up))
+        .count();
+    let ratio = |k: usize| {
+        if balls > 0 {
+            k as f64 / balls as f64
+        } else {
+            f64::NAN
+        }
+    };
+    let p = run.report.plausibility;
+    Ok(LoremBench {
+        balls,
+        seconds,
+        steps: run.report.steps,
+        plausible: p.plausible,
+        excess_m: p.excess_m,
+        cells_correct: ratio(correct),
+        left_bins: ratio(left.iter().filter(|l| **l).count()),
+        implausible_balls: p.implausible_bodies,
+        energy_growth: run.report.energy_growth,
+    })
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -103,7 +326,7 @@ fn median(mut v: Vec<f64>) -> f64 {
 }
 
 /// Runs the benchmark (single-threaded; takes minutes in release with the default options).
-pub fn bench(opts: &BenchOptions) -> Result<ReverseBench, SceneConvertError> {
+pub fn bench(opts: &BenchOptions) -> Result<ReverseBench, BenchError> {
     let world = world_from_toml(&opts.scene, "bench scene")?;
     let dt = 1.0 / 120.0;
     let steps = opts.timing_steps.max(1);
@@ -176,6 +399,29 @@ pub fn bench(opts: &BenchOptions) -> Result<ReverseBench, SceneConvertError> {
         balls_steps = run.report.steps;
         balls_energy_growth = run.report.energy_growth;
     }
+    let mut scenes = BTreeMap::new();
+    for (name, text) in &opts.scenes {
+        let t = Instant::now();
+        let scene = ReverseScene::prepare(text, name).map_err(|source| BenchError::Sample {
+            scene: name.clone(),
+            source: Box::new(source),
+        })?;
+        let worlds = if scene.template().body_count() > BIG_SCENE_BODIES {
+            opts.big_scene_worlds
+        } else {
+            opts.scene_worlds
+        };
+        if worlds > 0 {
+            scenes.insert(
+                name.clone(),
+                scene_plausibility(name, &scene, worlds, opts.seed, t)?,
+            );
+        }
+    }
+    let lorem = match &opts.lorem_scene {
+        Some(text) => Some(lorem_bench(text, opts.seed)?),
+        None => None,
+    };
     Ok(ReverseBench {
         bodies: world.bodies.len(),
         forward_step_us,
@@ -188,8 +434,12 @@ pub fn bench(opts: &BenchOptions) -> Result<ReverseBench, SceneConvertError> {
         } else {
             0.0
         },
-        energy_growth_p50: median(growth),
-        angular_speed_peak_p50: median(spin),
+        energy_growth_p50: median(growth.clone()),
+        angular_speed_peak_p50: median(spin.clone()),
+        energy_growth_p95: percentile(growth, 0.95),
+        angular_speed_peak_p95: percentile(spin, 0.95),
+        scenes,
+        lorem,
         balls,
         balls_steps,
         balls_seconds,

@@ -33,7 +33,12 @@
 //! * [`run`]: backward runs with seeded free choices, the §5.3 heuristics (reverse damping,
 //!   rattling, stacking, user hints) and per-world plausibility measurements
 //!   ([`BackwardRunReport`]); mixed runs from an intermediate frame (§5.4.4).
+//! * [`plausible`]: the stated plausibility test of a world (no body moves faster than a fall
+//!   from the highest point it reaches could make it), computed for every backward and mixed
+//!   run ([`Plausibility`]).
 //! * [`scene`]: the ordinary scene format read as a final state, and `scenes/reverse/`.
+//! * [`validate`]: bad input caught before a run — overlapping bodies and violated joints are
+//!   refused, a body at rest in mid-air is warned about, each by name.
 //! * [`settings_toml`]: a reverse scene's optional `[reverse]` table: backward or mixed run,
 //!   per-body user hints by body name.
 //! * [`bench`]: the numbers of `mwb bench reverse`.
@@ -179,24 +184,30 @@ pub mod contact;
 pub mod joint;
 pub mod lcp;
 pub mod node;
+pub mod plausible;
 pub mod qr;
 pub mod run;
 pub mod sample;
 pub mod scene;
 pub mod settings_toml;
 pub mod step;
+pub mod validate;
 pub mod world;
 
 pub use backward::{
     BackwardChoices, BackwardReport, BodyHint, ContactChoice, FrictionCase, LiftPlan, NormalCase,
     free_to_bounce,
 };
-pub use bench::{BenchOptions, ReverseBench, bench};
+pub use bench::{BenchError, BenchOptions, LoremBench, ReverseBench, ScenePlausibility, bench};
 pub use body::{Body, Material, StaticBody};
 pub use chain::{ChainLearning, ContactChain};
 pub use contact::{Contact, ContactSet, Island, Partner};
 pub use joint::{Joint, JointError, JointKind, JointRow, JointType};
 pub use node::{Backward, ReverseConfig, ReverseHandle, ReverseNodeError, run_reverse};
+pub use plausible::{
+    MAX_ENERGY_GROWTH_M, MAX_PENETRATION_M, PLAUSIBILITY_ALLOWANCE_M, Plausibility,
+    PlausibilityLimits, PlausibilityMeter,
+};
 pub use run::{
     BackwardRun, BackwardRunReport, Frame, Heuristics, HintMotion, MixedRun, Pose, ReverseSettings,
     Sampling, UserHint, run_backward, run_mixed,

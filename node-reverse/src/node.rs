@@ -65,6 +65,8 @@ impl WorkerKind for Backward {
             counter = w.counter,
             energy_growth = summary.report.energy_growth,
             angular_speed_growth = summary.report.angular_speed_growth,
+            plausible = summary.report.plausibility.plausible,
+            plausibility_excess = summary.report.plausibility.excess_m,
             "backward world done"
         );
         Ok(summary.world_done(&w.job.id, w.node, w.counter))
@@ -166,6 +168,8 @@ mod tests {
         assert_eq!((done.seed, done.world_counter), (5, 2));
         assert_eq!(done.segment_count as usize, segs.len());
         assert!(done.energy_growth.is_some());
+        assert!(done.plausible.is_some() && done.plausibility_excess.is_some());
+        assert_eq!(done.plausible, done.plausibility_excess.map(|x| x <= 0.0));
         assert!(
             segs.iter()
                 .all(|s| s.encoding == Encoding::SplineV1 as i32 && s.job_id == "r")

@@ -17,6 +17,7 @@ use nalgebra::{UnitQuaternion, Vector3};
 use crate::backward::{BackwardChoices, BodyHint, LiftPlan, NormalCase, free_to_bounce};
 use crate::chain::{ACTIVE_IMPULSE, ContactChain, MAX_STATE};
 use crate::contact::{ContactSet, Partner};
+use crate::plausible::{Plausibility, PlausibilityMeter};
 use crate::{Body, World};
 
 /// Time over which restitution blends back from 1 to the material's value after an elastic
@@ -53,7 +54,36 @@ pub struct Heuristics {
     /// and slides, and resting contacts inside a stack are held with this pull cap (body
     /// weights × Δt). `None`: off. Default [`DEFAULT_STACKING_GLUE`].
     pub stacking_glue: Option<f64>,
+    /// Energy budget per body (ours, for the plausibility test of [`crate::plausible`]), as a
+    /// fraction of [`crate::plausible::PLAUSIBILITY_ALLOWANCE_M`]. A body's *debt* is its
+    /// energy height minus the highest point it can be shown to fall from (the highest point it
+    /// reached so far in the run or, rising backward, the apex it is flying to) minus the
+    /// budget.
+    ///
+    /// * Before a step, a body in debt gets no friction and no rolling resistance (reversed,
+    ///   they are what speeds a body up along the ground and spins it) and restitution 1 at its
+    ///   contacts more than 45° from the vertical (a bounce off the ground may still gain
+    ///   height going back, which a fall explains); a body whose energy height exceeds the
+    ///   last frame's by [`ENERGY_CAP_FRACTION`] of [`crate::plausible::MAX_ENERGY_GROWTH_M`]
+    ///   gets restitution 1 everywhere.
+    /// * After a step, a body whose debt the step raised is given conservative contacts
+    ///   (restitution 1, no friction) and the step is taken again (at most once); a body that
+    ///   still gains more than 5 cm of debt in the step (an island the LCP left unsolved)
+    ///   flies freely through it instead.
+    ///
+    /// `None`: off. Default [`DEFAULT_ENERGY_BUDGET`].
+    pub energy_budget: Option<f64>,
 }
+
+/// Default [`Heuristics::energy_budget`]: a quarter of the allowance.
+pub const DEFAULT_ENERGY_BUDGET: f64 = 0.1;
+/// See [`Heuristics::energy_budget`].
+pub const ENERGY_CAP_FRACTION: f64 = 0.8;
+/// Debt (m) a backward step may add before the energy budget takes it again conservatively.
+const BUDGET_SLACK: f64 = 1e-4;
+/// Debt (m) a backward step may add, even with conservative contacts, before the energy budget
+/// lets the body fly freely through the step instead.
+const MAX_STEP_GAIN_M: f64 = 0.05;
 
 impl Default for Heuristics {
     fn default() -> Self {
@@ -62,6 +92,7 @@ impl Default for Heuristics {
             rattle_blend: Some(DEFAULT_RATTLE_BLEND),
             rattle_friction: Some(DEFAULT_RATTLE_FRICTION),
             stacking_glue: Some(DEFAULT_STACKING_GLUE),
+            energy_budget: Some(DEFAULT_ENERGY_BUDGET),
         }
     }
 }
@@ -74,6 +105,7 @@ impl Heuristics {
             rattle_blend: None,
             rattle_friction: None,
             stacking_glue: None,
+            energy_budget: None,
         }
     }
 }
@@ -93,8 +125,8 @@ impl Default for Sampling {
     fn default() -> Self {
         Self {
             lift_speed: (0.3, 0.95),
-            slide_probability: 0.5,
-            slide_speed: (0.05, 0.6),
+            slide_probability: 0.25,
+            slide_speed: (0.05, 0.3),
         }
     }
 }
@@ -241,6 +273,17 @@ pub struct BackwardRunReport {
     pub approaching_contacts: usize,
     /// Bodies disabled for non-finite state.
     pub disabled_bodies: usize,
+    /// Steps taken again because they would have put a body over its energy budget
+    /// ([`Heuristics::energy_budget`]).
+    pub budget_resteps: usize,
+    /// Body-steps the energy budget turned into free flight: a body that gained more than
+    /// 5 cm of debt in one step even with conservative contacts (an unsolved island).
+    pub budget_free_flights: usize,
+    /// The world's plausibility ([`crate::plausible`]): of every frame, the forward half of a
+    /// mixed world included.
+    pub plausibility: Plausibility,
+    /// Per body, the numbers the verdict is made of.
+    pub plausibility_bodies: Vec<crate::plausible::BodyPeaks>,
 }
 
 /// A sampled backward world.
@@ -307,6 +350,55 @@ fn body_contacts(
     eta
 }
 
+/// Per body of `world`, how far (m) its energy height exceeds what a fall can explain plus its
+/// budget, `fraction` of the allowance ([`Heuristics::energy_budget`]): energy height minus the
+/// highest point reached so far (`meter`) or, rising backward, the apex it is flying to, minus
+/// the budget. > 0: over budget. NaN (a body gone non-finite) reads as +∞.
+fn debts(world: &World, meter: &PlausibilityMeter, dt: f64, fraction: f64) -> Vec<f64> {
+    let g = world.gravity.norm();
+    let up = (-world.gravity)
+        .try_normalize(1e-12)
+        .unwrap_or(Vector3::z());
+    let budget = fraction * crate::plausible::PLAUSIBILITY_ALLOWANCE_M;
+    world
+        .bodies
+        .iter()
+        .zip(&meter.bodies)
+        .map(|(body, peaks)| {
+            let Some(e) = crate::plausible::energy_height(body, &up, g, dt) else {
+                return f64::NEG_INFINITY;
+            };
+            let h = up.dot(&body.position);
+            // Rising backward (falling when played forward): its apex comes later in the run.
+            let vz = up.dot(&body.linvel);
+            let apex = if vz < 0.0 { h + vz * vz / (2.0 * g) } else { h };
+            let d = e - peaks.source_height.max(apex) - budget;
+            if d.is_nan() { f64::INFINITY } else { d }
+        })
+        .collect()
+}
+
+/// The bodies of `world` whose energy height exceeds the last frame's by more than
+/// [`ENERGY_CAP_FRACTION`] of [`crate::plausible::MAX_ENERGY_GROWTH_M`].
+fn over_cap(world: &World, meter: &PlausibilityMeter, dt: f64) -> Vec<usize> {
+    let g = world.gravity.norm();
+    let up = (-world.gravity)
+        .try_normalize(1e-12)
+        .unwrap_or(Vector3::z());
+    let cap = ENERGY_CAP_FRACTION * crate::plausible::MAX_ENERGY_GROWTH_M;
+    world
+        .bodies
+        .iter()
+        .zip(&meter.bodies)
+        .enumerate()
+        .filter(|(_, (body, peaks))| {
+            crate::plausible::energy_height(body, &up, g, dt)
+                .is_some_and(|e| e.is_nan() || e - peaks.last_energy_height > cap)
+        })
+        .map(|(b, _)| b)
+        .collect()
+}
+
 /// A random unit vector perpendicular to `up`.
 fn horizontal(rng: &mut WorldRng, up: &Vector3<f64>) -> Vector3<f64> {
     let (u, w) = crate::contact::default_tangents(up);
@@ -317,6 +409,18 @@ fn horizontal(rng: &mut WorldRng, up: &Vector3<f64>) -> Vector3<f64> {
 /// Samples a backward world from `world`'s state, taken as the last frame (see the
 /// [module docs](self)). `world` is left at the earliest state.
 pub fn run_backward(world: &mut World, seed: u64, settings: &ReverseSettings) -> BackwardRun {
+    let (mut run, meter) = run_backward_metered(world, seed, settings);
+    run.report.plausibility = meter.plausibility();
+    run.report.plausibility_bodies = meter.bodies;
+    run
+}
+
+/// [`run_backward`], and the plausibility meter over its frames (for a mixed run to go on with).
+fn run_backward_metered(
+    world: &mut World,
+    seed: u64,
+    settings: &ReverseSettings,
+) -> (BackwardRun, PlausibilityMeter) {
     let dt = if settings.dt.is_finite() && settings.dt > 0.0 {
         settings.dt
     } else {
@@ -340,6 +444,7 @@ pub fn run_backward(world: &mut World, seed: u64, settings: &ReverseSettings) ->
     let end_time = steps as f64 * dt;
     frames.push(Frame::of(world, end_time));
     let mut energy = vec![shadow_energy(world, dt)];
+    let mut meter = PlausibilityMeter::new(world, dt);
     let mut ang_peak: Vec<f64> = world.bodies.iter().map(|b| b.angvel.norm()).collect();
     let angular_speed_final = ang_peak.iter().copied().fold(0.0, f64::max);
     let mut report = BackwardRunReport {
@@ -453,12 +558,58 @@ pub fn run_backward(world: &mut World, seed: u64, settings: &ReverseSettings) ->
             }
         }
 
+        if let Some(fraction) = h.energy_budget.filter(|f| f.is_finite()) {
+            for (b, d) in debts(world, &meter, dt, fraction).into_iter().enumerate() {
+                if d > 0.0 {
+                    choices.body_friction_scale.insert(b, 0.0);
+                    choices.body_side_restitution.insert(b, 1.0);
+                }
+            }
+            for b in over_cap(world, &meter, dt) {
+                choices.body_restitution.insert(b, 1.0);
+            }
+        }
+
         let at_t = if settings.measure_departure {
             Some(world.clone())
         } else {
             None
         };
-        let step = world.step_backward(dt, &choices);
+        let budget = h.energy_budget.filter(|f| f.is_finite());
+        let before = budget.map(|f| (world.clone(), debts(world, &meter, dt, f)));
+        let mut step = world.step_backward(dt, &choices);
+        // The energy budget, looking ahead: a body whose debt this step would raise above its
+        // budget (or above what it already had) takes the step again with every contact
+        // conservative — restitution 1, no friction (one re-step at most).
+        if let (Some(fraction), Some((saved, debt_before))) = (budget, before) {
+            let debt_after = debts(world, &meter, dt, fraction);
+            let mut again = false;
+            for (b, (&d0, &d1)) in debt_before.iter().zip(&debt_after).enumerate() {
+                if d1 > d0.max(0.0) + BUDGET_SLACK && !choices.body_restitution.contains_key(&b) {
+                    choices.body_friction_scale.insert(b, 0.0);
+                    choices.body_restitution.insert(b, 1.0);
+                    again = true;
+                }
+            }
+            if again {
+                *world = saved.clone();
+                step = world.step_backward(dt, &choices);
+                report.budget_resteps += 1;
+            }
+            // A jump no contact between table-top bodies explains (an island the LCP left
+            // unsolved, with whatever impulses it had): the body flies freely through this step.
+            let debt_after = debts(world, &meter, dt, fraction);
+            for (b, (&d0, &d1)) in debt_before.iter().zip(&debt_after).enumerate() {
+                if d1 - d0.max(0.0) > MAX_STEP_GAIN_M
+                    && let (Some(body), Some(was)) = (world.bodies.get_mut(b), saved.bodies.get(b))
+                    && body.enabled
+                {
+                    body.linvel = was.linvel - world.gravity * dt;
+                    body.angvel = was.angvel;
+                    report.budget_free_flights += 1;
+                }
+            }
+        }
         if h.reverse_angular_damping > 0.0 && h.reverse_angular_damping.is_finite() {
             let scale = 1.0 / (1.0 + h.reverse_angular_damping * dt);
             for b in world.bodies.iter_mut().filter(|b| b.enabled) {
@@ -525,10 +676,13 @@ pub fn run_backward(world: &mut World, seed: u64, settings: &ReverseSettings) ->
 
         frames.push(Frame::of(world, end_time - (k + 1) as f64 * dt));
         energy.push(shadow_energy(world, dt));
+        meter.observe(world);
+        meter.observe_contacts(&step.contacts, world);
         for (p, b) in ang_peak.iter_mut().zip(&world.bodies) {
             *p = p.max(b.angvel.norm());
         }
     }
+    meter.set_first(world);
     frames.reverse();
     energy.reverse();
     let energy_final = energy.last().copied().unwrap_or(0.0);
@@ -564,7 +718,7 @@ pub fn run_backward(world: &mut World, seed: u64, settings: &ReverseSettings) ->
         report.max_departure = f64::NAN;
         report.mean_departure = f64::NAN;
     }
-    BackwardRun { frames, report }
+    (BackwardRun { frames, report }, meter)
 }
 
 /// A mixed world from an intermediate state (§5.4.4): [`run_backward`] for
@@ -578,7 +732,7 @@ pub fn run_mixed(
     forward_duration: f64,
 ) -> MixedRun {
     let start = world.clone();
-    let back = run_backward(world, seed, settings);
+    let (back, mut meter) = run_backward_metered(world, seed, settings);
     let first_velocities = world.bodies.iter().map(|b| (b.linvel, b.angvel)).collect();
     *world = start;
     let dt = if settings.dt.is_finite() && settings.dt > 0.0 {
@@ -595,13 +749,21 @@ pub fn run_mixed(
     let join = frames.len().saturating_sub(1);
     let t0 = frames.last().map_or(0.0, |f| f.time);
     for k in 0..forward_steps {
-        world.step_forward(dt);
+        // A forward step detects its contacts at the poses it starts from.
+        let before = world.clone();
+        let forward = world.step_forward(dt);
+        meter.observe(world);
+        meter.observe_contacts(&forward.contacts, &before);
         frames.push(Frame::of(world, t0 + (k + 1) as f64 * dt));
     }
+    meter.set_last(world);
+    let mut report = back.report;
+    report.plausibility = meter.plausibility();
+    report.plausibility_bodies = meter.bodies;
     MixedRun {
         frames,
         join,
         first_velocities,
-        report: back.report,
+        report,
     }
 }

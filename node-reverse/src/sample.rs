@@ -207,7 +207,8 @@ pub struct ReverseWorldSummary {
 impl ReverseWorldSummary {
     /// The wire summary of world `(job, node, counter)`, with the §5.3.1 plausibility numbers
     /// (`energy_growth`, m; `angular_speed_growth`, rad/s) that only backward and mixed worlds
-    /// carry; a non-finite measurement is sent as +∞ (ranks as least plausible). CPU time,
+    /// carry, and the world's [`crate::plausible`] verdict (`plausible`, `plausibility_excess`,
+    /// m); a non-finite measurement is sent as +∞ (ranks as least plausible). CPU time,
     /// provenance and scene hash are the caller's to add.
     pub fn world_done(&self, job_id: &str, node: &str, counter: u64) -> WorldDone {
         let measured = |x: f64| Some(if x.is_nan() { f64::INFINITY } else { x });
@@ -227,6 +228,8 @@ impl ReverseWorldSummary {
             body_rested: self.body_rested.clone(),
             energy_growth: measured(self.report.energy_growth),
             angular_speed_growth: measured(self.report.angular_speed_growth),
+            plausible: Some(self.report.plausibility.plausible),
+            plausibility_excess: measured(self.report.plausibility.excess_m),
             ..Default::default()
         }
     }
@@ -273,19 +276,26 @@ fn arr(v: &Vector3<f64>) -> [f64; 3] {
     [v.x, v.y, v.z]
 }
 
-/// Samples the backward (or, per the scene's `[reverse] mode`, mixed) world of `scene` for
-/// `seed` and hands its segments, in playback order, to `emit` (which may stop the world with
-/// `ControlFlow::Break`: then [`SampleError::Stopped`]).
-///
-/// The scene is instantiated with `seed` (a final state with distributions varies per world)
-/// and the backward run draws its free choices from the same seed. Segments hold
-/// `[settings] segment_seconds` of frames each, the last one the rest.
-pub fn sample_world(
-    scene: &ReverseScene,
-    seed: u64,
-    quality: Quality,
-    emit: &mut dyn FnMut(Segment) -> ControlFlow<()>,
-) -> Result<ReverseWorldSummary, SampleError> {
+/// One world's run before encoding: what [`sample_world`] stores, and what `mwb bench reverse`
+/// measures.
+#[derive(Debug, Clone)]
+pub struct SceneRun {
+    /// The scene instantiated with the world's seed.
+    pub concrete: Scene,
+    /// Per body, its centre of mass in its own frame relative to the scene's body origin.
+    pub com_offset: Vec<Vector3<f64>>,
+    /// Frames in time order (played forward).
+    pub frames: Vec<Frame>,
+    /// Index of the given state in `frames`.
+    pub join: usize,
+    /// Per body, `(linear, angular)` velocity of `frames[0]`.
+    pub first: Vec<(Vector3<f64>, Vector3<f64>)>,
+    /// The run's measurements, plausibility included.
+    pub report: BackwardRunReport,
+}
+
+/// Runs the backward (or mixed) world of `scene` for `seed`, without encoding it.
+pub fn run_world(scene: &ReverseScene, seed: u64) -> Result<SceneRun, SampleError> {
     let concrete = scene.template.instantiate(seed);
     let mut world = world_from_scene(&concrete)?;
     // The stepper's body position is the centre of mass; a stored pose is the scene's body
@@ -300,7 +310,6 @@ pub fn sample_world(
         })
         .collect();
     let settings = &scene.settings;
-    // Frames in time order, the index of the given state, velocities of frame 0, the report.
     let (frames, join, first, report) = match scene.mode {
         RunMode::Backward => {
             let run = run_backward(&mut world, seed, settings);
@@ -313,9 +322,41 @@ pub fn sample_world(
             (run.frames, run.join, run.first_velocities, run.report)
         }
     };
+    Ok(SceneRun {
+        concrete,
+        com_offset,
+        frames,
+        join,
+        first,
+        report,
+    })
+}
+
+/// Samples the backward (or, per the scene's `[reverse] mode`, mixed) world of `scene` for
+/// `seed` and hands its segments, in playback order, to `emit` (which may stop the world with
+/// `ControlFlow::Break`: then [`SampleError::Stopped`]).
+///
+/// The scene is instantiated with `seed` (a final state with distributions varies per world)
+/// and the backward run draws its free choices from the same seed. Segments hold
+/// `[settings] segment_seconds` of frames each, the last one the rest.
+pub fn sample_world(
+    scene: &ReverseScene,
+    seed: u64,
+    quality: Quality,
+    emit: &mut dyn FnMut(Segment) -> ControlFlow<()>,
+) -> Result<ReverseWorldSummary, SampleError> {
+    let SceneRun {
+        concrete,
+        com_offset,
+        frames,
+        join,
+        first,
+        report,
+    } = run_world(scene, seed)?;
+    let settings = &scene.settings;
     let dt = settings.dt;
     let s = &concrete.settings;
-    let n = world.bodies.len();
+    let n = com_offset.len();
 
     // Poses in playback order, checked finite before anything is encoded.
     let mut tracks: Vec<Track> = (0..n)
@@ -420,4 +461,29 @@ pub fn sample_world(
         payload_bytes,
         report,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Our stepper solves each step's LCP exactly, with no substeps, iteration count, CCD or
+    /// sleeping to set: of a simulation preset it takes the step, which only `reference`
+    /// changes (÷ 8).
+    #[test]
+    fn the_reference_preset_shortens_the_step() {
+        let text = crate::scene::builtin::WORD;
+        let plain = ReverseScene::prepare(text, "word.toml").unwrap_or_else(|e| panic!("{e}"));
+        let with = |preset: &str| {
+            let t = text.replacen(
+                "[settings]\n",
+                &format!("[settings]\nsim = \"{preset}\"\n"),
+                1,
+            );
+            ReverseScene::prepare(&t, "word.toml").unwrap_or_else(|e| panic!("{e}"))
+        };
+        assert_eq!(with("final").settings.dt, plain.settings.dt);
+        assert_eq!(with("draft").settings.dt, plain.settings.dt);
+        assert_eq!(with("reference").settings.dt, plain.settings.dt / 8.0);
+    }
 }

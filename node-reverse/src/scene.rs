@@ -31,6 +31,11 @@ pub mod builtin {
     pub const CRASH: &str = include_str!("../../scenes/reverse/crash.toml");
     /// A hinged gate and a chain of boxes joined by ball joints, on the ground (§5.3.4).
     pub const GATE: &str = include_str!("../../scenes/reverse/gate.toml");
+    /// 3037 balls resting in square bins spelling "LOREM IPSUM DOLOR SIT AMET..." (§5.4.1).
+    pub const LOREM: &str = include_str!("../../scenes/reverse/lorem.toml");
+    /// [`CRASH`] with a `[reverse]` table asking for a mixed run (§5.4.4). Not in [`ALL`]: the
+    /// plain scene parser refuses the table; [`crate::ReverseScene::prepare`] reads it.
+    pub const CRASH_MIXED: &str = include_str!("../../scenes/reverse/crash_mixed.toml");
 
     /// `(name, source)` of every shipped reverse scene.
     pub const ALL: &[(&str, &str)] = &[
@@ -40,6 +45,7 @@ pub mod builtin {
         ("balls_small", BALLS_SMALL),
         ("crash", CRASH),
         ("gate", GATE),
+        ("lorem", LOREM),
     ];
 }
 

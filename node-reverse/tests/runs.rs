@@ -53,6 +53,7 @@ fn shipped_scenes_parse_and_convert() {
         ("balls_small", 27),
         ("crash", 5),
         ("gate", 5),
+        ("lorem", 3037),
     ];
     for ((name, src), (want_name, bodies)) in builtin::ALL.iter().zip(expect) {
         assert_eq!(*name, want_name);

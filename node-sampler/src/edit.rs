@@ -274,6 +274,21 @@ fn settings_changes(a: &Settings, b: &Settings) -> Vec<&'static str> {
         ("segment_seconds", a.segment_seconds == b.segment_seconds),
         ("linear_damping", a.linear_damping == b.linear_damping),
         ("angular_damping", a.angular_damping == b.angular_damping),
+        ("sim", a.sim == b.sim),
+        ("pgs_iterations", a.pgs_iterations == b.pgs_iterations),
+        (
+            "stabilization_iterations",
+            a.stabilization_iterations == b.stabilization_iterations,
+        ),
+        ("ccd", a.ccd == b.ccd),
+        (
+            "prediction_distance",
+            a.prediction_distance == b.prediction_distance,
+        ),
+        ("sleep", a.sleep == b.sleep),
+        ("length_unit", a.length_unit == b.length_unit),
+        ("max_speed", a.max_speed == b.max_speed),
+        ("tolerance", a.tolerance == b.tolerance),
     ])
 }
 

@@ -316,6 +316,7 @@ pub fn world_done(
         body_rested: summary.body_rested.clone(),
         perturbations: summary.perturbations,
         sim_steps: summary.steps,
+        sim: summary.sim.clone(),
         ..Default::default()
     }
 }

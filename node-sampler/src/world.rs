@@ -18,6 +18,8 @@ use rapier3d::na::Unit;
 use rapier3d::prelude::*;
 use std::ops::ControlFlow;
 
+use crate::plan::SimPlan;
+
 /// What the physics build is, recorded in every world's provenance: worlds are regenerated
 /// bit for bit only by the same binary and build (STACK-NOTES: the enhanced-determinism build
 /// gives different trajectories from the default one).
@@ -120,6 +122,8 @@ pub struct WorldSummary {
     pub perturbations: u32,
     pub steps: u64,
     pub payload_bytes: u64,
+    /// The simulation plan the world ran with ([`SimPlan::describe`]): `WorldDone.sim`.
+    pub sim: String,
 }
 
 /// Why a world stopped early.
@@ -329,13 +333,11 @@ fn insert_body(
     h
 }
 
-/// Which bodies can tunnel and need CCD (DESIGN: "CCD only for bodies that can tunnel").
-///
-/// A conservative energy bound: no body in the scene can move faster than the fastest body's
-/// initial speed plus what it gains falling to the lowest static surface; an elastic hit can at
-/// most double that for the body it hits. A body needs CCD when that speed carries it further
-/// than its own half-thickness (or the thinnest static slab's) in one step.
-pub fn ccd_bodies(scene: &Scene) -> Vec<bool> {
+/// A bound on any body's speed in the scene (m/s), from its energy: no body can move faster
+/// than the fastest body's initial speed (its spin included, at its rim) plus what it gains
+/// falling to the lowest static surface, with the margin the perturbations may add (α of a
+/// velocity change). Without a floor, what gravity adds over the whole end time.
+pub fn speed_bound(scene: &Scene) -> f64 {
     let s = &scene.settings;
     let g = perturb::norm(s.gravity);
     let up = if g > 0.0 {
@@ -352,14 +354,6 @@ pub fn ccd_bodies(scene: &Scene) -> Vec<bool> {
             _ => height(st.position) - st.shape.bounding_radius(),
         })
         .fold(f64::INFINITY, f64::min);
-    // Planes and meshes are left out (as they always were), also as parts of a compound.
-    let thinnest_static = scene
-        .statics
-        .iter()
-        .flat_map(|st| st.shape.placed_parts(st.material))
-        .filter(|part| !matches!(part.shape, Shape::Plane { .. } | Shape::TriMesh { .. }))
-        .map(|part| part.shape.min_half_thickness())
-        .fold(f64::INFINITY, f64::min);
     let v_max = scene
         .bodies
         .iter()
@@ -374,8 +368,26 @@ pub fn ccd_bodies(scene: &Scene) -> Vec<bool> {
                 + (2.0 * g * drop).sqrt()
         })
         .fold(0.0, f64::max);
-    // Perturbations add at most α of a velocity change: include that margin too.
-    let step = 2.0 * v_max * (1.0 + s.alpha) * s.dt;
+    v_max * (1.0 + s.alpha)
+}
+
+/// Which bodies can tunnel and need CCD (DESIGN: "CCD only for bodies that can tunnel"): the
+/// `auto` CCD policy.
+///
+/// From [`speed_bound`]: an elastic hit can at most double that speed for the body it hits. A
+/// body needs CCD when that speed carries it further than its own half-thickness (or the
+/// thinnest static slab's) in one step.
+pub fn ccd_bodies(scene: &Scene) -> Vec<bool> {
+    let s = &scene.settings;
+    // Planes and meshes are left out (as they always were), also as parts of a compound.
+    let thinnest_static = scene
+        .statics
+        .iter()
+        .flat_map(|st| st.shape.placed_parts(st.material))
+        .filter(|part| !matches!(part.shape, Shape::Plane { .. } | Shape::TriMesh { .. }))
+        .map(|part| part.shape.min_half_thickness())
+        .fold(f64::INFINITY, f64::min);
+    let step = 2.0 * speed_bound(scene) * s.dt;
     scene
         .bodies
         .iter()
@@ -389,6 +401,8 @@ pub struct SimWorld {
     pub bodies: Vec<RigidBodyHandle>,
     pub gravity: V3,
     pub dt: f64,
+    /// What the world was built with ([`SimPlan::of`] its scene).
+    pub plan: SimPlan,
 }
 
 impl SimWorld {
@@ -399,16 +413,25 @@ impl SimWorld {
         let mut world = PhysicsWorld::new();
         world.gravity = v3(s.gravity);
         world.integration_parameters.dt = s.dt as f32;
-        world.integration_parameters.num_solver_iterations = (s.solver_iterations as usize).max(1);
+        let plan = SimPlan::of(scene);
+        let ip = &mut world.integration_parameters;
+        ip.num_solver_iterations = plan.substeps as usize;
+        ip.num_internal_pgs_iterations = plan.iterations as usize;
+        ip.num_internal_stabilization_iterations = plan.stabilization as usize;
+        ip.length_unit = plan.length_unit as f32;
+        // rapier scales these by the length unit; the plan's are in metres.
+        ip.normalized_prediction_distance = (plan.prediction_distance / plan.length_unit) as f32;
+        ip.normalized_max_linear_velocity = (plan.max_speed / plan.length_unit) as f32;
         for st in &scene.statics {
             let rb = RigidBodyBuilder::fixed()
                 .pose(Pose::from_parts(v3(st.position), quat(st.rotation)));
             let co = colliders(scene, "static", &st.name, &st.shape, st.material)?;
             insert_body(&mut world, rb, co);
         }
-        let ccd = ccd_bodies(scene);
         let mut bodies = Vec::with_capacity(scene.bodies.len());
-        for (b, needs_ccd) in scene.bodies.iter().zip(ccd) {
+        for ((b, &needs_ccd), &gyroscopic) in
+            scene.bodies.iter().zip(&plan.ccd).zip(&plan.gyroscopic)
+        {
             if !b.shape.can_be_dynamic() {
                 return Err(BuildError::NotDynamic {
                     name: b.name.clone(),
@@ -421,9 +444,19 @@ impl SimWorld {
                 .angvel(v3(b.angvel))
                 .linear_damping(s.linear_damping as f32)
                 .angular_damping(s.angular_damping as f32)
-                .ccd_enabled(needs_ccd);
+                .ccd_enabled(needs_ccd)
+                .gyroscopic_forces_enabled(gyroscopic)
+                .can_sleep(plan.sleep);
             let co = colliders(scene, "body", &b.name, &b.shape, b.material)?;
-            bodies.push(insert_body(&mut world, rb, co));
+            let h = insert_body(&mut world, rb, co);
+            if plan.length_unit > 1.0
+                && let Some(body) = world.bodies.get_mut(h)
+            {
+                // rapier scales the threshold by the length unit; the plan's is in m/s.
+                body.activation_mut().normalized_linear_threshold =
+                    (plan.sleep_speed / plan.length_unit) as f32;
+            }
+            bodies.push(h);
         }
         if !scene.joints.is_empty() {
             // Joints to the world need a fixed anchor body (at the origin, so world-space
@@ -465,6 +498,7 @@ impl SimWorld {
             bodies,
             gravity: s.gravity,
             dt: s.dt,
+            plan,
         })
     }
 
@@ -493,6 +527,7 @@ impl SimWorld {
             bodies: self.bodies.clone(),
             gravity: self.gravity,
             dt: self.dt,
+            plan: self.plan.clone(),
         }
     }
 
@@ -591,7 +626,7 @@ impl Progress {
 
     /// Per body, the time of the first frame from which it stayed resting (see
     /// [`WorldSummary::rest_time_s`]).
-    fn rest_times(&self, dt: f64) -> Vec<f64> {
+    pub(crate) fn rest_times(&self, dt: f64) -> Vec<f64> {
         // Frame k is recorded after step k: a body last moving after step k rests from frame
         // k + 1.
         self.trackers
@@ -943,5 +978,6 @@ pub(crate) fn summary_of(p: &Progress, rec: &Recorder<'_>, seed: u64, dt: f64) -
         perturbations: p.perturbations,
         steps: p.steps,
         payload_bytes: rec.payload_bytes,
+        sim: p.sim.plan.describe(),
     }
 }

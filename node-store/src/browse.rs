@@ -588,18 +588,35 @@ impl Shard {
                 order,
                 k,
                 all_worlds,
+                plausible_only,
             } => {
                 let candidates = if *all_worlds {
                     set.worlds()
                 } else {
                     set.result()
                 };
-                let (rows, unscored) = top_k_counted(candidates.iter(), *k, *order, |w| {
-                    let world = self.world(w)?;
-                    score(key, world, set.satisfied_count(w))
-                });
+                let plausible = |w: u32| {
+                    !*plausible_only
+                        || self
+                            .world(w)
+                            .is_some_and(|x| x.world_metrics.plausible == Some(true))
+                };
+                let count = if *plausible_only {
+                    candidates.iter().filter(|w| plausible(*w)).count()
+                } else {
+                    candidates.len()
+                };
+                let (rows, unscored) = top_k_counted(
+                    candidates.iter().filter(|w| plausible(*w)),
+                    *k,
+                    *order,
+                    |w| {
+                        let world = self.world(w)?;
+                        score(key, world, set.satisfied_count(w))
+                    },
+                );
                 Reply::Ranking {
-                    candidates: candidates.len() as u64,
+                    candidates: count as u64,
                     unscored,
                     rows,
                 }
@@ -720,6 +737,7 @@ mod tests {
     use mwb_core::browse::api::merge;
     use mwb_core::browse::{
         Aggregate, ConstraintId, Frustum, Metric, Order, Polarity, Polyline, TimeWindow,
+        WorldMetric,
     };
 
     /// A one-object world whose object slides along x at height `y` from t = 0 to 1.
@@ -745,6 +763,62 @@ mod tests {
             }],
             world_metrics: Default::default(),
             refined: None,
+        }
+    }
+
+    /// Only plausible worlds are candidates under `plausible_only`, and the excess ranks them.
+    #[test]
+    fn plausible_only_ranks_the_plausible_worlds() {
+        let mut shard = Shard::new(ShardSpec::default(), "a");
+        for (i, (plausible, excess)) in [
+            (None, None),
+            (Some(true), Some(-0.2)),
+            (Some(false), Some(0.5)),
+            (Some(true), Some(-0.7)),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let mut w = world(i as u32, 0.0, 1.0);
+            w.world_metrics.plausible = plausible;
+            w.world_metrics.plausibility_excess = excess;
+            shard.insert(w);
+        }
+        let rank = |plausible_only| Request::Rank {
+            key: RankKey::World {
+                metric: WorldMetric::PlausibilityExcess,
+            },
+            order: Order::Ascending,
+            k: 10,
+            all_worlds: true,
+            plausible_only,
+        };
+        match read(&mut shard, rank(true)) {
+            Reply::Ranking {
+                candidates,
+                unscored,
+                rows,
+            } => {
+                assert_eq!((candidates, unscored), (2, 0));
+                assert_eq!(rows.iter().map(|r| r.world).collect::<Vec<_>>(), vec![3, 1]);
+            }
+            other => panic!("{other:?}"),
+        }
+        match read(&mut shard, rank(false)) {
+            Reply::Ranking {
+                candidates,
+                unscored,
+                rows,
+            } => {
+                // The forward world has no excess: unscored, last.
+                assert_eq!((candidates, unscored), (4, 1));
+                assert_eq!(
+                    rows.iter().map(|r| r.world).collect::<Vec<_>>(),
+                    vec![3, 1, 2, 0]
+                );
+                assert!(rows[3].score.is_none());
+            }
+            other => panic!("{other:?}"),
         }
     }
 
@@ -951,6 +1025,7 @@ mod tests {
                 order: Order::Descending,
                 k: 2,
                 all_worlds: false,
+                plausible_only: false,
             },
         ) {
             Reply::Ranking {
@@ -1296,6 +1371,7 @@ mod tests {
                 order: Order::Ascending,
                 k: 5,
                 all_worlds: false,
+                plausible_only: false,
             },
         );
         match rank {
@@ -1353,12 +1429,14 @@ mod tests {
                 order: Order::Descending,
                 k: 9,
                 all_worlds: false,
+                plausible_only: false,
             },
             Request::Rank {
                 key: RankKey::ConstraintsSatisfied,
                 order: Order::Descending,
                 k: 20,
                 all_worlds: true,
+                plausible_only: false,
             },
             Request::Summary { world: 11 },
         ];

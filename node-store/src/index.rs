@@ -622,6 +622,8 @@ pub fn index_world(
         world_metrics: WorldMetrics {
             energy_growth: done.energy_growth.filter(|v| !v.is_nan()),
             angular_speed_growth: done.angular_speed_growth.filter(|v| !v.is_nan()),
+            plausible: done.plausible,
+            plausibility_excess: done.plausibility_excess.filter(|v| !v.is_nan()),
         },
         refined: done.lineage.as_ref().map(|l| {
             Box::new(Refined {

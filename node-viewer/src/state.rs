@@ -70,6 +70,7 @@ impl RankSpec {
             order: self.order,
             k: self.k,
             all_worlds: self.all_worlds,
+            plausible_only: false,
         }
     }
 }

@@ -59,8 +59,9 @@ pub fn segment_message(
 /// and seed determine — each segment's numbering, encoding, payload and low-resolution path,
 /// and the summary's counts, rest times, impacts, perturbations, steps, plausibility numbers
 /// and scene hash — and over nothing that names where or when it was computed (job, node,
-/// counter, CPU time, provenance, the segments' CRCs, which follow from their payloads). A
-/// stored world and its regeneration from `(scene, seed)` (`mwb world`) have equal digests.
+/// counter, CPU time, provenance, the segments' CRCs, which follow from their payloads) or that
+/// the scene hash already decides (the simulation plan). A stored world and its regeneration
+/// from `(scene, seed)` (`mwb world`) have equal digests.
 pub fn world_digest(segments: &[MotionSegment], done: &WorldDone) -> u32 {
     let mut h = crc32fast::Hasher::new();
     for s in segments {
@@ -127,6 +128,9 @@ pub fn world_digest(segments: &[MotionSegment], done: &WorldDone) -> u32 {
         lineage,
         active_from,
         first_segment,
+        plausible,
+        plausibility_excess,
+        sim: _,
     } = done;
     // Nothing for a sampled world (no lineage, no active_from), so their digests stay.
     if let Some(l) = lineage {
@@ -169,6 +173,13 @@ pub fn world_digest(segments: &[MotionSegment], done: &WorldDone) -> u32 {
             }
             None => h.update(&[0]),
         }
+    }
+    // Absent in forward worlds: nothing, so their digests stay.
+    if let Some(p) = plausible {
+        h.update(&[2, u8::from(*p)]);
+    }
+    if let Some(x) = plausibility_excess {
+        h.update(&x.to_bits().to_le_bytes());
     }
     h.finalize()
 }

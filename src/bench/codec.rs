@@ -496,7 +496,7 @@ const FONT_CANDIDATES: [&str; 3] = [
 ];
 
 /// Registers a system font with plotters; `false` if none was found.
-fn register_font() -> bool {
+pub fn register_font() -> bool {
     for path in FONT_CANDIDATES {
         if let Ok(bytes) = std::fs::read(path) {
             // plotters keeps registered fonts for the life of the process.

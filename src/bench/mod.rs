@@ -5,6 +5,7 @@ use anyhow::Result;
 use clap::Subcommand;
 
 pub mod codec;
+pub mod fidelity;
 pub mod query;
 pub mod record;
 pub mod refine;
@@ -36,6 +37,9 @@ pub enum BenchCommand {
     /// Refinement (§4.5) against fresh worlds: CPU per world, active fraction, stored bytes,
     /// parent regeneration.
     Refine(refine::RefineArgs),
+    /// The simulation presets against a reference run, per scene: CPU per world and how far
+    /// each moves where bodies rest, when, and how often they hit (issue 19).
+    Fidelity(fidelity::FidelityArgs),
     /// Validating big scene files: parse and instantiate time by body count.
     Scene(scene::SceneArgs),
 }
@@ -52,6 +56,7 @@ pub async fn run(command: BenchCommand) -> Result<()> {
         BenchCommand::Refine(args) => refine::run(args).await,
         BenchCommand::Viewer(args) => viewer::run(args).await,
         BenchCommand::Scene(args) => scene::run(args),
+        BenchCommand::Fidelity(args) => fidelity::run(args),
     }
 }
 

@@ -525,6 +525,7 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
                 order: Order::Descending,
                 k: 10,
                 all_worlds: true,
+                plausible_only: false,
             },
         )?;
         rank.push(t.elapsed().as_secs_f64() * 1e3);

@@ -1,5 +1,8 @@
 //! `mwb bench reverse`: our LCP stepper forward against backward (the backward-steps paper),
-//! measured by `mwb_reverse::bench`; this module prints its numbers.
+//! the plausible fraction of every shipped reverse scene and the 3037-ball lorem world, measured
+//! by `mwb_reverse::bench`; this module prints its numbers.
+
+use std::collections::BTreeMap;
 
 use crate::output::{Summary, fields_table};
 use anyhow::Result;
@@ -14,6 +17,15 @@ pub struct ReverseArgs {
     /// Skip the big ball-array run.
     #[arg(long)]
     pub no_balls: bool,
+    /// Worlds sampled per shipped reverse scene for `plausible_fraction` (0: none).
+    #[arg(long, default_value_t = 20)]
+    pub scene_worlds: usize,
+    /// Worlds per big shipped scene (balls, > 500 bodies).
+    #[arg(long, default_value_t = 20)]
+    pub big_scene_worlds: usize,
+    /// Skip the 3037-ball lorem world.
+    #[arg(long)]
+    pub no_lorem: bool,
     /// Print the result as one JSON line.
     #[arg(long)]
     pub json: bool,
@@ -28,15 +40,22 @@ pub async fn run(args: ReverseArgs) -> Result<()> {
     if args.no_balls {
         o.balls_scene = None;
     }
+    o.scene_worlds = args.scene_worlds;
+    o.big_scene_worlds = args.big_scene_worlds;
+    if args.no_lorem {
+        o.lorem_scene = None;
+    }
     let b = tokio::task::spawn_blocking(move || mwb_reverse::bench(&o)).await??;
     crate::output::print(&ReverseLine::from(b), args.json)
 }
 
 /// The bench's line: [`ReverseBench`]'s fields (documented there), in the alphabetical order
 /// the line has always had, so that scripts and docs/performance.md read the same line.
+/// Per-scene numbers are objects keyed by scene name; `lorem_*` are null when skipped.
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct ReverseLine {
     pub angular_speed_peak_p50: f64,
+    pub angular_speed_peak_p95: f64,
     pub backward_step_us: f64,
     pub balls: usize,
     pub balls_energy_growth: f64,
@@ -45,7 +64,25 @@ pub struct ReverseLine {
     pub balls_steps: usize,
     pub bodies: usize,
     pub energy_growth_p50: f64,
+    pub energy_growth_p95: f64,
+    /// Per scene, the 95th percentile of its worlds' energy growth (m).
+    pub energy_growth_p95_by_scene: BTreeMap<String, f64>,
     pub forward_step_us: f64,
+    pub lorem_balls: Option<usize>,
+    pub lorem_cells_correct: Option<f64>,
+    pub lorem_energy_growth: Option<f64>,
+    pub lorem_excess_m: Option<f64>,
+    pub lorem_implausible_balls: Option<usize>,
+    pub lorem_left_bins: Option<f64>,
+    pub lorem_plausible: Option<bool>,
+    pub lorem_seconds: Option<f64>,
+    pub lorem_steps: Option<usize>,
+    /// Per scene, the median plausibility excess of its worlds (m; ≤ 0: plausible).
+    pub plausible_excess_p50: BTreeMap<String, f64>,
+    /// Per scene, the fraction of its sampled worlds that are plausible.
+    pub plausible_fraction: BTreeMap<String, f64>,
+    /// Per scene, how many worlds were sampled.
+    pub plausible_worlds: BTreeMap<String, usize>,
     pub ratio: f64,
     pub roundtrip_departed_fraction: f64,
     pub roundtrip_max_rel_err: f64,
@@ -54,8 +91,13 @@ pub struct ReverseLine {
 
 impl From<ReverseBench> for ReverseLine {
     fn from(b: ReverseBench) -> Self {
+        let by_scene = |f: fn(&mwb_reverse::ScenePlausibility) -> f64| {
+            b.scenes.iter().map(|(n, s)| (n.clone(), f(s))).collect()
+        };
+        let lorem = b.lorem.as_ref();
         Self {
             angular_speed_peak_p50: b.angular_speed_peak_p50,
+            angular_speed_peak_p95: b.angular_speed_peak_p95,
             backward_step_us: b.backward_step_us,
             balls: b.balls,
             balls_energy_growth: b.balls_energy_growth,
@@ -64,7 +106,25 @@ impl From<ReverseBench> for ReverseLine {
             balls_steps: b.balls_steps,
             bodies: b.bodies,
             energy_growth_p50: b.energy_growth_p50,
+            energy_growth_p95: b.energy_growth_p95,
+            energy_growth_p95_by_scene: by_scene(|s| s.energy_growth_p95),
             forward_step_us: b.forward_step_us,
+            lorem_balls: lorem.map(|l| l.balls),
+            lorem_cells_correct: lorem.map(|l| l.cells_correct),
+            lorem_energy_growth: lorem.map(|l| l.energy_growth),
+            lorem_excess_m: lorem.map(|l| l.excess_m),
+            lorem_implausible_balls: lorem.map(|l| l.implausible_balls),
+            lorem_left_bins: lorem.map(|l| l.left_bins),
+            lorem_plausible: lorem.map(|l| l.plausible),
+            lorem_seconds: lorem.map(|l| l.seconds),
+            lorem_steps: lorem.map(|l| l.steps),
+            plausible_excess_p50: by_scene(|s| s.excess_p50),
+            plausible_fraction: by_scene(|s| s.plausible_fraction),
+            plausible_worlds: b
+                .scenes
+                .iter()
+                .map(|(n, s)| (n.clone(), s.worlds))
+                .collect(),
             ratio: b.ratio,
             roundtrip_departed_fraction: b.roundtrip_departed_fraction,
             roundtrip_max_rel_err: b.roundtrip_max_rel_err,

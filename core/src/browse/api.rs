@@ -47,6 +47,10 @@ pub enum Request {
         k: usize,
         #[serde(default)]
         all_worlds: bool,
+        /// Only worlds measured plausible (backward and mixed worlds whose
+        /// `WorldDone.plausible` is true; docs/reverse.md): the others are not candidates.
+        #[serde(default)]
+        plausible_only: bool,
     },
     /// One world's per-object metrics and standing in the session.
     Summary {
@@ -486,6 +490,7 @@ mod tests {
             order: Order::Descending,
             k: 2,
             all_worlds: false,
+            plausible_only: false,
         };
         let row = |world, score| Ranked {
             world,

@@ -191,7 +191,7 @@ impl WorldMetric {
     /// The unit of the measurement.
     pub fn unit(self) -> &'static str {
         match self {
-            WorldMetric::EnergyGrowth => "m",
+            WorldMetric::EnergyGrowth | WorldMetric::PlausibilityExcess => "m",
             WorldMetric::AngularSpeedGrowth => "rad/s",
         }
     }
@@ -232,6 +232,14 @@ pub struct WorldMetrics {
     /// rad/s: the largest angular speed over the backward part minus the given state's.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub angular_speed_growth: Option<f64>,
+    /// Whether the world is plausible by the definition of docs/reverse.md
+    /// (`WorldDone.plausible`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub plausible: Option<bool>,
+    /// Metres by which the world's worst body breaks that definition, as a height; ≤ 0 means
+    /// plausible (`WorldDone.plausibility_excess`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub plausibility_excess: Option<f64>,
 }
 
 /// A per-world measurement to rank by.
@@ -240,6 +248,7 @@ pub struct WorldMetrics {
 pub enum WorldMetric {
     EnergyGrowth,
     AngularSpeedGrowth,
+    PlausibilityExcess,
 }
 
 impl WorldMetrics {
@@ -247,6 +256,7 @@ impl WorldMetrics {
         match metric {
             WorldMetric::EnergyGrowth => self.energy_growth,
             WorldMetric::AngularSpeedGrowth => self.angular_speed_growth,
+            WorldMetric::PlausibilityExcess => self.plausibility_excess,
         }
     }
 }

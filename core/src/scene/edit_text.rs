@@ -36,6 +36,7 @@ use std::fmt;
 use toml_edit::{ArrayOfTables, DocumentMut, Item, Table, TableLike, TomlError, Value};
 
 use super::error::SceneError;
+use super::model::SimPreset;
 use super::template::SceneTemplate;
 use super::toml_span::Source;
 
@@ -685,6 +686,79 @@ fn visit_tables(table: &mut Table, f: &mut dyn FnMut(&mut Table)) {
 }
 
 /// A TOML parser message on one line (the first; `file:line` or the flag says where).
+/// Sets the scene's simulation preset (`[settings] sim`, issue 19) in its text, keeping
+/// everything else as written; a scene without `[settings]` gets the table at its end (so the
+/// author's line numbers stay true). Used by `--sim` and to record what `sim = "auto"` chose:
+/// `note` becomes a comment after the value.
+///
+/// ```
+/// use mwb_core::scene::edit_text::set_sim_preset;
+/// use mwb_core::scene::{SceneTemplate, SimPreset, builtin};
+///
+/// let text = set_sim_preset(builtin::TUMBLE, "scenes/tumble.toml", SimPreset::Draft, None)?;
+/// assert!(text.starts_with("# tumble"));
+/// let scene = SceneTemplate::parse(&text, "scenes/tumble.toml")?.instantiate(0);
+/// assert_eq!(scene.settings.sim, SimPreset::Draft);
+/// assert_eq!(scene.settings.solver_iterations, 1);
+/// # Ok::<(), Box<dyn std::error::Error>>(())
+/// ```
+pub fn set_sim_preset(
+    text: &str,
+    file: &str,
+    preset: SimPreset,
+    note: Option<&str>,
+) -> Result<String, TextEditError> {
+    let src = Source { text, file };
+    let mut doc = text.parse::<DocumentMut>().map_err(|e| {
+        let message = first_line(e.message());
+        TextEditError::Scene(src.error(e.span(), None, None, format!("invalid TOML: {message}")))
+    })?;
+    let mut value = Value::from(preset.name());
+    if let Some(note) = note {
+        let note = note.replace(['\n', '\r'], " ");
+        value.decor_mut().set_suffix(format!(" # {note}"));
+    }
+    match doc.get_mut("settings") {
+        None => {
+            let mut t = Table::new();
+            t.insert("sim", Item::Value(value));
+            doc.insert("settings", Item::Table(t));
+        }
+        Some(item) => match item.as_table_like_mut() {
+            Some(t) => {
+                // Keep the decoration (spacing, a trailing comment) of a line being replaced.
+                match t.get_mut("sim").and_then(Item::as_value_mut) {
+                    Some(old) => {
+                        // Keep the author's comment unless there is a note to write.
+                        if note.is_none() {
+                            let decor = old.decor().clone();
+                            *value.decor_mut() = decor;
+                        }
+                        *old = value;
+                    }
+                    None => {
+                        t.insert("sim", Item::Value(value));
+                    }
+                }
+            }
+            None => {
+                return Err(TextEditError::Scene(src.error(
+                    item.span(),
+                    Some("scene".to_owned()),
+                    Some("settings".to_owned()),
+                    format!("expected a table, found {}", item.type_name()),
+                )));
+            }
+        },
+    }
+    let mut out = doc.to_string();
+    if text.contains("\r\n") {
+        out = out.replace("\r\n", "\n").replace('\n', "\r\n");
+    }
+    SceneTemplate::parse(&out, file).map_err(TextEditError::Invalid)?;
+    Ok(out)
+}
+
 fn first_line(message: &str) -> String {
     message
         .lines()
@@ -704,6 +778,60 @@ mod tests {
 
     /// A body hung from the world by a joint.
     const JOINTED: &str = "name = \"j\"\n\n[[material]]\nname = \"m\"\n\n[[body]]\nname = \"a\"\nshape = \"sphere\"\nradius = 0.1\nmaterial = \"m\"\nposition = [0, 1, 0]\n\n# The hinge.\n[[joint]]\nname = \"h\"\nkind = \"spherical\"\nbody1 = \"world\"\nbody2 = \"a\"\n";
+
+    #[test]
+    fn the_preset_is_set_where_the_author_would_write_it() {
+        let sim = |text: &str, p| {
+            set_sim_preset(text, "t.toml", p, None).unwrap_or_else(|e| panic!("{e}"))
+        };
+        // No [settings]: a table at the end, every line before it unchanged.
+        let out = sim(JOINTED, SimPreset::Final);
+        assert!(out.starts_with(JOINTED), "{out}");
+        assert!(out.ends_with("[settings]\nsim = \"final\"\n"), "{out}");
+        // An existing key is replaced in place, its comment kept; other settings stay.
+        let text = "name = \"j\"\n[settings]\nsim = \"draft\" # quick look\nend_time = 2\n";
+        let out = sim(
+            &text.replace("name = \"j\"\n", JOINTED),
+            SimPreset::Standard,
+        );
+        assert!(
+            out.contains("sim = \"standard\" # quick look\nend_time = 2\n"),
+            "{out}"
+        );
+        // An inline table.
+        let inline = JOINTED.replacen(
+            "name = \"j\"\n",
+            "name = \"j\"\nsettings = { end_time = 2 }\n",
+            1,
+        );
+        let out = sim(&inline, SimPreset::Draft);
+        let scene = SceneTemplate::parse(&out, "t.toml")
+            .unwrap_or_else(|e| panic!("{e}"))
+            .instantiate(0);
+        assert_eq!(
+            (scene.settings.sim, scene.settings.end_time),
+            (SimPreset::Draft, 2.0)
+        );
+        // CRLF files stay CRLF.
+        let crlf = JOINTED.replace('\n', "\r\n");
+        let out = sim(&crlf, SimPreset::Draft);
+        assert!(!out.replace("\r\n", "").contains('\n'), "{out:?}");
+        // A scene whose settings are not a table is refused.
+        let bad = JOINTED.replacen("name = \"j\"\n", "name = \"j\"\nsettings = 3\n", 1);
+        assert!(set_sim_preset(&bad, "t.toml", SimPreset::Draft, None).is_err());
+        // A note is a comment after the value.
+        let out = set_sim_preset(
+            JOINTED,
+            "t.toml",
+            SimPreset::Draft,
+            Some("chosen by auto\nx"),
+        )
+        .unwrap_or_else(|e| panic!("{e}"));
+        assert!(
+            out.ends_with("sim = \"draft\" # chosen by auto x\n"),
+            "{out}"
+        );
+    }
 
     fn edit(text: &str, edits: &[TextEdit]) -> String {
         apply(text, "test.toml", edits).unwrap_or_else(|e| panic!("{e}"))

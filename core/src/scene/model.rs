@@ -42,7 +42,7 @@ pub struct Settings {
     pub rest_angular: f64,
     /// … for this long (s). A world ends when every dynamic body rests.
     pub rest_hold: f64,
-    /// Velocity solver iterations per step.
+    /// Solver substeps per step (rapier's `num_solver_iterations`: each integrates `dt / n`).
     pub solver_iterations: u32,
     /// §4.1.1 plausibility bound: a perturbation is at most α times the impact's velocity change.
     pub alpha: f64,
@@ -59,6 +59,158 @@ pub struct Settings {
     pub linear_damping: f64,
     /// Angular damping applied to every dynamic body (1/s).
     pub angular_damping: f64,
+    /// The simulation preset the numbers below started from (`sim = "…"`); keys written in the
+    /// scene override it. [`SimPreset::Auto`] is resolved to a concrete preset by calibration
+    /// before a job is sampled (`mwb_sampler::fidelity`).
+    pub sim: SimPreset,
+    /// Solver iterations inside each substep (rapier's internal PGS iterations).
+    pub pgs_iterations: u32,
+    /// Position-stabilisation iterations inside each substep.
+    pub stabilization_iterations: u32,
+    /// Which bodies get continuous collision detection.
+    pub ccd: CcdPolicy,
+    /// Distance (m) at which two shapes start to produce (speculative) contacts. `None`: from
+    /// the scene and preset (`mwb_sampler::plan`): rapier's 2 cm, and for final and reference
+    /// what the scene's fastest body can cover in a step, between 2 and 10 cm.
+    pub prediction_distance: Option<f64>,
+    /// Whether bodies may fall asleep (stop being simulated) once still.
+    pub sleep: bool,
+    /// The solver's length scale (m): its tolerances (allowed penetration 5 mm, speed cap) are
+    /// multiplied by it. `None`: chosen from the scene's body sizes (1 for everyday sizes).
+    pub length_unit: Option<f64>,
+    /// Largest speed (m/s) the solver lets a body reach. `None`: chosen from the scene (at least
+    /// 400 m/s, more if a body can go faster).
+    pub max_speed: Option<f64>,
+    /// The error (m) the scene tolerates in where bodies come to rest and how deep they
+    /// penetrate: what `sim = "auto"` and the fidelity study hold presets to. `None`: half the
+    /// smallest body's half-thickness, at least 1 cm (`mwb_sampler::fidelity::tolerance`).
+    pub tolerance: Option<f64>,
+}
+
+/// A simulation preset (issue 19): how much accuracy to buy with time. The frame rate
+/// (`dt`) is a storage decision and stays; a preset sets what happens inside a frame.
+///
+/// | preset | steps per frame | substeps per step | iterations per substep | CCD | sleeping |
+/// |---|---|---|---|---|---|
+/// | draft | 1 | 1 | 1 | bodies that can tunnel | yes |
+/// | standard | 1 | 4 | 1 | bodies that can tunnel | yes |
+/// | final | 1 | 8 | 2 | every body | yes |
+/// | reference | 8 | 8 | 8 | every body | no |
+///
+/// `reference` is final with the step ÷ 8 (contacts found 8× as often: its `dt` is the
+/// frame's ÷ 8, so its worlds have 8× the frames) and 4× its iterations: what the fidelity study
+/// (`mwb bench fidelity`) measures the others against, not something to sample with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum SimPreset {
+    Draft,
+    Standard,
+    Final,
+    Reference,
+    /// The cheapest of draft, standard and final whose measured error stays inside the scene's
+    /// tolerance; chosen by a short calibration when the scene is loaded.
+    Auto,
+}
+
+/// Steps of the reference preset per frame of the scene's `dt`.
+pub const REFERENCE_STEPS_PER_FRAME: u32 = 8;
+
+impl SimPreset {
+    /// The concrete presets, cheapest first.
+    pub const CONCRETE: [SimPreset; 4] = [
+        SimPreset::Draft,
+        SimPreset::Standard,
+        SimPreset::Final,
+        SimPreset::Reference,
+    ];
+
+    /// Its name in scene files and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            SimPreset::Draft => "draft",
+            SimPreset::Standard => "standard",
+            SimPreset::Final => "final",
+            SimPreset::Reference => "reference",
+            SimPreset::Auto => "auto",
+        }
+    }
+
+    /// The preset of a name.
+    pub fn from_name(name: &str) -> Option<Self> {
+        [Self::Auto]
+            .into_iter()
+            .chain(Self::CONCRETE)
+            .find(|p| p.name() == name)
+    }
+
+    /// The settings this preset stands for, on top of `base` (whose other fields it keeps).
+    /// `Auto` gives standard's numbers until it is resolved.
+    pub fn apply(self, base: &Settings) -> Settings {
+        let (substeps, pgs, stab, ccd, sleep) = match self {
+            SimPreset::Draft => (1, 1, 1, CcdPolicy::Auto, true),
+            SimPreset::Standard | SimPreset::Auto => (4, 1, 1, CcdPolicy::Auto, true),
+            SimPreset::Final => (8, 2, 1, CcdPolicy::All, true),
+            SimPreset::Reference => (8, 8, 4, CcdPolicy::All, false),
+        };
+        // Contacts are found once per step, whatever the substeps: only a shorter step finds
+        // them sooner (a body at 8 m/s moves 6.7 cm in 1/120 s, three times the contact margin).
+        let steps = f64::from(REFERENCE_STEPS_PER_FRAME);
+        let frame_dt = if base.sim == SimPreset::Reference {
+            base.dt * steps
+        } else {
+            base.dt
+        };
+        let dt = if self == SimPreset::Reference {
+            frame_dt / steps
+        } else {
+            frame_dt
+        };
+        Settings {
+            sim: self,
+            dt,
+            solver_iterations: substeps,
+            pgs_iterations: pgs,
+            stabilization_iterations: stab,
+            ccd,
+            sleep,
+            ..base.clone()
+        }
+    }
+}
+
+impl std::fmt::Display for SimPreset {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// Which bodies get continuous collision detection.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum CcdPolicy {
+    /// Only bodies that could move further than their own (or the thinnest static's)
+    /// half-thickness in one step (`mwb_sampler::world::ccd_bodies`).
+    Auto,
+    /// Every body.
+    All,
+    /// No body (a body fast enough may tunnel; `mwb scene` warns).
+    Off,
+}
+
+impl CcdPolicy {
+    /// Its name in scene files.
+    pub fn name(self) -> &'static str {
+        match self {
+            CcdPolicy::Auto => "auto",
+            CcdPolicy::All => "all",
+            CcdPolicy::Off => "off",
+        }
+    }
+
+    /// The policy of a name.
+    pub fn from_name(name: &str) -> Option<Self> {
+        [CcdPolicy::Auto, CcdPolicy::All, CcdPolicy::Off]
+            .into_iter()
+            .find(|p| p.name() == name)
+    }
 }
 
 impl Default for Settings {
@@ -80,6 +232,15 @@ impl Default for Settings {
             segment_seconds: 1.0,
             linear_damping: 0.0,
             angular_damping: 0.0,
+            sim: SimPreset::Standard,
+            pgs_iterations: 1,
+            stabilization_iterations: 1,
+            ccd: CcdPolicy::Auto,
+            prediction_distance: None,
+            sleep: true,
+            length_unit: None,
+            max_speed: None,
+            tolerance: None,
         }
     }
 }

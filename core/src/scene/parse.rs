@@ -13,7 +13,7 @@ use toml::de::{DeTable, DeValue};
 
 use super::error::SceneError;
 use super::generators::{Layout, MAX_INSTANCES};
-use super::model::{BodyRef, Settings, Vec3};
+use super::model::{BodyRef, CcdPolicy, Settings, SimPreset, Vec3};
 use super::template::{
     BodyT, Dist, JointKindT, JointT, MaterialT, Num, NumVec3, PartT, RotationT, SceneTemplate,
     ShapeT,
@@ -135,6 +135,15 @@ const SETTINGS_KEYS: &[&str] = &[
     "segment_seconds",
     "linear_damping",
     "angular_damping",
+    "sim",
+    "pgs_iterations",
+    "stabilization_iterations",
+    "ccd",
+    "prediction_distance",
+    "sleep",
+    "length_unit",
+    "max_speed",
+    "tolerance",
 ];
 
 /// Levenshtein distance, for "did you mean" hints on typos.
@@ -675,6 +684,59 @@ fn parse_settings(s: &Item<'_>) -> Result<Settings, SceneError> {
             format!("must be at least one step (dt = {dt})"),
         ));
     }
+    // The preset first, then every key written in the scene over it.
+    let sim = match s.string("sim")? {
+        None => d.sim,
+        Some((name, span)) => SimPreset::from_name(name).ok_or_else(|| {
+            s.err(
+                "sim",
+                span,
+                format!(
+                    "unknown preset {name:?}: one of draft, standard, final, reference, auto{}",
+                    suggestion(name, ["draft", "standard", "final", "reference", "auto"])
+                ),
+            )
+        })?,
+    };
+    let p = sim.apply(&d);
+    let iterations = |key: &str, default: u32| -> Result<u32, SceneError> {
+        Ok(u32::try_from(s.integer(key, 1, 1000, Some(u64::from(default)))?).unwrap_or(default))
+    };
+    let ccd = match s.string("ccd")? {
+        None => p.ccd,
+        Some((name, span)) => CcdPolicy::from_name(name).ok_or_else(|| {
+            s.err(
+                "ccd",
+                span,
+                format!("unknown CCD policy {name:?}: one of auto, all, off"),
+            )
+        })?,
+    };
+    let sleep = match s.get("sleep") {
+        None => p.sleep,
+        Some(v) => match v.get_ref() {
+            DeValue::Boolean(b) => *b,
+            other => {
+                return Err(s.err(
+                    "sleep",
+                    v.span(),
+                    format!("expected true or false, found {}", other.type_str()),
+                ));
+            }
+        },
+    };
+    let optional_positive = |key: &str| -> Result<Option<f64>, SceneError> {
+        match s.get(key) {
+            None => Ok(None),
+            Some(_) => s.plain(key, Valid::Positive, None).map(Some),
+        }
+    };
+    // The reference steps 8× per frame (`SimPreset::apply`).
+    let dt = if sim == SimPreset::Reference {
+        dt / f64::from(super::model::REFERENCE_STEPS_PER_FRAME)
+    } else {
+        dt
+    };
     Ok(Settings {
         dt,
         end_time,
@@ -682,13 +744,7 @@ fn parse_settings(s: &Item<'_>) -> Result<Settings, SceneError> {
         rest_linear: s.plain("rest_linear", Valid::NonNegative, Some(d.rest_linear))?,
         rest_angular: s.plain("rest_angular", Valid::NonNegative, Some(d.rest_angular))?,
         rest_hold: s.plain("rest_hold", Valid::NonNegative, Some(d.rest_hold))?,
-        solver_iterations: u32::try_from(s.integer(
-            "solver_iterations",
-            1,
-            1000,
-            Some(u64::from(d.solver_iterations)),
-        )?)
-        .unwrap_or(d.solver_iterations),
+        solver_iterations: iterations("solver_iterations", p.solver_iterations)?,
         alpha: s.plain("alpha", Valid::Unit, Some(d.alpha))?,
         cos_exponent: s.plain("cos_exponent", Valid::NonNegative, Some(d.cos_exponent))?,
         c_v: s.plain("c_v", Valid::Positive, Some(d.c_v))?,
@@ -700,6 +756,21 @@ fn parse_settings(s: &Item<'_>) -> Result<Settings, SceneError> {
             Valid::NonNegative,
             Some(d.angular_damping),
         )?,
+        sim,
+        pgs_iterations: iterations("pgs_iterations", p.pgs_iterations)?,
+        stabilization_iterations: iterations(
+            "stabilization_iterations",
+            p.stabilization_iterations,
+        )?,
+        ccd,
+        prediction_distance: match s.get("prediction_distance") {
+            None => None,
+            Some(_) => Some(s.plain("prediction_distance", Valid::NonNegative, None)?),
+        },
+        sleep,
+        length_unit: optional_positive("length_unit")?,
+        max_speed: optional_positive("max_speed")?,
+        tolerance: optional_positive("tolerance")?,
     })
 }
 

@@ -232,6 +232,64 @@ fn settings_are_read() {
     assert_eq!((s.linear_damping, s.angular_damping), (0.1, 0.2));
 }
 
+#[test]
+fn presets_are_read_and_written_keys_win() {
+    use super::{CcdPolicy, SimPreset};
+    let d = parse_ok(BASE);
+    assert_eq!(d.settings().sim, SimPreset::Standard);
+    assert_eq!(
+        (d.settings().solver_iterations, d.settings().pgs_iterations),
+        (4, 1)
+    );
+    let at = |lines: &str| {
+        parse_ok(&format!("{BASE}\n[settings]\n{lines}\n"))
+            .settings()
+            .clone()
+    };
+    let draft = at("sim = \"draft\"");
+    assert_eq!(
+        (draft.sim, draft.solver_iterations, draft.ccd),
+        (SimPreset::Draft, 1, CcdPolicy::Auto)
+    );
+    let fin = at("sim = \"final\"");
+    assert_eq!(
+        (fin.solver_iterations, fin.pgs_iterations, fin.ccd),
+        (8, 2, CcdPolicy::All)
+    );
+    let reference = at("sim = \"reference\"");
+    assert_eq!(
+        (
+            reference.solver_iterations,
+            reference.pgs_iterations,
+            reference.stabilization_iterations,
+            reference.sleep
+        ),
+        (8, 8, 4, false)
+    );
+    assert_eq!(reference.dt, draft.dt / 8.0);
+    let custom = at(
+        "sim = \"final\"\nsolver_iterations = 6\nccd = \"off\"\nsleep = false\nprediction_distance = 0.01\n\
+         length_unit = 0.1\nmax_speed = 900\ntolerance = 0.005\npgs_iterations = 3\nstabilization_iterations = 2",
+    );
+    assert_eq!(custom.sim, SimPreset::Final);
+    assert_eq!(
+        (
+            custom.solver_iterations,
+            custom.pgs_iterations,
+            custom.stabilization_iterations
+        ),
+        (6, 3, 2)
+    );
+    assert_eq!((custom.ccd, custom.sleep), (CcdPolicy::Off, false));
+    assert_eq!(custom.prediction_distance, Some(0.01));
+    assert_eq!(
+        (custom.length_unit, custom.max_speed, custom.tolerance),
+        (Some(0.1), Some(900.0), Some(0.005))
+    );
+    // `auto` parses; it is resolved by calibration before a job is sampled.
+    assert_eq!(at("sim = \"auto\"").sim, SimPreset::Auto);
+}
+
 fn body_with(fields: &str) -> super::Body {
     let src = format!(
         "name = \"r\"\n[[material]]\nname = \"m\"\n[[body]]\nname = \"b\"\nshape = \"box\"\n\
@@ -630,6 +688,48 @@ fn bad_cases() -> Vec<Bad> {
             "settings",
             "end_time",
             "at least one step",
+        ),
+        bad(
+            "unknown preset",
+            settings("sim = \"fnial\""),
+            "settings",
+            "sim",
+            "unknown preset \"fnial\": one of draft, standard, final, reference, auto (did you mean \"final\"?)",
+        ),
+        bad(
+            "preset not a string",
+            settings("sim = 2"),
+            "settings",
+            "sim",
+            "expected a string",
+        ),
+        bad(
+            "unknown ccd policy",
+            settings("ccd = \"some\""),
+            "settings",
+            "ccd",
+            "one of auto, all, off",
+        ),
+        bad(
+            "sleep not a boolean",
+            settings("sleep = \"yes\""),
+            "settings",
+            "sleep",
+            "expected true or false",
+        ),
+        bad(
+            "zero length unit",
+            settings("length_unit = 0"),
+            "settings",
+            "length_unit",
+            "> 0",
+        ),
+        bad(
+            "negative tolerance",
+            settings("tolerance = -1"),
+            "settings",
+            "tolerance",
+            "> 0",
         ),
         bad(
             "float iterations",

@@ -313,6 +313,8 @@ fn world_metrics_rank_backward_worlds_and_leave_forward_ones_unscored() {
     let backward = WorldMetrics {
         energy_growth: Some(0.7),
         angular_speed_growth: Some(3.0),
+        plausible: Some(false),
+        plausibility_excess: Some(0.25),
     };
     assert_eq!(key.score_with(&objs, &forward, 0), None);
     assert_eq!(key.score_with(&objs, &backward, 0), Some(0.7));
@@ -320,6 +322,11 @@ fn world_metrics_rank_backward_worlds_and_leave_forward_ones_unscored() {
         metric: WorldMetric::AngularSpeedGrowth,
     };
     assert_eq!(key.score_with(&objs, &backward, 0), Some(3.0));
+    let key = RankKey::World {
+        metric: WorldMetric::PlausibilityExcess,
+    };
+    assert_eq!(key.score_with(&objs, &backward, 0), Some(0.25));
+    assert_eq!(key.score_with(&objs, &forward, 0), None);
     // Per-object keys ignore the world's measurements.
     let by_object = RankKey::Metric {
         metric: Metric::AngularTravel,
