@@ -1,7 +1,8 @@
 //! The CLI tells the truth (issue 24, items 5–9), checked on real OS processes over a real bus:
 //! a closed pipe ends a command quietly, errors exit non-zero and name what was tried, a job
-//! that cannot complete says why within seconds, a stayed demo takes more jobs, and a stored
-//! world regenerates from its seed to the same digest.
+//! that cannot complete says why within seconds, a stayed demo takes more jobs, a stored
+//! world regenerates from its seed to the same digest, and `mwb scene` refuses a scene the
+//! simulator cannot do faithfully (issue 19).
 
 mod common;
 
@@ -314,4 +315,50 @@ fn a_stayed_demo_takes_more_jobs_and_its_worlds_regenerate_from_their_seeds() {
     let (status, stdout, stderr) = check(&format!("{:#x}", done.seed ^ 1));
     assert!(!status.success(), "{stdout}");
     assert!(stderr.contains("the seeds differ"), "{stderr}");
+}
+
+/// Issue 19: `mwb scene` prints the simulation plan of the preset asked for, and a scene the
+/// simulator cannot do faithfully exits non-zero naming the body, the field and the limit,
+/// before any world is sampled.
+#[test]
+fn mwb_scene_prints_the_plan_and_refuses_what_the_simulator_cannot_do() {
+    let limit = Duration::from_secs(60);
+    let (status, stdout, stderr) = run(
+        mwb().args(["scene", "tumble", "--sim", "draft"]),
+        limit,
+        "mwb scene --sim draft",
+    );
+    assert!(status.success(), "{stderr}");
+    assert!(
+        stdout.contains("simulation: draft: 1 substep x 1 iteration, CCD on 4 of 5 bodies"),
+        "{stdout}"
+    );
+    // A 0.1 m ball at 1000 m/s against a 0.1 m wall tunnels (extremes matrix): refused.
+    let dir = std::env::temp_dir().join(format!("mwb-limits-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let file = dir.join("bullet.toml");
+    std::fs::write(
+        &file,
+        "name = \"bullet\"\n[settings]\nend_time = 0.2\ngravity = [0, 0, 0]\n\
+         [[material]]\nname = \"m\"\n\
+         [[static]]\nname = \"wall\"\nshape = \"box\"\nsize = [0.1, 2, 2]\nmaterial = \"m\"\nposition = [5, 1, 0]\n\
+         [[body]]\nname = \"bullet\"\nshape = \"sphere\"\nradius = 0.05\nmaterial = \"m\"\n\
+         position = [0, 1, 0]\nlinvel = [1000, 0, 0]\n",
+    )
+    .expect("scene file");
+    let (status, stdout, stderr) = run(
+        mwb().arg("scene").arg(&file),
+        limit,
+        "mwb scene bullet.toml",
+    );
+    assert!(!status.success(), "{stdout}");
+    assert!(
+        stdout.contains("refused: body \"bullet\": field `linvel`"),
+        "{stdout}"
+    );
+    assert!(
+        stderr.contains("cannot do this scene faithfully"),
+        "{stderr}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
 }
