@@ -29,6 +29,7 @@
 //! * **Restitution.** A ball with restitution 1 lost 1.1 % of its apex per bounce at standard
 //!   (3.6 % at draft, 0.9 % at final): at rest after 60 s at standard.
 
+use mwb_core::frames::rotate_vector;
 use mwb_core::scene::{CcdPolicy, Scene, Shape, SimPreset};
 
 use crate::plan::SimPlan;
@@ -169,7 +170,7 @@ impl Geometry {
                 // A ground plane: everything below its surface on the up axis.
                 (Shape::Plane { normal }, Some((k, sign)))
                     if (normal[k] * sign) > 0.999 && {
-                        let r = rotate(s.rotation, *normal);
+                        let r = rotate_vector(s.rotation, *normal);
                         r[k] * sign > 0.999
                     } =>
                 {
@@ -691,22 +692,6 @@ fn points_box(points: impl Iterator<Item = [f64; 3]>) -> ([f64; 3], [f64; 3]) {
     )
 }
 
-/// Rotates `v` by the unit quaternion `q = [x, y, z, w]`.
-fn rotate(q: [f64; 4], v: [f64; 3]) -> [f64; 3] {
-    let [x, y, z, w] = q;
-    let u = [x, y, z];
-    let cross = |a: [f64; 3], b: [f64; 3]| {
-        [
-            a[1] * b[2] - a[2] * b[1],
-            a[2] * b[0] - a[0] * b[2],
-            a[0] * b[1] - a[1] * b[0],
-        ]
-    };
-    let t = cross(u, v).map(|c| 2.0 * c);
-    let c = cross(u, t);
-    [0, 1, 2].map(|k| v[k] + w * t[k] + c[k])
-}
-
 fn mul(a: [f64; 4], b: [f64; 4]) -> [f64; 4] {
     let [ax, ay, az, aw] = a;
     let [bx, by, bz, bw] = b;
@@ -723,7 +708,7 @@ fn aabb(shape: &Shape, position: [f64; 3], rotation: [f64; 4]) -> ([f64; 3], [f6
     let corners = |h: [f64; 3]| {
         (0..8).map(move |c| {
             let local = [0, 1, 2].map(|k| if c >> k & 1 == 1 { h[k] } else { -h[k] });
-            let r = rotate(rotation, local);
+            let r = rotate_vector(rotation, local);
             [0, 1, 2].map(|k| position[k] + r[k])
         })
     };
@@ -734,7 +719,7 @@ fn aabb(shape: &Shape, position: [f64; 3], rotation: [f64; 4]) -> ([f64; 3], [f6
             half_height,
             radius,
         } => {
-            let a = rotate(rotation, [0.0, *half_height, 0.0]);
+            let a = rotate_vector(rotation, [0.0, *half_height, 0.0]);
             let lo = [0, 1, 2].map(|k| position[k] - a[k].abs() - radius);
             let hi = [0, 1, 2].map(|k| position[k] + a[k].abs() + radius);
             (lo, hi)
@@ -747,13 +732,13 @@ fn aabb(shape: &Shape, position: [f64; 3], rotation: [f64; 4]) -> ([f64; 3], [f6
         | Shape::TriMesh {
             vertices: points, ..
         } => points_box(points.iter().map(|p| {
-            let r = rotate(rotation, *p);
+            let r = rotate_vector(rotation, *p);
             [0, 1, 2].map(|k| position[k] + r[k])
         })),
         Shape::Compound { parts } => parts.iter().fold(
             ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]),
             |(lo, hi), p| {
-                let r = rotate(rotation, p.position);
+                let r = rotate_vector(rotation, p.position);
                 let at = [0, 1, 2].map(|k| position[k] + r[k]);
                 let (a, b) = aabb(&p.shape, at, mul(rotation, p.rotation));
                 (

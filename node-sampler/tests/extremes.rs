@@ -15,6 +15,7 @@
 //! with perturbations on and checks every stored frame. The numbers measured here are the ones
 //! `limits.rs` is built on; docs/fidelity.md has them as a table.
 
+use mwb_core::frames::rotate_vector;
 use mwb_core::scene::{Scene, SceneTemplate, Shape};
 use mwb_sampler::limits::{self, Finding, Severity};
 use mwb_sampler::world::{PayloadEncoding, RunOptions, SimWorld, run_world_observed};
@@ -128,27 +129,12 @@ fn body_energy(rb: &RigidBody, g: [f64; 3]) -> f64 {
 fn inside(st: &mwb_core::scene::StaticBody, p: [f64; 3]) -> bool {
     let d = [0, 1, 2].map(|k| p[k] - st.position[k]);
     let [x, y, z, w] = st.rotation;
-    let local = rotate([-x, -y, -z, w], d);
+    let local = rotate_vector([-x, -y, -z, w], d);
     match &st.shape {
         Shape::Plane { normal } => (0..3).map(|k| local[k] * normal[k]).sum::<f64>() < 0.0,
         Shape::Box { half_extents: h } => (0..3).all(|k| local[k].abs() < h[k]),
         _ => false,
     }
-}
-
-fn rotate(q: [f64; 4], v: [f64; 3]) -> [f64; 3] {
-    let [x, y, z, w] = q;
-    let u = [x, y, z];
-    let cross = |a: [f64; 3], b: [f64; 3]| {
-        [
-            a[1] * b[2] - a[2] * b[1],
-            a[2] * b[0] - a[0] * b[2],
-            a[0] * b[1] - a[1] * b[0],
-        ]
-    };
-    let t = cross(u, v).map(|c| 2.0 * c);
-    let c = cross(u, t);
-    [0, 1, 2].map(|k| v[k] + w * t[k] + c[k])
 }
 
 fn centres(sim: &SimWorld) -> Vec<[f64; 3]> {

@@ -42,6 +42,29 @@ def v(a):
     return "[" + ", ".join(fmt(x) for x in a) + "]"
 
 
+# Settings, materials and ground of the ball-bin scenes (balls, balls_small, lorem).
+BINS_COMMON = '''[settings]
+end_time = 4.0
+
+[[material]]
+name = "floor"
+friction = 0.4
+restitution = 0.5
+
+[[material]]
+name = "rubber"
+friction = 0.4
+restitution = 0.6
+density = 1000
+
+[[static]]
+name = "ground"
+shape = "plane"
+normal = [0, 1, 0]
+material = "floor"
+'''
+
+
 def word():
     out = ['''# word — 16 boxes lying on the ground spell "MWB" seen from above (Twigg and James 2008, §5.4.2 spelled
 # "t -> -t" with boxes and no bins). A FINAL state for a backward run: every box rests on the
@@ -113,26 +136,7 @@ def balls(name, desc, text, per, fname, what):
 name = "{name}"
 description = "{desc}"
 
-[settings]
-end_time = 4.0
-
-[[material]]
-name = "floor"
-friction = 0.4
-restitution = 0.5
-
-[[material]]
-name = "rubber"
-friction = 0.4
-restitution = 0.6
-density = 1000
-
-[[static]]
-name = "ground"
-shape = "plane"
-normal = [0, 1, 0]
-material = "floor"
-''']
+{BINS_COMMON}''']
     bins = []
     for li, letter in enumerate(text):
         for ri, row in enumerate(FONT[letter]):
@@ -193,26 +197,7 @@ def lorem():
 name = "reverse-lorem"
 description = "3037 balls resting in square bins spelling Lorem ipsum dolor sit amet...: the final frame of a backward run."
 
-[settings]
-end_time = 4.0
-
-[[material]]
-name = "floor"
-friction = 0.4
-restitution = 0.5
-
-[[material]]
-name = "rubber"
-friction = 0.4
-restitution = 0.6
-density = 1000
-
-[[static]]
-name = "ground"
-shape = "plane"
-normal = [0, 1, 0]
-material = "floor"
-''']
+{BINS_COMMON}''']
     bins = []
     for li, line in enumerate(lines):
         col = 0
