@@ -6,52 +6,21 @@
 use anyhow::{Context, Result, bail};
 use mwb_core::scene::{SceneTemplate, SimPreset, edit_text::set_sim_preset};
 use mwb_sampler::fidelity::{Calibration, calibrate};
-use mwb_sampler::limits::{Finding, Severity, check};
+use mwb_sampler::limits::{Finding, Severity, check_template};
 
 use crate::output::number;
 
 /// Worlds per preset in `auto`'s calibration (and twice as many at the reference).
 pub const CALIBRATION_WORLDS: usize = 24;
 
-/// Instances checked for limits: a scene with distributions may reach a limit in some worlds
-/// only (the fastest throw, the heaviest draw).
-pub const CHECKED_INSTANCES: u64 = 8;
-
-/// What the simulator cannot do faithfully in the scene ([`mwb_sampler::limits`]), over its
-/// first [`CHECKED_INSTANCES`] instances, each finding once, refusals first.
+/// What the simulator cannot do faithfully in the scene ([`mwb_sampler::limits::check_template`]).
 pub fn findings(template: &SceneTemplate) -> Vec<Finding> {
-    let mut out: Vec<Finding> = Vec::new();
-    let instances = if template.has_distributions() {
-        CHECKED_INSTANCES
-    } else {
-        1
-    };
-    for seed in 0..instances {
-        for f in check(&template.instantiate(seed)) {
-            if !out
-                .iter()
-                .any(|o| o.body == f.body && o.field == f.field && o.severity == f.severity)
-            {
-                out.push(f);
-            }
-        }
-    }
-    out.sort_by_key(|f| std::cmp::Reverse(f.severity));
-    out
+    check_template(template)
 }
 
-/// One finding as a line: `file: refused|warning: body "b": field `f`: message`.
+/// One finding as a line ([`Finding::line`]).
 pub fn finding_line(file: &str, f: &Finding) -> String {
-    let what = match f.severity {
-        Severity::Refuse => "refused",
-        Severity::Warn => "warning",
-    };
-    let body = f
-        .body
-        .as_ref()
-        .map(|b| format!("body {b:?}: "))
-        .unwrap_or_default();
-    format!("{file}: {what}: {body}field `{}`: {}", f.field, f.message)
+    f.line(file)
 }
 
 /// [`resolve`], then the limit checks: warnings go to stderr, a refusal is an error naming

@@ -394,6 +394,7 @@ fn the_live_viewer_browses_a_running_cluster() {
             scene: "tumble".into(),
             worlds: MORE as u32,
             quality: mwb_proto::v1::Quality::Draft,
+            sim: Some(mwb_core::scene::SimPreset::Draft),
         })
         .unwrap_or_else(|e| panic!("{e}"));
     settle(&rt, &mut h, "the job's acknowledgement", |a| {

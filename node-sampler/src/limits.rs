@@ -30,7 +30,7 @@
 //!   (3.6 % at draft, 0.9 % at final): at rest after 60 s at standard.
 
 use mwb_core::frames::rotate_vector;
-use mwb_core::scene::{CcdPolicy, Scene, Shape, SimPreset};
+use mwb_core::scene::{CcdPolicy, Scene, SceneTemplate, Shape, SimPreset};
 
 use crate::plan::SimPlan;
 use crate::world::{ccd_bodies, speed_bound};
@@ -114,6 +114,52 @@ pub fn check(scene: &Scene) -> Vec<Finding> {
     joints(scene, &plan, &geo, &mut out);
     out.sort_by_key(|f| std::cmp::Reverse(f.severity));
     out
+}
+
+/// Instances [`check_template`] checks: a scene with distributions may reach a limit in some
+/// worlds only (the fastest throw, the heaviest draw).
+pub const CHECKED_INSTANCES: u64 = 8;
+
+/// [`check`] over the first [`CHECKED_INSTANCES`] instances of a template (one for a scene
+/// without distributions), each finding once (by severity, body and field), refusals first.
+pub fn check_template(template: &SceneTemplate) -> Vec<Finding> {
+    let mut out: Vec<Finding> = Vec::new();
+    let instances = if template.has_distributions() {
+        CHECKED_INSTANCES
+    } else {
+        1
+    };
+    for seed in 0..instances {
+        for f in check(&template.instantiate(seed)) {
+            if !out
+                .iter()
+                .any(|o| o.body == f.body && o.field == f.field && o.severity == f.severity)
+            {
+                out.push(f);
+            }
+        }
+    }
+    out.sort_by_key(|f| std::cmp::Reverse(f.severity));
+    out
+}
+
+impl Finding {
+    /// The finding as one line: `file: refused|warning: body "b": field `f`: message`.
+    pub fn line(&self, file: &str) -> String {
+        let what = match self.severity {
+            Severity::Refuse => "refused",
+            Severity::Warn => "warning",
+        };
+        let body = self
+            .body
+            .as_ref()
+            .map(|b| format!("body {b:?}: "))
+            .unwrap_or_default();
+        format!(
+            "{file}: {what}: {body}field `{}`: {}",
+            self.field, self.message
+        )
+    }
 }
 
 /// Whether any finding refuses the scene.

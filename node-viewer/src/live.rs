@@ -225,8 +225,9 @@ impl Bus {
                 scene,
                 worlds,
                 quality,
+                sim,
             } => {
-                let notice = self.submit(&scene, worlds, quality).await;
+                let notice = self.submit(&scene, worlds, quality, sim).await;
                 self.emit(Msg::JobNotice(notice)).await;
             }
             Command::CancelJob(job) => {
@@ -267,15 +268,18 @@ impl Bus {
 
     /// Reads the scene (off the runtime: it may be a file), announces the job and waits until
     /// a store has taken it.
-    async fn submit(&self, scene: &str, worlds: u32, quality: Quality) -> Result<String, String> {
+    async fn submit(
+        &self,
+        scene: &str,
+        worlds: u32,
+        quality: Quality,
+        sim: Option<mwb_core::scene::SimPreset>,
+    ) -> Result<String, String> {
         let arg = scene.to_owned();
-        let mut job = tokio::task::spawn_blocking(move || {
-            let (file, text) = mwb_node::load_scene(&arg)?;
-            mwb_node::sample_job(&file, &text, worlds, 0, None, unix_ms())
-        })
-        .await
-        .map_err(|e| format!("reading the scene: {e}"))?
-        .map_err(|e| mwb_query::error_chain(&e))?;
+        // Reading, calibrating (`auto`: seconds) and checking run off the async threads.
+        let (mut job, said) = tokio::task::spawn_blocking(move || prepare_job(&arg, worlds, sim))
+            .await
+            .map_err(|e| format!("reading the scene: {e}"))??;
         job.quality = quality as i32;
         self.announce(&job).await?;
         let deadline = Instant::now() + Duration::from_secs(15);
@@ -283,7 +287,7 @@ impl Bus {
             let states = self.get_all(&self.keys.job_state(&job.id), None).await?;
             if !states.is_empty() {
                 return Ok(format!(
-                    "job {} submitted: {worlds} worlds of {scene}",
+                    "job {} submitted: {worlds} worlds of {scene}{said}",
                     job.id
                 ));
             }
@@ -642,6 +646,55 @@ impl Bus {
     }
 }
 
+/// A sampling job of the scene `arg` (a file or a shipped name) as the CLI's `mwb job submit
+/// --sim` makes it: the preset written into its text (`auto` calibrated on the scene), checked
+/// for what the simulator cannot do faithfully (a refusal is an error naming body and field).
+/// Returns the job and what to tell the user besides (the preset `auto` chose, the first
+/// warning).
+fn prepare_job(
+    arg: &str,
+    worlds: u32,
+    sim: Option<mwb_core::scene::SimPreset>,
+) -> Result<(mwb_proto::v1::Job, String), String> {
+    use mwb_core::scene::{SceneTemplate, SimPreset, edit_text::set_sim_preset};
+    let err = |e: &dyn std::error::Error| mwb_query::error_chain(e);
+    let (file, text) = mwb_node::load_scene(arg).map_err(|e| err(&e))?;
+    let template = SceneTemplate::parse(&text, &file).map_err(|e| err(&e))?;
+    let wanted = sim.unwrap_or(template.settings().sim);
+    let mut said = String::new();
+    let text = match (sim, wanted) {
+        (_, SimPreset::Auto) => {
+            let cal = mwb_sampler::fidelity::calibrate(&template, 24).map_err(|e| err(&e))?;
+            said = format!("; sim auto chose {}", cal.chosen);
+            set_sim_preset(
+                &text,
+                &file,
+                cal.chosen,
+                Some("chosen by sim = \"auto\" (viewer)"),
+            )
+            .map_err(|e| err(&e))?
+        }
+        (Some(p), _) => set_sim_preset(&text, &file, p, None).map_err(|e| err(&e))?,
+        (None, _) => text,
+    };
+    let template = SceneTemplate::parse(&text, &file).map_err(|e| err(&e))?;
+    let found = mwb_sampler::limits::check_template(&template);
+    if mwb_sampler::limits::refuses(&found) {
+        let lines: Vec<String> = found
+            .iter()
+            .filter(|f| f.severity == mwb_sampler::limits::Severity::Refuse)
+            .map(|f| f.line(&file))
+            .collect();
+        return Err(lines.join("; "));
+    }
+    if let Some(w) = found.first() {
+        said.push_str(&format!("; {}", w.line(&file)));
+    }
+    let job =
+        mwb_node::sample_job(&file, &text, worlds, 0, None, unix_ms()).map_err(|e| err(&e))?;
+    Ok((job, said))
+}
+
 fn unix_ms() -> u64 {
     std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
@@ -737,4 +790,46 @@ async fn fetch_motion(
     tokio::task::spawn_blocking(move || Motion::decode(scene, &w).map_err(|e| e.to_string()))
         .await
         .map_err(|e| format!("decoding task failed: {e}"))?
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use mwb_core::scene::SimPreset;
+
+    /// The jobs panel's preset goes into the job's scene, and a scene the simulator cannot do
+    /// faithfully is refused naming body and field (as `mwb job submit` does).
+    #[test]
+    fn a_job_from_the_panel_carries_its_preset_and_refusals_name_the_body() {
+        let (job, said) =
+            prepare_job("tumble", 5, Some(SimPreset::Draft)).unwrap_or_else(|e| panic!("{e}"));
+        let text = job.scene.map(|s| s.toml).unwrap_or_default();
+        assert!(text.contains("sim = \"draft\""), "{text}");
+        assert!(said.is_empty(), "{said}");
+        let (job, _) = prepare_job("tumble", 5, None).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(
+            job.scene.map(|s| s.toml).as_deref(),
+            Some(mwb_core::scene::builtin::TUMBLE)
+        );
+        let dir = std::env::temp_dir().join(format!("mwb-viewer-limits-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap_or_else(|e| panic!("{e}"));
+        let file = dir.join("bullet.toml");
+        std::fs::write(
+            &file,
+            "name = \"bullet\"\n[settings]\nend_time = 0.2\ngravity = [0, 0, 0]\n\
+             [[material]]\nname = \"m\"\n\
+             [[static]]\nname = \"wall\"\nshape = \"box\"\nsize = [0.1, 2, 2]\nmaterial = \"m\"\nposition = [5, 1, 0]\n\
+             [[body]]\nname = \"bullet\"\nshape = \"sphere\"\nradius = 0.05\nmaterial = \"m\"\n\
+             position = [0, 1, 0]\nlinvel = [1000, 0, 0]\n",
+        )
+        .unwrap_or_else(|e| panic!("{e}"));
+        let refused = prepare_job(&file.to_string_lossy(), 5, None)
+            .err()
+            .unwrap_or_default();
+        assert!(
+            refused.contains("refused: body \"bullet\": field `linvel`"),
+            "{refused}"
+        );
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

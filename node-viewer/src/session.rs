@@ -28,12 +28,15 @@ pub enum Command {
     Rank(RankSpec),
     /// Fetch world `world` (of `job`) from the store and decode its motion.
     FetchMotion { world: u32, job: String },
-    /// Read the scene (a file, or a shipped scene's name), announce a sampling job of
-    /// `worlds` worlds at `quality`, and wait for a store to acknowledge it.
+    /// Read the scene (a file, or a shipped scene's name), write `sim` into it (`auto`
+    /// calibrated), check it for what the simulator cannot do faithfully (a refusal is the
+    /// notice), announce a sampling job of `worlds` worlds at `quality`, and wait for a store to
+    /// acknowledge it.
     SubmitJob {
         scene: String,
         worlds: u32,
         quality: mwb_proto::v1::Quality,
+        sim: Option<mwb_core::scene::SimPreset>,
     },
     /// Cancel an open job.
     CancelJob(String),

@@ -246,6 +246,9 @@ pub enum Msg {
         scene: String,
         worlds: u32,
         quality: mwb_proto::v1::Quality,
+        /// Simulation preset written into the job's scene (`auto` calibrated first); `None`:
+        /// the scene's own.
+        sim: Option<mwb_core::scene::SimPreset>,
     },
     CancelJob(String),
     /// Refine the shown world (live only): its chosen objects, from the first frame one of
@@ -994,6 +997,7 @@ impl ViewerState {
                 scene,
                 worlds,
                 quality,
+                sim,
             } => {
                 if !self.is_live() {
                     return Err(ViewerError::Offline("submitting jobs"));
@@ -1003,6 +1007,7 @@ impl ViewerState {
                     scene,
                     worlds,
                     quality,
+                    sim,
                 });
             }
             Msg::CancelJob(job) => {

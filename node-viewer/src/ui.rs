@@ -135,6 +135,8 @@ struct JobForm {
     scene: String,
     worlds: u32,
     quality: mwb_proto::v1::Quality,
+    /// Simulation preset written into the job's scene; `None`: the scene's own.
+    sim: Option<mwb_core::scene::SimPreset>,
     /// The next box drawn refines the shown world instead of constraining (§4.5).
     refine_next: bool,
     refine_worlds: u32,
@@ -146,6 +148,7 @@ impl Default for JobForm {
             scene: String::new(),
             worlds: 200,
             quality: mwb_proto::v1::Quality::Standard,
+            sim: None,
             refine_next: false,
             refine_worlds: 50,
         }
@@ -666,6 +669,25 @@ impl ViewerApp {
                             ui.selectable_value(q, Quality::Final, "final (0.1 mm)");
                         });
                 });
+                ui.horizontal(|ui| {
+                    use mwb_core::scene::SimPreset;
+                    let p = &mut self.job_form.sim;
+                    egui::ComboBox::new("mwb-job-sim", "simulation")
+                        .selected_text(p.map_or("the scene's", SimPreset::name))
+                        .show_ui(ui, |ui| {
+                            ui.selectable_value(p, None, "the scene's");
+                            ui.selectable_value(p, Some(SimPreset::Draft), "draft (fastest)");
+                            ui.selectable_value(p, Some(SimPreset::Standard), "standard");
+                            ui.selectable_value(p, Some(SimPreset::Final), "final (accurate)");
+                            ui.selectable_value(p, Some(SimPreset::Auto), "auto (calibrate)");
+                        })
+                        .response
+                        .on_hover_text(
+                            "substeps, iterations, CCD and sleeping (docs/fidelity.md); auto \
+                             samples a few worlds at each preset and picks the cheapest within \
+                             the scene's tolerance",
+                        );
+                });
                 let ready = !self.job_form.scene.trim().is_empty();
                 if ui
                     .add_enabled(ready, egui::Button::new("Submit job"))
@@ -677,6 +699,7 @@ impl ViewerApp {
                         scene: f.scene.trim().to_owned(),
                         worlds: f.worlds,
                         quality: f.quality,
+                        sim: f.sim,
                     });
                 }
                 // §4.5: the next box drawn says where the shown world must change.
