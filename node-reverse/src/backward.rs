@@ -387,14 +387,16 @@ impl World {
             };
             let this_body = c.body;
             let bodies_here = [Some(this_body), partner_body];
-            let per_body = |map: &BTreeMap<usize, f64>| -> Vec<f64> {
+            // The pair's bodies' entries, clamped to [0, 1], folded into `init` (no allocation:
+            // most maps are empty).
+            let per_body = |map: &BTreeMap<usize, f64>, init: f64, f: fn(f64, f64) -> f64| {
                 bodies_here
-                    .iter()
+                    .into_iter()
                     .flatten()
-                    .filter_map(|b| map.get(b).copied())
+                    .filter_map(|b| map.get(&b).copied())
                     .filter(|x| x.is_finite())
                     .map(|x| x.clamp(0.0, 1.0))
-                    .collect()
+                    .fold(init, f)
             };
             let alpha = choices
                 .restitution
@@ -402,20 +404,14 @@ impl World {
                 .copied()
                 .filter(|a| a.is_finite())
                 .map_or(c.restitution, |a| a.clamp(0.0, 1.0));
-            let alpha = per_body(&choices.body_restitution)
-                .into_iter()
-                .fold(alpha, f64::max);
+            let alpha = per_body(&choices.body_restitution, alpha, f64::max);
             let side = up.is_some_and(|u| c.normal.dot(&u).abs() < std::f64::consts::FRAC_1_SQRT_2);
             let alpha = if side {
-                per_body(&choices.body_side_restitution)
-                    .into_iter()
-                    .fold(alpha, f64::max)
+                per_body(&choices.body_side_restitution, alpha, f64::max)
             } else {
                 alpha
             };
-            let body_mu = per_body(&choices.body_friction_scale)
-                .into_iter()
-                .fold(1.0, f64::min);
+            let body_mu = per_body(&choices.body_friction_scale, 1.0, f64::min);
             let elastic_floor = alpha * eps * (1.0 + 1e-9) + f64::EPSILON;
             if v_n < -delta {
                 approaching += 1;
