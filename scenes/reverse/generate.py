@@ -122,6 +122,20 @@ position = {v([cx, h / 2, cz])}
     print("word.toml boxes", n)
 
 
+def bin_walls(nb, bx, bz, inner, wall, wh):
+    """The four low static walls of bin `nb` centred at (bx, bz), `inner` wide inside."""
+    half = inner / 2 + wall / 2
+    walls = [(half, 0, wall, inner + 2 * wall), (-half, 0, wall, inner + 2 * wall),
+             (0, half, inner, wall), (0, -half, inner, wall)]
+    return [f'''[[static]]
+name = "bin{nb}_wall{k}"
+shape = "box"
+size = {v([sx, wh, sz])}
+material = "floor"
+position = {v([bx + dx, wh / 2, bz + dz])}
+''' for k, (dx, dz, sx, sz) in enumerate(walls)]
+
+
 def balls(name, desc, text, per, fname, what):
     r = 0.02
     s = 2 * r + 0.002          # balls do not touch each other ...
@@ -149,17 +163,7 @@ description = "{desc}"
     for nb, (bx, bz) in enumerate(bins):
         bx -= width / 2
         bz -= height / 2
-        half = inner / 2 + wall / 2
-        walls = [(half, 0, wall, inner + 2 * wall), (-half, 0, wall, inner + 2 * wall),
-                 (0, half, inner, wall), (0, -half, inner, wall)]
-        for k, (dx, dz, sx, sz) in enumerate(walls):
-            out.append(f'''[[static]]
-name = "bin{nb}_wall{k}"
-shape = "box"
-size = {v([sx, wh, sz])}
-material = "floor"
-position = {v([bx + dx, wh / 2, bz + dz])}
-''')
+        out.extend(bin_walls(nb, bx, bz, inner, wall, wh))
         x0 = bx - (per - 1) * s / 2
         z0 = bz - (per - 1) * s / 2
         out.append(f'''[[body]]
@@ -214,17 +218,7 @@ description = "3037 balls resting in square bins spelling Lorem ipsum dolor sit 
     for nb, (bx, bz, ch) in enumerate(bins):
         bx -= width / 2
         bz -= height / 2
-        half = inner / 2 + wall / 2
-        walls = [(half, 0, wall, inner + 2 * wall), (-half, 0, wall, inner + 2 * wall),
-                 (0, half, inner, wall), (0, -half, inner, wall)]
-        for k, (dx, dz, sx, sz) in enumerate(walls):
-            out.append(f'''[[static]]
-name = "bin{nb}_wall{k}"
-shape = "box"
-size = {v([sx, wh, sz])}
-material = "floor"
-position = {v([bx + dx, wh / 2, bz + dz])}
-''')
+        out.extend(bin_walls(nb, bx, bz, inner, wall, wh))
         n = per if ch != '.' else 2
         # The dots' 2 x 2 balls sit in the corners, so that the last dot's fifth fits between.
         gap = s if ch != '.' else inner - 2 * r - 2 * margin
