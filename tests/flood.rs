@@ -17,10 +17,19 @@ async fn session() -> zenoh::Session {
         .unwrap_or_else(|e| panic!("{e}"))
 }
 
-async fn until(what: &str, limit: Duration, mut f: impl FnMut() -> bool) {
+async fn until(
+    what: &str,
+    limit: Duration,
+    mut f: impl FnMut() -> bool,
+    state: impl Fn() -> String,
+) {
     let deadline = Instant::now() + limit;
     while !f() {
-        assert!(Instant::now() < deadline, "timed out waiting for {what}");
+        assert!(
+            Instant::now() < deadline,
+            "timed out waiting for {what}: {}",
+            state()
+        );
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
 }
@@ -76,13 +85,30 @@ async fn a_full_store_pauses_the_samplers_and_keeps_answering() {
     .unwrap_or_else(|_| panic!("put timed out"))
     .unwrap_or_else(|e| panic!("{e}"));
 
+    // Full as the workers read it (`mwb_node::room`): a refusal for memory, or within
+    // FULL_FRACTION of the cap. Waiting for a refusal alone raced: a store that reaches 98 %
+    // between two reports pauses the sampler before any world is refused.
     until(
-        "the store to refuse a world for memory",
+        "the store to be full",
         Duration::from_secs(120),
-        || store.stats().refused_memory > 0,
+        || {
+            let st = store.stats();
+            st.refused_memory > 0
+                || st.memory_bytes as f64 >= mwb_node::room::FULL_FRACTION * cap as f64
+        },
+        || {
+            let st = store.stats();
+            format!(
+                "sampler {} worlds; store {} worlds, {} bytes, {} refused for memory",
+                sampler.worlds(),
+                store.world_count(),
+                st.memory_bytes,
+                st.refused_memory
+            )
+        },
     )
     .await;
-    // The refusal reaches the sampler with the store's next statistics (every second).
+    // The store's next statistics (every second) reach the sampler and pause it.
     tokio::time::sleep(Duration::from_secs(3)).await;
     let (worlds, refused) = (sampler.worlds(), store.stats().refused_memory);
     tokio::time::sleep(Duration::from_secs(4)).await;
