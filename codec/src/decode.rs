@@ -16,7 +16,7 @@ use crate::format::{FORMAT_VERSION, Header};
 use crate::params::{MotionModel, Quality};
 use crate::rotation::{self, Quat, Vec3};
 use crate::segment::{Lattice, PositionCurve, RotationCurve};
-use object::ObjectStream;
+pub(crate) use object::ObjectStream;
 
 /// Caps on what one decode call may allocate.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -222,10 +222,20 @@ impl<'a> WorldReader<'a> {
         self.decode_entry(bytes, frames)
     }
 
-    /// Every object decoded in turn (one pass over the index; for the encoder's self-check).
-    pub(crate) fn objects(&self) -> impl Iterator<Item = Result<Track, CodecError>> + '_ {
-        self.entries()
-            .map(|e| self.decode_entry(&self.payload[e.start..e.end], e.frames))
+    /// Every object's segment stream in turn, `None` for an object without frames, with its
+    /// frame count (one pass over the index). For the encoder's self-check, which checks each
+    /// decoded frame as the segments produce it instead of collecting tracks first.
+    pub(crate) fn streams(
+        &self,
+    ) -> impl Iterator<Item = Result<(u32, Option<ObjectStream<'a>>), CodecError>> + '_ {
+        self.entries().map(|e| {
+            if e.frames == 0 {
+                return Ok((0, None));
+            }
+            let bytes = &self.payload[e.start..e.end];
+            ObjectStream::open(bytes, e.frames, &self.header, self.limits.max_object_frames)
+                .map(|s| (e.frames, Some(s)))
+        })
     }
 
     /// Decodes every object. Fails before decoding anything if the world exceeds
@@ -239,7 +249,9 @@ impl<'a> WorldReader<'a> {
                 limit: self.limits.max_total_frames,
             });
         }
-        self.objects().collect()
+        self.entries()
+            .map(|e| self.decode_entry(&self.payload[e.start..e.end], e.frames))
+            .collect()
     }
 
     /// Position and orientation of object `i` at time `t` seconds (frame 0 at t = 0), read
@@ -351,7 +363,7 @@ impl Iterator for Entries<'_> {
     }
 }
 
-fn finite_position(p: Vec3) -> Result<Vec3, CodecError> {
+pub(crate) fn finite_position(p: Vec3) -> Result<Vec3, CodecError> {
     if p.iter().all(|v| v.is_finite()) {
         Ok(p)
     } else {

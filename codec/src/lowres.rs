@@ -50,13 +50,33 @@ impl LowResPath {
             positions: vertices,
             max_deviation: 0.0,
         };
-        path.max_deviation = (0..n)
-            .map(|f| {
-                let p = path.position_at(f as f64).unwrap_or(positions[f]);
-                let d: Vec3 = std::array::from_fn(|i| p[i] - positions[f][i]);
-                crate::rotation::norm3(d)
-            })
-            .fold(0.0, f64::max);
+        // Every frame against the polyline point [`LowResPath::position_at`] gives for it,
+        // computed span by span instead of searching each frame's span (the same arithmetic,
+        // so the same numbers): the frames of a span from its first vertex up to the next, the
+        // last span including its end.
+        let deviation = |f: usize, p: Vec3| {
+            let d: Vec3 = std::array::from_fn(|i| p[i] - positions[f][i]);
+            crate::rotation::norm3(d)
+        };
+        let m = path.frames.len();
+        let mut max = 0.0f64;
+        if m == 1 {
+            let a = path.positions[0].map(f64::from);
+            max = (0..n).map(|f| deviation(f, a)).fold(max, f64::max);
+        }
+        for j in 0..m.saturating_sub(1) {
+            let (fa, fb) = (path.frames[j] as usize, path.frames[j + 1] as usize);
+            let a = path.positions[j].map(f64::from);
+            let b = path.positions[j + 1].map(f64::from);
+            let end = if j + 2 == m { fb + 1 } else { fb };
+            let span = fb as f64 - fa as f64;
+            for f in fa..end {
+                let u = (f as f64 - fa as f64) / span;
+                let p: Vec3 = std::array::from_fn(|i| a[i] + (b[i] - a[i]) * u);
+                max = max.max(deviation(f, p));
+            }
+        }
+        path.max_deviation = max;
         path
     }
 
@@ -109,6 +129,27 @@ mod tests {
             "{}",
             path.max_deviation
         );
+    }
+
+    /// The span-by-span deviation is the one [`LowResPath::position_at`] gives frame by frame.
+    #[test]
+    fn the_deviation_is_measured_against_position_at() {
+        for n in [1usize, 2, 3, 29, 30, 31, 61, 100, 121] {
+            let x: Vec<Vec3> = (0..n)
+                .map(|i| {
+                    let t = i as f64 * 0.013;
+                    [t.sin() * 3.1, 1.0 + t * t, (7.0 * t).cos() * 1e-3]
+                })
+                .collect();
+            let path = LowResPath::from_positions(&x, 1.0 / 120.0, 4.0);
+            let want = (0..n)
+                .map(|f| {
+                    let p = path.position_at(f as f64).unwrap();
+                    crate::rotation::norm3(std::array::from_fn(|i| p[i] - x[f][i]))
+                })
+                .fold(0.0, f64::max);
+            assert_eq!(path.max_deviation.to_bits(), want.to_bits(), "{n}");
+        }
     }
 
     #[test]
