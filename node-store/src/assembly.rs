@@ -127,6 +127,8 @@ pub struct Assembler {
     stored_bytes: u64,
     /// The browsing index's bytes, as last reported by the node.
     index_bytes: u64,
+    /// What the index may grow by on the next world ([`Assembler::set_index_growth`]).
+    index_growth: u64,
     partial_bytes: u64,
     cap_bytes: u64,
     shard: ShardSpec,
@@ -163,6 +165,7 @@ impl Assembler {
             worlds: Vec::new(),
             stored_bytes: 0,
             index_bytes: 0,
+            index_growth: 0,
             partial_bytes: 0,
             cap_bytes,
             shard,
@@ -217,6 +220,13 @@ impl Assembler {
     /// far past its cap.
     pub fn set_index_bytes(&mut self, bytes: u64) {
         self.index_bytes = bytes;
+    }
+
+    /// Tells the assembler how much the index may grow beyond a world's own bytes when the
+    /// next world is indexed ([`crate::Shard::growth_bytes`]: a vector doubling its capacity),
+    /// kept free under the cap so that a growing index never carries the store past it.
+    pub fn set_index_growth(&mut self, bytes: u64) {
+        self.index_growth = bytes;
     }
 
     /// The index bytes a new world is expected to add: the mean over the stored worlds.
@@ -471,7 +481,11 @@ impl Assembler {
             (true, None) => return self.reject(&key, Rejection::NoParent),
         };
         if owned
-            && self.stored_bytes + self.index_bytes + world_bytes + self.index_estimate()
+            && self.stored_bytes
+                + self.index_bytes
+                + world_bytes
+                + self.index_estimate()
+                + self.index_growth
                 > self.cap_bytes
         {
             return self.reject(&key, Rejection::MemoryCap);

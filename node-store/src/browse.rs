@@ -253,6 +253,19 @@ impl Shard {
                 .sum::<usize>()
     }
 
+    /// Bytes [`heap_bytes`](Self::heap_bytes) may grow by when the next world is inserted,
+    /// beyond that world's own: vectors doubling their capacity (the world table, each
+    /// hierarchy's pending list) and rebuilt hierarchies. Counted against the store's cap before
+    /// a world is admitted ([`crate::Assembler::set_index_bytes`]).
+    pub fn growth_bytes(&self) -> usize {
+        let table = if self.worlds.len() >= self.worlds.capacity() {
+            self.worlds.capacity().max(4) * std::mem::size_of::<Option<IndexedWorld>>()
+        } else {
+            0
+        };
+        table + self.bvh.iter().map(PathBvh::growth_bytes).sum::<usize>()
+    }
+
     /// [`heap_bytes`](Self::heap_bytes) by structure (walks every world: for benchmarks).
     pub fn heap_bytes_by_part(&self) -> ShardBytes {
         let worlds = self.worlds.iter().flatten();

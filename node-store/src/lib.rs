@@ -1,12 +1,12 @@
 //! The in-memory world store (DESIGN.md "Store and queries").
 //!
 //! * [`assembly`] — pure: segments + summaries → complete, CRC-verified, indexed worlds.
-//! * [`index`] — pure: a stored world → per-object paths (grid-rounded, 10 bytes a vertex, the
+//! * [`index`] — pure: a stored world → per-object paths (bit-packed on a 2⁻¹⁰ m grid, the
 //!   store's only copy) with never-miss radii, and metrics.
 //! * [`browse`] — pure: one shard's worlds and per-session constraint bitsets; answers
 //!   node-query's requests.
 //! * [`spatial`] — pure: per object index, a bounding-volume hierarchy over every world's path
-//!   pieces (4 segments each, referring to the world's path), so a constraint visits only the
+//!   pieces (8 segments each, referring to the world's path), so a constraint visits only the
 //!   parts of paths near it.
 //! * [`scenes`] — pure: every scene revision of the space (`scene/<rev>`), never overwritten.
 //! * [`journal`] — the store's durable journal (MCAP files via `mwb-record`) and loading

@@ -689,12 +689,14 @@ impl Applier {
         let thresholds = self.rest.get(&w.job_id).cloned().unwrap_or_default();
         match index_world(w, w.index, thresholds, self.path_tolerance_m) {
             Ok(indexed) => {
-                let index_bytes = {
+                let (index_bytes, growth) = {
                     let mut b = self.shared.browse();
                     b.insert(indexed);
-                    b.heap_bytes() as u64
+                    (b.heap_bytes() as u64, b.growth_bytes() as u64)
                 };
-                self.shared.lock().set_index_bytes(index_bytes);
+                let mut t = self.shared.lock();
+                t.set_index_bytes(index_bytes);
+                t.set_index_growth(growth);
             }
             Err(e) => {
                 self.shared.index_failures.fetch_add(1, Ordering::Relaxed);

@@ -23,6 +23,15 @@
 //! pending). The pieces used to carry f64 copies of their vertices (no lookup into the world
 //! for a surviving piece), at 232 bytes a piece the largest part of the store; they refer to
 //! the one compact copy now (see docs/performance.md for what that costs a query).
+//!
+//! **Size.** Boxes are stored as i16 steps of one grid per hierarchy (a power-of-two step
+//! from a fixed origin, rounded outward, so a stored box always holds the exact one) and times
+//! as u16 steps of [`TIME_STEP_S`], also rounded outward: a piece is 24 bytes and a node 20
+//! (44 and 56 with f32 and f64 boxes). A grid value never needs rounding again — a rebuild
+//! moves pieces without re-encoding them, so boxes do not grow rebuild after rebuild — and when
+//! a piece lies beyond the grid's i16 reach the grid's step doubles (every box rounded outward
+//! once more) up to [`BOX_GRID_MAX_EXP`]; a piece farther still gets an infinite side, which
+//! prunes less but never misses.
 
 use crate::index::IndexedObject;
 use mwb_core::browse::{ALL_PLANES, Frustum, Plane, TimeWindow};
@@ -62,19 +71,6 @@ impl Aabb {
             b.max[k] += pad;
         }
         Some(b)
-    }
-
-    fn union(&self, o: &Aabb) -> Aabb {
-        let mut b = *self;
-        for k in 0..3 {
-            b.min[k] = b.min[k].min(o.min[k]);
-            b.max[k] = b.max[k].max(o.max[k]);
-        }
-        b
-    }
-
-    fn centre(&self, k: usize) -> f64 {
-        0.5 * (self.min[k] + self.max[k])
     }
 
     /// The plane test of Assarsson and Möller on a box grown by a path's radius `r`, against
@@ -137,9 +133,163 @@ pub fn region_box(region: &Frustum) -> Option<Aabb> {
     Some(b)
 }
 
+/// Finest step of a hierarchy's box grid, as a power of two (2⁻⁹ m ≈ 2 mm: i16 steps reach
+/// ±64 m from the grid's origin). A box grows by less than a step on each side when rounded
+/// outward to it, a fraction of the never-miss radius (~11 mm on tumble).
+const BOX_GRID_EXP: i32 = -9;
+
+/// Coarsest step the grid doubles to when pieces lie beyond its reach (2⁻⁵ m ≈ 31 mm, ±1 km).
+/// Beyond that a piece's box gets an infinite side instead of coarsening every other box.
+pub const BOX_GRID_MAX_EXP: i32 = -5;
+
+/// Step of the pieces' time ranges, seconds (2⁻⁶ s: u16 steps reach 17 minutes). A range is
+/// rounded outward; a start within the first step reads as −∞ and an end beyond the last one
+/// as +∞, so that windows are never wrongly missed.
+pub const TIME_STEP_S: f64 = 1.0 / 64.0;
+
+/// `2^exp` for the exponents a grid can have (normal f64 numbers).
+fn pow2(exp: i32) -> f64 {
+    f64::from_bits(((exp + 1023) as u64) << 52)
+}
+
+/// The grid of one hierarchy's boxes: code `s` is `origin + s · 2^exp`, except
+/// [`i16::MIN`] (−∞) and [`i16::MAX`] (+∞). The origin is fixed at the first insertion (whole
+/// metres near the first path), the step only ever doubles.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Grid {
+    origin: Vec3,
+    exp: i32,
+}
+
+impl Grid {
+    /// The one decoding every reader uses (so a stored box is read the same everywhere).
+    #[inline]
+    fn value(&self, k: usize, s: i16) -> f64 {
+        match s {
+            i16::MIN => f64::NEG_INFINITY,
+            i16::MAX => f64::INFINITY,
+            _ => self.origin[k] + f64::from(s) * pow2(self.exp),
+        }
+    }
+
+    /// The largest finite code whose value is at most `v`; `None` when it is out of reach.
+    /// −∞ is [`i16::MIN`].
+    fn down(&self, k: usize, v: f64) -> Option<i16> {
+        if v == f64::NEG_INFINITY {
+            return Some(i16::MIN);
+        }
+        let s = ((v - self.origin[k]) / pow2(self.exp)).floor();
+        if !(f64::from(i16::MIN) + 2.0..=f64::from(i16::MAX) - 1.0).contains(&s) {
+            return None;
+        }
+        // The subtraction and division round: step down once more if they rounded up.
+        let s = s as i16;
+        if self.value(k, s) <= v {
+            Some(s)
+        } else {
+            Some(s - 1).filter(|&s| self.value(k, s) <= v)
+        }
+    }
+
+    /// The smallest finite code whose value is at least `v`; `None` when it is out of reach.
+    /// +∞ is [`i16::MAX`].
+    fn up(&self, k: usize, v: f64) -> Option<i16> {
+        if v == f64::INFINITY {
+            return Some(i16::MAX);
+        }
+        let s = ((v - self.origin[k]) / pow2(self.exp)).ceil();
+        if !(f64::from(i16::MIN) + 1.0..=f64::from(i16::MAX) - 2.0).contains(&s) {
+            return None;
+        }
+        let s = s as i16;
+        if self.value(k, s) >= v {
+            Some(s)
+        } else {
+            Some(s + 1).filter(|&s| self.value(k, s) >= v)
+        }
+    }
+
+    /// `b` rounded outward to the grid, or `None` if some side is out of reach (or NaN).
+    fn encode(&self, b: &Aabb) -> Option<GridBox> {
+        let mut out = GridBox {
+            lo: [0; 3],
+            hi: [0; 3],
+        };
+        for k in 0..3 {
+            out.lo[k] = self.down(k, b.min[k])?;
+            out.hi[k] = self.up(k, b.max[k])?;
+        }
+        Some(out)
+    }
+
+    /// `b` rounded outward to the grid, a side out of reach (or NaN) made infinite.
+    fn encode_clamped(&self, b: &Aabb) -> GridBox {
+        let mut out = GridBox {
+            lo: [0; 3],
+            hi: [0; 3],
+        };
+        for k in 0..3 {
+            out.lo[k] = self.down(k, b.min[k]).unwrap_or(i16::MIN);
+            out.hi[k] = self.up(k, b.max[k]).unwrap_or(i16::MAX);
+        }
+        out
+    }
+
+    fn decode(&self, b: &GridBox) -> Aabb {
+        Aabb {
+            min: [0, 1, 2].map(|k| self.value(k, b.lo[k])),
+            max: [0, 1, 2].map(|k| self.value(k, b.hi[k])),
+        }
+    }
+}
+
+/// A box in steps of its hierarchy's [`Grid`] (12 bytes).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct GridBox {
+    lo: [i16; 3],
+    hi: [i16; 3],
+}
+
+impl GridBox {
+    fn union(&self, o: &GridBox) -> GridBox {
+        GridBox {
+            lo: [0, 1, 2].map(|k| self.lo[k].min(o.lo[k])),
+            hi: [0, 1, 2].map(|k| self.hi[k].max(o.hi[k])),
+        }
+    }
+
+    /// Twice the centre along axis `k`, in steps (for sorting; infinite sides sort outermost).
+    fn centre2(&self, k: usize) -> i32 {
+        i32::from(self.lo[k]) + i32::from(self.hi[k])
+    }
+
+    /// The same box on a grid of twice the step (same origin), rounded outward: code `s`
+    /// becomes ⌊s/2⌋ below and ⌈s/2⌉ above, and the infinities stay. The decoded value of
+    /// either is a rounding of the same exact sum, and rounding is monotonic, so the new box
+    /// holds the old one.
+    fn coarsened(&self) -> GridBox {
+        GridBox {
+            lo: self.lo.map(|s| {
+                if s == i16::MIN {
+                    s
+                } else {
+                    i32::from(s).div_euclid(2) as i16
+                }
+            }),
+            hi: self.hi.map(|s| {
+                if s == i16::MAX {
+                    s
+                } else {
+                    (-(-i32::from(s)).div_euclid(2)) as i16
+                }
+            }),
+        }
+    }
+}
+
 #[derive(Debug, Clone)]
 struct Node {
-    bounds: Aabb,
+    bounds: GridBox,
     /// Leaf: `entries[first..first + count]`; inner: children at `first` and `first + 1`.
     first: u32,
     count: u32,
@@ -151,48 +301,75 @@ const LEAF: usize = 16;
 /// Segments per piece: a path enters the hierarchy as runs of this many segments, each with its
 /// own box, so that a query reaches the parts of a path near the frustum rather than whole
 /// paths (in a compact scene nearly every path's box meets a frustum drawn through it, but few
-/// of its pieces do). Measured with `mwb bench query` (see docs/performance.md).
-pub const PIECE_SEGMENTS: usize = 4;
+/// of its pieces do). 8 rather than 4: a tumbling path of ~18 segments is 3 pieces instead of
+/// 5 (the hierarchy is 744 bytes per 10-object world on `mwb bench query`; see
+/// docs/performance.md for what it costs a query).
+pub const PIECE_SEGMENTS: usize = 8;
 
-/// One piece of a path: the box of its vertices grown by the path's radius (f32, rounded
-/// outward), its world, and which segments of the path it covers. The vertices themselves stay
-/// in the world's [`IndexedObject`] (the store's only copy of them): a query looks the object
-/// up for the few pieces whose box meets the frustum. 44 bytes, against 232 when each piece
-/// carried f64 copies of its vertices and times (`mwb bench query`, docs/performance.md).
+/// The bit of [`Entry::piece`] that marks a path's last piece.
+const LAST: u32 = 1 << 31;
+
+/// One piece of a path: the box of its vertices grown by the path's radius (grid steps,
+/// rounded outward), its time range, its world, and which piece of the path it is. The vertices
+/// themselves stay in the world's [`IndexedObject`] (the store's only copy of them): a query
+/// looks the object up for the few pieces whose box meets the frustum. 24 bytes, against 44
+/// with an f32 box and 232 when each piece carried f64 copies of its vertices and times
+/// (`mwb bench query`, docs/performance.md).
 #[derive(Debug, Clone)]
 struct Entry {
-    min: [f32; 3],
-    max: [f32; 3],
-    /// The piece's time range, rounded outward to f32; `t1` is +∞ for a path's last piece (the
-    /// final pose is held after the end). Windows that miss it skip the piece unseen.
-    t0: f32,
-    t1: f32,
+    bounds: GridBox,
+    /// The piece's time range in steps of [`TIME_STEP_S`] ([`time_from`], [`time_to`]):
+    /// windows that miss it skip the piece unseen. A path's last piece reaches to +∞ (the
+    /// final pose is held after the end).
+    t0: u16,
+    t1: u16,
     world: u32,
-    /// First segment of the path in the piece.
-    first: u32,
-    /// Segments in the piece, 1..=[`PIECE_SEGMENTS`].
-    count: u8,
-    /// Whether the piece ends the path: its last vertex is the final pose, held after the end.
-    last: bool,
+    /// The piece's index in its path (its first segment is `index × PIECE_SEGMENTS`), and
+    /// [`LAST`] when the piece ends the path: its last vertex is the final pose, held after
+    /// the end. (Paths have fewer than 2³² vertices, so fewer than 2³¹ pieces.)
+    piece: u32,
 }
 
-/// `v` rounded down (`up` false) or up to an f32, so that a box stored in f32 still holds
-/// every point the f64 box held.
-fn f32_outward(v: f64, up: bool) -> f32 {
-    let f = v as f32;
-    match (up, f64::from(f).partial_cmp(&v)) {
-        (true, Some(std::cmp::Ordering::Less)) => f.next_up(),
-        (false, Some(std::cmp::Ordering::Greater)) => f.next_down(),
-        _ => f,
+const _: () = assert!(
+    PIECE_SEGMENTS >= 2,
+    "piece indices must leave the LAST bit free"
+);
+
+/// The code of a piece's start time `t`: rounded down; 0 (read as −∞) below one step.
+fn time_code_down(t: f64) -> u16 {
+    let s = (t / TIME_STEP_S).floor();
+    if s >= 1.0 {
+        s.min(f64::from(u16::MAX - 1)) as u16
+    } else {
+        0
     }
 }
 
-impl Entry {
-    fn bounds(&self) -> Aabb {
-        Aabb {
-            min: self.min.map(f64::from),
-            max: self.max.map(f64::from),
-        }
+/// The code of a piece's end time `t`: rounded up; [`u16::MAX`] (read as +∞) beyond reach.
+fn time_code_up(t: f64) -> u16 {
+    let s = (t / TIME_STEP_S).ceil();
+    if s <= f64::from(u16::MAX - 1) {
+        s.max(0.0) as u16
+    } else {
+        u16::MAX
+    }
+}
+
+/// A piece's start time from its code (0: −∞).
+fn time_from(s: u16) -> f64 {
+    if s == 0 {
+        f64::NEG_INFINITY
+    } else {
+        f64::from(s) * TIME_STEP_S
+    }
+}
+
+/// A piece's end time from its code ([`u16::MAX`]: +∞).
+fn time_to(s: u16) -> f64 {
+    if s == u16::MAX {
+        f64::INFINITY
+    } else {
+        f64::from(s) * TIME_STEP_S
     }
 }
 
@@ -213,7 +390,12 @@ impl Piece<'_> {
 
     /// Whether this piece ends its path (and so holds the final pose).
     pub fn is_last(&self) -> bool {
-        self.entry.last
+        self.entry.piece & LAST != 0
+    }
+
+    /// The path's first segment in this piece.
+    pub fn first_segment(&self) -> usize {
+        (self.entry.piece & !LAST) as usize * PIECE_SEGMENTS
     }
 
     /// Whether the piece's box (grown by the radius) is inside every plane: then every point of
@@ -234,21 +416,17 @@ impl Piece<'_> {
         region: &Frustum,
         window: Option<TimeWindow>,
     ) -> Option<f64> {
-        path.entry_in(
-            self.entry.first as usize,
-            usize::from(self.entry.count),
-            self.entry.last,
-            region,
-            self.mask,
-            window,
-        )
+        let first = self.first_segment();
+        // Pieces are cut every PIECE_SEGMENTS segments, so the path tells how many this holds.
+        let count = PIECE_SEGMENTS.min(path.segment_count().saturating_sub(first));
+        path.entry_in(first, count, self.is_last(), region, self.mask, window)
     }
 
     /// Whether the piece ends its path and the path's final pose is inside `region` (the
     /// query's frustum inflated by the path's radius).
     pub fn final_pose_inside(&self, path: &IndexedObject, region: &Frustum) -> bool {
         let (p, _) = path.vertex(path.len() - 1);
-        self.entry.last
+        self.is_last()
             && region
                 .clip_segment_masked(p, p, 0.0, 1.0, self.mask)
                 .is_some()
@@ -272,6 +450,11 @@ pub struct PathBvh {
     pending: Vec<Entry>,
     /// Largest radius inserted (for the vertex box of the inflated frustum).
     max_radius: f64,
+    /// The grid of every box held (`None` until the first insertion).
+    grid: Option<Grid>,
+    /// Most pieces one path has added (what the next one is expected to add, for
+    /// [`growth_bytes`](Self::growth_bytes)).
+    most_pieces: usize,
 }
 
 impl PathBvh {
@@ -285,6 +468,10 @@ impl PathBvh {
             path.radius.max(0.0)
         };
         self.max_radius = self.max_radius.max(radius);
+        let mut grid = *self.grid.get_or_insert_with(|| Grid {
+            origin: path.vertex(0).0.map(f64::round),
+            exp: BOX_GRID_EXP,
+        });
         let segments = path.segment_count();
         let mut span = Vec::with_capacity(PIECE_SEGMENTS + 1);
         for first in (0..segments).step_by(PIECE_SEGMENTS) {
@@ -294,24 +481,75 @@ impl PathBvh {
             let Some(b) = Aabb::of_points(&span, radius) else {
                 continue;
             };
+            let bounds = match grid.encode(&b) {
+                Some(bounds) => bounds,
+                None => {
+                    // Beyond the grid's reach: the coarsest grid (up to the limit) that holds it,
+                    // every box held rounded outward to it; else an infinite side.
+                    let mut coarser = grid;
+                    while coarser.exp < BOX_GRID_MAX_EXP && coarser.encode(&b).is_none() {
+                        coarser.exp += 1;
+                    }
+                    if coarser.encode(&b).is_some() {
+                        self.coarsen(coarser.exp);
+                        grid = coarser;
+                    }
+                    grid.encode_clamped(&b)
+                }
+            };
             let last = first + count >= segments;
             self.pending.push(Entry {
-                min: b.min.map(|v| f32_outward(v, false)),
-                max: b.max.map(|v| f32_outward(v, true)),
-                t0: f32_outward(path.vertex(first).1, false),
+                bounds,
+                t0: time_code_down(path.vertex(first).1),
                 t1: if last {
-                    f32::INFINITY
+                    u16::MAX
                 } else {
-                    f32_outward(path.vertex(first + count).1, true)
+                    time_code_up(path.vertex(first + count).1)
                 },
                 world,
-                first: first as u32,
-                count: count as u8,
-                last,
+                piece: (first / PIECE_SEGMENTS) as u32 | if last { LAST } else { 0 },
             });
         }
+        self.most_pieces = self
+            .most_pieces
+            .max(segments.div_ceil(PIECE_SEGMENTS).max(1));
         if self.pending.len() >= 256 && self.pending.len() * 4 >= self.entries.len() {
             self.rebuild();
+        }
+    }
+
+    /// Bytes that [`heap_bytes`](Self::heap_bytes) may grow by, beyond the new pieces' own,
+    /// when the next path is inserted: the pending list doubling its capacity, or a rebuild's
+    /// larger node array. A store admits a world only if this fits under its cap too, so that
+    /// a vector's doubling never carries it past the cap.
+    pub fn growth_bytes(&self) -> usize {
+        let k = 2 * self.most_pieces.max(1);
+        let entry = std::mem::size_of::<Entry>();
+        let mut grow = 0;
+        if self.pending.len() + k > self.pending.capacity() {
+            grow += self.pending.capacity().max(k).max(4) * entry;
+        }
+        let pending = self.pending.len() + k;
+        if pending >= 256 && pending * 4 >= self.entries.len() {
+            // A build has at most one node per entry (leaves hold one or more).
+            grow += pending * std::mem::size_of::<Node>();
+        }
+        grow
+    }
+
+    /// Doubles the grid's step until its exponent is `exp`, every box held rounded outward.
+    fn coarsen(&mut self, exp: i32) {
+        let Some(grid) = self.grid.as_mut() else {
+            return;
+        };
+        while grid.exp < exp {
+            grid.exp += 1;
+            for e in self.entries.iter_mut().chain(self.pending.iter_mut()) {
+                e.bounds = e.bounds.coarsened();
+            }
+            for n in &mut self.nodes {
+                n.bounds = n.bounds.coarsened();
+            }
         }
     }
 
@@ -346,13 +584,15 @@ impl PathBvh {
     }
 
     fn rebuild(&mut self) {
+        // Exactly the room needed: `append` alone would double the array for a moment.
+        self.entries.reserve_exact(self.pending.len());
         self.entries.append(&mut self.pending);
         self.nodes.clear();
         if self.entries.is_empty() {
             return;
         }
         self.nodes.push(Node {
-            bounds: self.entries[0].bounds(),
+            bounds: self.entries[0].bounds,
             first: 0,
             count: 0,
         });
@@ -370,7 +610,7 @@ impl PathBvh {
     fn build(&mut self, at: usize, lo: usize, hi: usize) {
         let bounds = self.entries[lo + 1..hi]
             .iter()
-            .fold(self.entries[lo].bounds(), |b, e| b.union(&e.bounds()));
+            .fold(self.entries[lo].bounds, |b, e| b.union(&e.bounds));
         if hi - lo <= LEAF {
             self.nodes[at] = Node {
                 bounds,
@@ -379,21 +619,17 @@ impl PathBvh {
             };
             return;
         }
-        let (mut cmin, mut cmax) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+        let (mut cmin, mut cmax) = ([i32::MAX; 3], [i32::MIN; 3]);
         for e in &self.entries[lo..hi] {
             for k in 0..3 {
-                let c = e.bounds().centre(k);
+                let c = e.bounds.centre2(k);
                 cmin[k] = cmin[k].min(c);
                 cmax[k] = cmax[k].max(c);
             }
         }
-        let axis = (0..3)
-            .max_by(|&a, &b| (cmax[a] - cmin[a]).total_cmp(&(cmax[b] - cmin[b])))
-            .unwrap_or(0);
+        let axis = (0..3).max_by_key(|&k| cmax[k] - cmin[k]).unwrap_or(0);
         let mid = lo + (hi - lo) / 2;
-        self.entries[lo..hi].select_nth_unstable_by(mid - lo, |a, b| {
-            a.bounds().centre(axis).total_cmp(&b.bounds().centre(axis))
-        });
+        self.entries[lo..hi].select_nth_unstable_by_key(mid - lo, |e| e.bounds.centre2(axis));
         let left = self.nodes.len();
         for _ in 0..2 {
             self.nodes.push(Node {
@@ -461,8 +697,12 @@ impl PathBvh {
         skip: impl Fn(u32) -> bool,
         mut visit: impl FnMut(Piece<'_>),
     ) {
+        let Some(grid) = self.grid else {
+            return;
+        };
         let planes = frustum.planes();
-        let test = |b: &Aabb, mask: u8| {
+        let test = |b: &GridBox, mask: u8| {
+            let b = grid.decode(b);
             if region_box.is_some_and(|r| b.disjoint(r)) {
                 return None;
             }
@@ -470,12 +710,12 @@ impl PathBvh {
         };
         let mut leaf = |entry: &Entry, mask: u8| {
             if window
-                .is_some_and(|w| f64::from(entry.t1) < w.start() || f64::from(entry.t0) > w.end())
+                .is_some_and(|w| time_to(entry.t1) < w.start() || time_from(entry.t0) > w.end())
                 || skip(entry.world)
             {
                 return;
             }
-            if let Some(mask) = test(&entry.bounds(), mask) {
+            if let Some(mask) = test(&entry.bounds, mask) {
                 visit(Piece { entry, mask });
             }
         };
@@ -523,12 +763,17 @@ mod tests {
     /// Random-walk paths of 1 to 40 vertices on a 120 Hz frame grid, radii from 0 to 5 cm (one
     /// unknown, NaN), stored as the index stores them.
     fn paths(rng: &mut WorldRng, n: u32) -> Vec<IndexedObject> {
+        spread_paths(rng, n, 10.0)
+    }
+
+    /// [`paths`] starting up to `spread` metres from the origin sideways.
+    fn spread_paths(rng: &mut WorldRng, n: u32, spread: f64) -> Vec<IndexedObject> {
         (0..n)
             .map(|i| {
                 let mut p = [
-                    rng.uniform(-10.0, 10.0),
+                    rng.uniform(-spread, spread),
                     rng.uniform(0.0, 3.0),
-                    rng.uniform(-10.0, 10.0),
+                    rng.uniform(-spread, spread),
                 ];
                 let (mut times, mut points) = (Vec::new(), Vec::new());
                 let mut frame = (rng.uniform(0.0, 120.0)) as u32;
@@ -574,8 +819,9 @@ mod tests {
                     let path = &paths[p.world() as usize];
                     for (k, plane) in frustum.planes().iter().enumerate() {
                         if p.mask & (1 << k) == 0 {
-                            let first = p.entry.first as usize;
-                            for i in first..=first + usize::from(p.entry.count) {
+                            let first = p.first_segment();
+                            let count = PIECE_SEGMENTS.min(path.segment_count() - first);
+                            for i in first..=first + count {
                                 let (v, _) = path.vertex(i);
                                 let d = plane.distance(v);
                                 assert!(d < -path.radius, "plane {k}: vertex {v:?} at {d}");
@@ -600,6 +846,133 @@ mod tests {
     fn pieces_keep_exactly_the_worlds_brute_force_keeps() {
         let mut rng = WorldRng::new(3, Stream::Scene);
         let paths = paths(&mut rng, 3000);
+        keeps_exactly_what_brute_force_keeps(&mut rng, &paths, 10.0);
+    }
+
+    /// The same over paths spread across 1.2 km, and two far beyond the grid's reach (50 km
+    /// away): the grid's step doubles up to [`BOX_GRID_MAX_EXP`] as the paths come, and the
+    /// far pieces get infinite sides — still exactly brute force's answer.
+    #[test]
+    fn a_grid_grown_or_out_of_reach_still_keeps_exactly_what_brute_force_keeps() {
+        let mut rng = WorldRng::new(4, Stream::Scene);
+        let mut paths = spread_paths(&mut rng, 1500, 1.0);
+        paths.extend(spread_paths(&mut rng, 1500, 600.0));
+        for w in [1700, 2900] {
+            let p = paths[w].polyline();
+            let far = p
+                .points()
+                .iter()
+                .map(|v| [v[0] + 5e4, v[1], v[2] - 5e4])
+                .collect();
+            let far = Polyline::new(p.times().to_vec(), far).unwrap_or_else(|e| panic!("{e}"));
+            paths[w] =
+                IndexedObject::new(&far, DT, paths[w].radius).unwrap_or_else(|e| panic!("{e}"));
+        }
+        let mut bvh = PathBvh::default();
+        for (w, path) in paths.iter().enumerate() {
+            bvh.insert(w as u32, path);
+        }
+        let grid = bvh.grid.unwrap_or_else(|| panic!("a grid"));
+        assert_eq!(grid.exp, BOX_GRID_MAX_EXP, "coarsened as far as allowed");
+        assert!(
+            bvh.entries
+                .iter()
+                .chain(&bvh.pending)
+                .any(|e| e.bounds.lo.contains(&i16::MIN) || e.bounds.hi.contains(&i16::MAX)),
+            "some pieces beyond reach"
+        );
+        assert_boxes_hold_their_pieces(&bvh, &paths);
+        keeps_exactly_what_brute_force_keeps(&mut rng, &paths, 10.0);
+    }
+
+    /// Every stored piece's box, decoded, holds each of its vertices grown by the path's
+    /// radius along every axis, and its time range holds the piece's vertex times (the last
+    /// piece's to +∞); each path's pieces are all there, once, the last one marked.
+    fn assert_boxes_hold_their_pieces(bvh: &PathBvh, paths: &[IndexedObject]) {
+        let grid = bvh.grid.unwrap_or_else(|| panic!("a grid"));
+        let mut seen = vec![Vec::new(); paths.len()];
+        for e in bvh.entries.iter().chain(&bvh.pending) {
+            let path = &paths[e.world as usize];
+            let piece = Piece { entry: e, mask: 0 };
+            let first = piece.first_segment();
+            let segments = path.segment_count();
+            let count = PIECE_SEGMENTS.min(segments - first);
+            assert_eq!(piece.is_last(), first + count >= segments);
+            seen[e.world as usize].push(first);
+            let b = grid.decode(&e.bounds);
+            let r = if path.radius.is_nan() {
+                f64::INFINITY
+            } else {
+                path.radius
+            };
+            for i in first..=first + count {
+                let (v, t) = path.vertex(i);
+                for k in 0..3 {
+                    assert!(
+                        b.min[k] <= v[k] - r && v[k] + r <= b.max[k],
+                        "{v:?} ± {r}: {b:?}"
+                    );
+                }
+                assert!(time_from(e.t0) <= t && t <= time_to(e.t1), "{t} in {e:?}");
+            }
+            if piece.is_last() {
+                assert_eq!(time_to(e.t1), f64::INFINITY);
+            }
+        }
+        for (w, firsts) in seen.iter_mut().enumerate() {
+            firsts.sort_unstable();
+            let want: Vec<usize> = (0..paths[w].segment_count())
+                .step_by(PIECE_SEGMENTS)
+                .collect();
+            assert_eq!(*firsts, want, "path {w}");
+        }
+    }
+
+    /// Boxes survive rebuilds and coarsenings unchanged or grown, never shrunk below their
+    /// pieces: checked after every 100 insertions of paths spreading ever wider.
+    #[test]
+    fn boxes_hold_their_pieces_through_rebuilds_and_coarsening() {
+        let mut rng = WorldRng::new(6, Stream::Scene);
+        let mut paths = Vec::new();
+        let mut bvh = PathBvh::default();
+        for round in 0..12 {
+            let spread = 2f64.powi(round);
+            for path in spread_paths(&mut rng, 100, spread) {
+                bvh.insert(paths.len() as u32, &path);
+                paths.push(path);
+            }
+            assert_boxes_hold_their_pieces(&bvh, &paths);
+            // The grid is the finest whose reach (±2¹⁵ steps) holds the paths, up to the limit.
+            let grid = bvh.grid.unwrap_or_else(|| panic!("a grid"));
+            assert!(grid.exp <= BOX_GRID_MAX_EXP);
+            if spread + 5.0 < 2f64.powi(15 + BOX_GRID_EXP - 1) {
+                assert_eq!(grid.exp, BOX_GRID_EXP, "round {round}");
+            }
+        }
+    }
+
+    /// Time codes round outward: a start code never reads later than the time, an end code
+    /// never earlier, and beyond reach they read as −∞ and +∞.
+    #[test]
+    fn time_codes_round_outward() {
+        let mut rng = WorldRng::new(8, Stream::Scene);
+        for _ in 0..10_000 {
+            let t = rng.uniform(0.0, 1100.0);
+            assert!(time_from(time_code_down(t)) <= t, "{t}");
+            assert!(time_to(time_code_up(t)) >= t, "{t}");
+        }
+        assert_eq!(time_from(time_code_down(0.01)), f64::NEG_INFINITY);
+        assert_eq!(time_to(time_code_up(2000.0)), f64::INFINITY);
+        assert_eq!(time_from(time_code_down(2000.0)), 65534.0 * TIME_STEP_S);
+    }
+
+    /// The random boxes and windows of the brute-force comparison, around paths within
+    /// `spread` metres of the origin.
+    fn keeps_exactly_what_brute_force_keeps(
+        rng: &mut WorldRng,
+        paths: &[IndexedObject],
+        spread: f64,
+    ) {
         let mut bvh = PathBvh::default();
         // A removal rebuilds; the last paths then wait in the pending list.
         for (w, path) in paths.iter().enumerate() {
@@ -624,9 +997,9 @@ mod tests {
         let (mut kept, mut windowed) = (0, 0);
         for q in 0..300 {
             let c = [
-                rng.uniform(-10.0, 10.0),
+                rng.uniform(-spread, spread),
                 rng.uniform(0.0, 3.0),
-                rng.uniform(-10.0, 10.0),
+                rng.uniform(-spread, spread),
             ];
             let h = [
                 rng.uniform(0.01, 3.0),
@@ -661,14 +1034,14 @@ mod tests {
             kept += usize::from(truth.len() > 1);
             for parts in &splits {
                 assert_eq!(
-                    touched(&bvh, parts, &frustum, window, &paths),
+                    touched(&bvh, parts, &frustum, window, paths),
                     truth,
                     "query {q}"
                 );
             }
         }
         assert!(
-            kept > 100 && windowed > 50,
+            kept > 50 && windowed > 50,
             "kept {kept}, windowed {windowed}"
         );
     }

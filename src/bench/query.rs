@@ -11,7 +11,7 @@
 //!
 //! * add: a new constraint over every world (`Shard::handle`, every core), including the AND;
 //! * remove: removing one of four live constraints (AND of the other bitsets, no geometry);
-//! * index: the store's path index — per object index a hierarchy of path pieces (4 segments
+//! * index: the store's path index — per object index a hierarchy of path pieces (8 segments
 //!   each, referring to the world's one stored copy of the path) is walked down to the pieces
 //!   near the frustum, whose segments are clipped, on every core; per_world: every world's
 //!   stored paths, world by world, segment by segment (every core);
