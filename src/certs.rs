@@ -1,5 +1,6 @@
 //! The cluster's certificates: one certificate authority and a certificate per machine, whose
-//! common name is the machine's *role* (`mwb-store`, `mwb-worker`, `mwb-client`, `mwb-query`).
+//! common name is the machine's *role* (`mwb-store`, `mwb-worker`, `mwb-client`, `mwb-query`,
+//! `mwb-recorder`).
 //!
 //! Why one common name per role and not one per node (`sampler-0`, `sampler-1`, …): zenoh's
 //! access control matches `cert_common_names` exactly (no wildcards), so per-node names would
@@ -15,8 +16,9 @@
 //! use mwb::certs::{Plan, Role, generate};
 //! let plan = Plan { store_hosts: vec!["10.0.0.5".into()], workers: 2, ..Plan::default() };
 //! let bundle = generate(&plan)?;
-//! // ca.pem + ca-key.pem, then store, worker-0, worker-1, client-0, query: three files each.
-//! assert_eq!(bundle.files.len(), 2 + 5 * 3);
+//! // ca.pem + ca-key.pem, then store, worker-0, worker-1, client-0, query, recorder: three
+//! // files each.
+//! assert_eq!(bundle.files.len(), 2 + 6 * 3);
 //! assert!(bundle.files.iter().any(|f| f.path == "worker-1/worker-key.pem" && f.secret));
 //! assert_eq!(Role::Worker.common_name(), "mwb-worker");
 //! # Ok::<(), mwb::certs::CertError>(())
@@ -58,6 +60,9 @@ pub enum Role {
     Client,
     /// A browsing coordinator run on its own (`mwb query serve`).
     Query,
+    /// `mwb record` and `mwb replay`: reads everything on the bus, and a replay puts jobs,
+    /// segments and summaries — as trusted as a store; keep its bundle on an admin's machine.
+    Recorder,
 }
 
 impl Role {
@@ -68,6 +73,7 @@ impl Role {
             Role::Worker => "mwb-worker",
             Role::Client => "mwb-client",
             Role::Query => "mwb-query",
+            Role::Recorder => "mwb-recorder",
         }
     }
     /// File stem inside a bundle: `<stem>.pem`, `<stem>-key.pem`.
@@ -77,6 +83,7 @@ impl Role {
             Role::Worker => "worker",
             Role::Client => "client",
             Role::Query => "query",
+            Role::Recorder => "recorder",
         }
     }
 }
@@ -211,6 +218,7 @@ pub fn generate(plan: &Plan) -> Result<Bundle, CertError> {
     machines.extend((0..plan.workers).map(|i| (format!("worker-{i}"), Role::Worker, &[][..])));
     machines.extend((0..plan.clients).map(|i| (format!("client-{i}"), Role::Client, &[][..])));
     machines.push(("query".into(), Role::Query, &[]));
+    machines.push(("recorder".into(), Role::Recorder, &[]));
     for (name, role, hosts) in machines {
         let (cert, key) = ca.issue(&name, role, hosts, leaf)?;
         files.push(BundleFile {
@@ -426,6 +434,8 @@ mod tests {
             "worker-1/worker-key.pem",
             "client-0/client.pem",
             "query/query-key.pem",
+            "recorder/recorder.pem",
+            "recorder/recorder-key.pem",
         ] {
             assert!(paths.contains(&p), "{p} missing from {paths:?}");
         }

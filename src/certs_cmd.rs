@@ -59,8 +59,8 @@ pub fn run(args: CertsArgs) -> Result<()> {
     let written = certs::write_bundle(&bundle, &args.out, overwrite)
         .with_context(|| format!("writing certificates into {}", args.out.display()))?;
     crate::output::out(&format!(
-        "wrote {} files into {}: copy each machine's directory (store, worker-K, client-K, \
-         query) to its {}; keep ca-key.pem off the nodes\n",
+        "wrote {} files into {}: copy each machine's directory (store, worker-K, client-K, query, \
+         recorder) to its {}; keep ca-key.pem off the nodes\n",
         written.len(),
         args.out.display(),
         certs::INSTALL_DIR

@@ -384,7 +384,7 @@ pub struct Status {
     pub jobs: Vec<JobStatus>,
 }
 
-#[derive(Debug, serde::Serialize)]
+#[derive(Debug, Default, serde::Serialize)]
 pub struct NodeStatus {
     pub role: String,
     pub node: String,
@@ -397,6 +397,56 @@ pub struct NodeStatus {
     pub malformed: u64,
     pub refused_memory: u64,
     pub discarded_partial: u64,
+    /// The node's zenoh session id (empty until its statistics arrive).
+    pub zid: String,
+    /// Its links to other zenoh sessions: who is connected, under which certificate.
+    pub connections: Vec<ConnectionStatus>,
+}
+
+/// One link of a node's session ([`mwb_proto::v1::Connection`]), the other end named.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct ConnectionStatus {
+    /// The node at the other end, `role/node`, when it publishes statistics; empty for a
+    /// client (the CLI, a viewer) or a node not heard from yet.
+    pub peer: String,
+    /// The other end's zenoh id.
+    pub zid: String,
+    /// `client`, `peer` or `router`.
+    pub whatami: String,
+    /// The other end's address.
+    pub address: String,
+    /// The common name of the certificate it proved (the role access control gave it); `None`
+    /// on plain TCP, where nobody proved anything.
+    pub certificate: Option<String>,
+}
+
+/// Each node's connections, the other end named by the zenoh ids the nodes publish.
+pub fn connection_status(nodes: &[NodeStats]) -> Vec<Vec<ConnectionStatus>> {
+    // Nodes in one process share its session (a store and its browsing coordinator): a link
+    // to that session names them all.
+    let mut names: BTreeMap<&str, String> = BTreeMap::new();
+    for n in nodes.iter().filter(|n| !n.zid.is_empty()) {
+        let name = format!("{}/{}", n.role, n.node_id);
+        names
+            .entry(n.zid.as_str())
+            .and_modify(|all| *all = format!("{all} + {name}"))
+            .or_insert(name);
+    }
+    nodes
+        .iter()
+        .map(|n| {
+            n.connections
+                .iter()
+                .map(|c| ConnectionStatus {
+                    peer: names.get(c.zid.as_str()).cloned().unwrap_or_default(),
+                    zid: c.zid.clone(),
+                    whatami: c.whatami.clone(),
+                    address: c.address.clone(),
+                    certificate: Some(c.certificate.clone()).filter(|s| !s.is_empty()),
+                })
+                .collect()
+        })
+        .collect()
 }
 
 #[derive(Debug, serde::Serialize)]
@@ -458,11 +508,15 @@ pub async fn status(session: &Session, keys: &Keys, listen: Duration) -> Result<
         })
         .collect();
     let kinds = open_job_kinds(session, keys).await?;
+    let links = connection_status(&live);
     let nodes = alive
         .into_iter()
-        .map(|((role, node), st)| {
+        .zip(links)
+        .map(|(((role, node), st), connections)| {
             let st = st.unwrap_or_default();
             NodeStatus {
+                zid: st.zid.clone(),
+                connections,
                 role,
                 node,
                 worlds: st.worlds,
@@ -683,4 +737,58 @@ pub async fn held_job(session: &zenoh::Session, keys: &Keys, job: &str) -> Resul
         }
     }
     Ok(best)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use mwb_proto::v1::Connection;
+
+    fn node(role: &str, id: &str, zid: &str, links: &[(&str, &str)]) -> NodeStats {
+        NodeStats {
+            role: role.into(),
+            node_id: id.into(),
+            zid: zid.into(),
+            connections: links
+                .iter()
+                .map(|(zid, cert)| Connection {
+                    zid: (*zid).into(),
+                    whatami: "peer".into(),
+                    address: "tls/127.0.0.1:1".into(),
+                    certificate: (*cert).into(),
+                })
+                .collect(),
+            ..Default::default()
+        }
+    }
+
+    /// A link's other end is named when that node publishes its zid; a client is not; an
+    /// empty common name (plain TCP) is no certificate.
+    #[test]
+    fn connections_name_the_nodes_at_the_other_end() {
+        let nodes = [
+            node(
+                "store",
+                "s",
+                "aa",
+                &[("bb", "mwb-worker"), ("cc", "mwb-client")],
+            ),
+            node("sampler", "w", "bb", &[("aa", "")]),
+        ];
+        let got = connection_status(&nodes);
+        assert_eq!(got.len(), 2);
+        assert_eq!(got[0][0].peer, "sampler/w");
+        assert_eq!(got[0][0].certificate.as_deref(), Some("mwb-worker"));
+        assert_eq!(got[0][1].peer, "");
+        assert_eq!(got[0][1].certificate.as_deref(), Some("mwb-client"));
+        assert_eq!(got[1][0].peer, "store/s");
+        assert_eq!(got[1][0].certificate, None);
+        // A coordinator in the store's process shares its session: both are named.
+        let mut with_query = nodes.to_vec();
+        with_query.push(node("query", "s-query", "aa", &[("bb", "mwb-worker")]));
+        assert_eq!(
+            connection_status(&with_query)[1][0].peer,
+            "store/s + query/s-query"
+        );
+    }
 }

@@ -6,6 +6,7 @@
 //! * (b) a client with no certificate, one signed by another CA, or plain TCP cannot connect;
 //! * (c) a worker certificate cannot put a job or a scene: nobody (the store included) sees it;
 //! * (d) a client certificate cannot put segments or world summaries;
+//! * (g) a recorder certificate records and replays worlds; a client's can do neither;
 //! * (e) the configs are the shipped files: each test reads `deploy/*.json5` and changes only
 //!   the certificate directory (`/etc/mwb/tls/` → the test's bundle) — endpoints come from
 //!   `--listen` / `--connect`, as an admin would pass them.
@@ -101,6 +102,26 @@ impl Cluster {
             space,
             procs,
         }
+    }
+
+    /// A sampler process (one worker) under the shipped worker config and `worker-0`'s
+    /// certificate.
+    fn spawn_sampler(&mut self) {
+        let cfg = self.config("worker.json5", "worker-0");
+        self.procs.spawn(
+            "sampler",
+            &[
+                "sampler",
+                "--config",
+                &cfg.to_string_lossy(),
+                "--connect",
+                &self.endpoint,
+                "--space",
+                &self.space,
+                "--workers",
+                "1",
+            ],
+        );
     }
 
     fn keys(&self) -> Keys {
@@ -204,22 +225,7 @@ async fn seen_until(
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn authorised_client_job_completes_over_tls_and_acl() {
     let mut cluster = Cluster::start("seca").await;
-    let worker_cfg = cluster.config("worker.json5", "worker-0");
-    let (endpoint, space) = (cluster.endpoint.clone(), cluster.space.clone());
-    cluster.procs.spawn(
-        "sampler",
-        &[
-            "sampler",
-            "--config",
-            &worker_cfg.to_string_lossy(),
-            "--connect",
-            &endpoint,
-            "--space",
-            &space,
-            "--workers",
-            "1",
-        ],
-    );
+    cluster.spawn_sampler();
     let keys = cluster.keys();
     let session = cluster.open("client.json5", "client-0").await;
     let (file, text) = mwb::client::load_scene("tumble").unwrap_or_else(|e| panic!("{e}"));
@@ -279,6 +285,44 @@ async fn authorised_client_job_completes_over_tls_and_acl() {
     assert!(
         worlds("sampler") >= 1,
         "the sampler's statistics: {status:?}"
+    );
+    // Who is connected under which role: the store sees the sampler under the worker
+    // certificate, named as the sampler, and a client (this session) under the client one.
+    let store = status
+        .nodes
+        .iter()
+        .find(|n| n.role == "store")
+        .unwrap_or_else(|| panic!("no store in {status:?}"));
+    let sampler = status
+        .nodes
+        .iter()
+        .find(|n| n.role == "sampler")
+        .unwrap_or_else(|| panic!("no sampler in {status:?}"));
+    let certs: Vec<(&str, Option<&str>)> = store
+        .connections
+        .iter()
+        .map(|c| (c.peer.as_str(), c.certificate.as_deref()))
+        .collect();
+    let want = format!("sampler/{}", sampler.node);
+    assert!(
+        certs.contains(&(want.as_str(), Some("mwb-worker"))),
+        "the store's connections: {certs:?}"
+    );
+    let own = session.info().zid().await.to_string();
+    assert!(
+        store
+            .connections
+            .iter()
+            .any(|c| c.zid == own && c.certificate.as_deref() == Some("mwb-client")),
+        "the store's connections {certs:?} lack this client ({own})"
+    );
+    assert!(
+        sampler
+            .connections
+            .iter()
+            .any(|c| c.certificate.as_deref() == Some("mwb-store")),
+        "the sampler's connections: {:?}",
+        sampler.connections
     );
     close(session).await;
 }
@@ -471,6 +515,177 @@ async fn client_certificate_cannot_put_segments_or_summaries() {
     close(observer).await;
 }
 
+/// (g) a recorder certificate records a job's worlds and replays them into another space; a
+/// client certificate's recorder is routed no segments or summaries, and its replay of them is
+/// never routed (the client may still put the job it carries).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn recorder_certificate_records_and_replays_a_client_cannot() {
+    use mwb_record::{Family, RecorderConfig, ReplayConfig, Speed, read_recording, replay};
+    let mut cluster = Cluster::start("secg").await;
+    cluster.spawn_sampler();
+    let space = cluster.space.clone();
+    let keys = cluster.keys();
+    let recorder = cluster.open("recorder.json5", "recorder").await;
+    let client = cluster.open("client.json5", "client-0").await;
+    store_ready(&client, &keys).await;
+    let record = |out: &Path, id: &str| RecorderConfig {
+        space: space.clone(),
+        out: out.to_owned(),
+        node_id: Some(id.to_owned()),
+        ..Default::default()
+    };
+    let (lab, snoop) = (
+        cluster.dir.path().join("lab.mcap"),
+        cluster.dir.path().join("snoop.mcap"),
+    );
+    let rec = tokio::time::timeout(
+        STEP,
+        mwb_record::run_recorder(&recorder, record(&lab, "rec")),
+    )
+    .await
+    .unwrap_or_else(|_| panic!("recorder start timed out"))
+    .unwrap_or_else(|e| panic!("recorder: {e}"));
+    let spy = tokio::time::timeout(
+        STEP,
+        mwb_record::run_recorder(&client, record(&snoop, "spy")),
+    )
+    .await
+    .unwrap_or_else(|_| panic!("spy start timed out"))
+    .unwrap_or_else(|e| panic!("spy: {e}"));
+
+    let (file, text) = mwb::client::load_scene("tumble").unwrap_or_else(|e| panic!("{e}"));
+    let job = mwb::client::make_job(&file, &text, 2, 0, Some("recorded".into()))
+        .unwrap_or_else(|e| panic!("{e}"));
+    tokio::time::timeout(STEP, mwb::client::submit_job(&client, &keys, &job))
+        .await
+        .unwrap_or_else(|_| panic!("submit timed out"))
+        .unwrap_or_else(|e| panic!("submit: {e:#}"));
+    let state = tokio::time::timeout(
+        Duration::from_secs(240),
+        mwb::client::wait_job(
+            &client,
+            &keys,
+            &job.id,
+            Some(Duration::from_secs(200)),
+            |_| {},
+        ),
+    )
+    .await
+    .unwrap_or_else(|_| panic!("job wait timed out"))
+    .unwrap_or_else(|e| panic!("wait: {e:#}"));
+    assert!(state.closed && state.worlds_done == 2, "{state:?}");
+    // The store closed the job after both summaries: they have reached every subscriber.
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    for (handle, what) in [(rec, "recorder"), (spy, "spy")] {
+        tokio::time::timeout(STEP, handle.finish())
+            .await
+            .unwrap_or_else(|_| panic!("{what} finish timed out"))
+            .unwrap_or_else(|e| panic!("{what}: {e}"));
+    }
+    let count = |path: &Path, family: Family| {
+        read_recording(path)
+            .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+            .messages
+            .iter()
+            .filter(|m| m.family == family)
+            .count()
+    };
+    assert_eq!(count(&lab, Family::Done), 2, "the recorder's summaries");
+    assert!(count(&lab, Family::Segment) >= 2, "the recorder's segments");
+    assert!(count(&lab, Family::Job) >= 1, "the recorder's job");
+    assert_eq!(
+        count(&snoop, Family::Done),
+        0,
+        "a client recorded summaries"
+    );
+    assert_eq!(
+        count(&snoop, Family::Segment),
+        0,
+        "a client recorded segments"
+    );
+
+    // Replays into spaces of their own, watched with the store's certificate (subscribed to
+    // exactly the keys a replay waits for, which the recorder may see declared).
+    let observer = cluster.observer().await;
+    let (by_recorder, by_client) = (format!("{space}r"), format!("{space}c"));
+    let mut subs = Vec::new();
+    for target in [&by_recorder, &by_client] {
+        let k = Keys::new(target).unwrap_or_else(|e| panic!("{e}"));
+        for key in [k.jobs(), k.segments(), k.dones()] {
+            let sub = tokio::time::timeout(STEP, observer.declare_subscriber(key.clone()))
+                .await
+                .unwrap_or_else(|_| panic!("subscribe timed out"))
+                .unwrap_or_else(|e| panic!("{key}: {e}"));
+            subs.push((target.clone(), sub));
+        }
+    }
+    let replay_into = |session: &zenoh::Session, target: &str, wait: u64| {
+        let cfg = ReplayConfig {
+            path: lab.clone(),
+            speed: Speed::Max,
+            space: target.to_owned(),
+            wait_for_subscribers: Duration::from_secs(wait),
+        };
+        let session = session.clone();
+        async move {
+            tokio::time::timeout(STEP, replay(&session, &cfg, std::future::pending()))
+                .await
+                .unwrap_or_else(|_| panic!("replay timed out"))
+                .unwrap_or_else(|e| panic!("replay: {e}"))
+        }
+    };
+    let by_rec = replay_into(&recorder, &by_recorder, 10).await;
+    assert!(
+        by_rec.subscribers_seen,
+        "the recorder saw no store-side subscribers"
+    );
+    let by_cli = replay_into(&client, &by_client, 2).await;
+    assert_eq!(by_rec.published, by_cli.published);
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    // Drained once: every key each target's subscribers received.
+    let keys_of = |target: &str| -> Vec<String> {
+        subs.iter()
+            .filter(|(t, _)| t == target)
+            .flat_map(|(_, sub)| sub.drain())
+            .map(|s| s.key_expr().as_str().to_owned())
+            .collect()
+    };
+    let got = [
+        (by_recorder.clone(), keys_of(&by_recorder)),
+        (by_client.clone(), keys_of(&by_client)),
+    ];
+    let received = |target: &str, part: &str| {
+        got.iter()
+            .filter(|(t, _)| t == target)
+            .flat_map(|(_, keys)| keys)
+            .filter(|k| k.contains(part))
+            .count()
+    };
+    assert!(
+        received(&by_recorder, "/seg/") >= 2,
+        "the recorder's replayed segments"
+    );
+    assert_eq!(
+        received(&by_recorder, "/done/"),
+        2,
+        "the recorder's replayed summaries"
+    );
+    assert_eq!(
+        received(&by_client, "/seg/"),
+        0,
+        "a client's replayed segments were routed"
+    );
+    assert_eq!(
+        received(&by_client, "/done/"),
+        0,
+        "a client's replayed summaries were routed"
+    );
+    drop(subs);
+    close(observer).await;
+    close(recorder).await;
+    close(client).await;
+}
+
 /// (e) without a bus: every shipped config parses as it is, the store's enables access
 /// control denying by default with one subject per role of `mwb certs`, and every client
 /// config requires TLS with a certificate.
@@ -493,6 +708,7 @@ fn shipped_configs_are_secure_by_default() {
         certs::Role::Worker,
         certs::Role::Client,
         certs::Role::Query,
+        certs::Role::Recorder,
     ] {
         let subject = format!("cert_common_names: [\"{}\"]", role.common_name());
         assert!(store.contains(&subject), "store.json5 lacks {subject}");
@@ -501,6 +717,7 @@ fn shipped_configs_are_secure_by_default() {
         ("worker.json5", "worker"),
         ("client.json5", "client"),
         ("query.json5", "query"),
+        ("recorder.json5", "recorder"),
     ] {
         let text = shipped(file, dir);
         zenoh::Config::from_json5(&text).unwrap_or_else(|e| panic!("{file}: {e}"));

@@ -3,7 +3,7 @@
 //! send puts and replies without ever dropping a failure silently.
 
 use mwb_core::keys::{BadIdentifier, Keys, check_identifier};
-use mwb_proto::v1::{Message, NodeStats};
+use mwb_proto::v1::{Connection, Message, NodeStats};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
@@ -290,12 +290,43 @@ pub async fn publish_stats(node: Arc<Node>, stats: impl Fn() -> NodeStats) {
     loop {
         tokio::time::sleep(STATS_EVERY).await;
         let mut st = stats();
+        st.zid = node.session().info().zid().await.to_string();
+        st.connections = connections(node.session()).await;
         let now = Instant::now();
         st.worlds_per_s =
             st.worlds.saturating_sub(last.1) as f64 / (now - last.0).as_secs_f64().max(1e-3);
         last = (now, st.worlds);
         node.put(&key, st.encode_to_vec()).await;
     }
+}
+
+/// The links of `session` to other zenoh sessions, as zenoh reports them: the other end's id,
+/// kind, address and — over TLS — the common name of the certificate it proved, which is the
+/// subject zenoh's access control matched (deploy/README.md). Sorted, so that statistics of an
+/// unchanged cluster are identical.
+pub async fn connections(session: &Session) -> Vec<Connection> {
+    let kinds: std::collections::HashMap<String, String> = session
+        .info()
+        .transports()
+        .await
+        .map(|t| (t.zid().to_string(), t.whatami().to_string()))
+        .collect();
+    let mut out: Vec<Connection> = session
+        .info()
+        .links()
+        .await
+        .map(|link| {
+            let zid = link.zid().to_string();
+            Connection {
+                whatami: kinds.get(&zid).cloned().unwrap_or_default(),
+                address: link.dst().to_string(),
+                certificate: link.auth_identifier().unwrap_or_default().to_owned(),
+                zid,
+            }
+        })
+        .collect();
+    out.sort_by(|a, b| (&a.zid, &a.address).cmp(&(&b.zid, &b.address)));
+    out
 }
 
 /// CPU time of the calling thread, seconds (0 where the clock is unavailable).
