@@ -143,6 +143,15 @@ impl Keys {
     pub fn job_states(&self) -> String {
         format!("{}/job/*/state", self.prefix)
     }
+    /// What store shard `index` holds of a job (`ShardCount`): every shard publishes it, the
+    /// authority sums them into the job's state.
+    pub fn job_shard(&self, job: &str, index: u32) -> String {
+        format!("{}/job/{job}/shard/{index}", self.prefix)
+    }
+    /// Every shard's count of every job (what the authority subscribes to).
+    pub fn job_shards(&self) -> String {
+        format!("{}/job/*/shard/*", self.prefix)
+    }
     pub fn segment(&self, job: &str, node: &str, counter: u64, seq: u32) -> String {
         format!("{}/seg/{job}/{node}/{counter}/{seq}", self.prefix)
     }
@@ -249,6 +258,12 @@ mod tests {
         assert_eq!(k.split(&seg), Some(vec!["seg", "j1", "n1", "7", "2"]));
         assert_eq!(k.split("mwb/other/seg/x"), None);
         assert_eq!(k.job_state("j"), "mwb/demo/job/j/state");
+        assert_eq!(k.job_shard("j", 1), "mwb/demo/job/j/shard/1");
+        assert_eq!(
+            k.split(&k.job_shard("j", 1)),
+            Some(vec!["job", "j", "shard", "1"])
+        );
+        assert_eq!(k.job_shards(), "mwb/demo/job/*/shard/*");
     }
 
     #[test]

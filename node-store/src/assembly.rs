@@ -3,6 +3,19 @@
 //! Pure state machine (no bus, no clock of its own: callers pass `now_ms`), so every rule is
 //! unit-tested: CRC checks, completeness, duplicate seeds, the memory cap, job closure, and
 //! discarding the partial worlds of samplers that left.
+//!
+//! **Counting across shards.** Several shards split a job's worlds by seed
+//! ([`ShardSpec::owns`]); each counts only the worlds it stored itself (`JobState.shard_worlds`
+//! at its own index). The node publishes that count after the journal commit that made those
+//! worlds durable (`ShardCount`), and the authority (shard 0) keeps the latest count of every
+//! other shard ([`Assembler::on_shard_count`]): a job's `worlds_done` is the sum, so a world is
+//! acknowledged only once the shard that keeps it has it on disk, and every world a shard
+//! stores is eventually counted. Only the authority closes a job on that sum; the others follow
+//! its closure ([`Assembler::adopt_state`]) and store every world they own until then, so a
+//! job can end with a few more worlds than its target (those in flight when it closed), never
+//! with a world acknowledged that no shard keeps. (Counting every world seen on every shard,
+//! as before, let the authority acknowledge a world its owner had not written, and let two
+//! shards each refuse their own world as late because each had counted the other's.)
 
 use crate::browse::ShardSpec;
 use mwb_proto::v1::{Job, JobKind, JobState, Message, MotionSegment, WorldDone};
@@ -73,9 +86,9 @@ pub enum Outcome {
     Pending,
     /// A world was stored; the job's new state.
     Stored { index: u32, state: JobState },
-    /// A complete, verified world that belongs to another shard: counted towards its job, not
-    /// kept here.
-    Counted { state: JobState },
+    /// A complete, verified world that belongs to another shard: neither kept nor counted
+    /// here (its owner counts it once it is durable, and tells the authority).
+    Elsewhere,
     /// A world was refused; the job's new state if it counts rejections.
     Rejected {
         reason: Rejection,
@@ -115,7 +128,12 @@ struct Partial {
 struct JobRecord {
     job: Job,
     state: JobState,
+    /// Seeds of the worlds this shard stored (a seed always belongs to the same shard, so a
+    /// duplicate is always caught by its owner).
     seeds: HashSet<u64>,
+    /// This shard's count as the authority's latest job state has it (a non-authority shard
+    /// sends its count again until the authority has it: [`Assembler::unacknowledged_counts`]).
+    acked_own: u32,
 }
 
 /// The store's world table.
@@ -147,6 +165,45 @@ fn refine_parent(job: &Job) -> Option<u32> {
     job.refine.as_ref().map(|r| r.parent_world)
 }
 
+/// Gives a state one count per shard (a state from an older store has none).
+fn fit(st: &mut JobState, shard: ShardSpec) {
+    let n = shard.count as usize;
+    st.shard_worlds.resize(n, 0);
+    st.shard_bytes.resize(n, 0);
+}
+
+/// `worlds_done` and `bytes_stored` from the per-shard counts.
+fn recount(st: &mut JobState) {
+    let worlds: u64 = st.shard_worlds.iter().map(|&n| u64::from(n)).sum();
+    st.worlds_done = u32::try_from(worlds).unwrap_or(u32::MAX);
+    st.bytes_stored = st.shard_bytes.iter().sum();
+}
+
+/// Closes a job whose counted worlds reach its target: on the authority only (the others
+/// follow its closure, see the module doc).
+fn close_if_done(st: &mut JobState, shard: ShardSpec) {
+    if shard.is_authority() && st.worlds_done >= st.target_worlds {
+        st.closed = true;
+    }
+}
+
+/// Takes the other shards' counts from `from` where higher; this shard's own stays.
+fn merge_others(st: &mut JobState, from: &JobState, shard: ShardSpec) {
+    fit(st, shard);
+    for i in 0..shard.count as usize {
+        if i == shard.index as usize {
+            continue;
+        }
+        if let Some(&n) = from.shard_worlds.get(i) {
+            st.shard_worlds[i] = st.shard_worlds[i].max(n);
+        }
+        if let Some(&b) = from.shard_bytes.get(i) {
+            st.shard_bytes[i] = st.shard_bytes[i].max(b);
+        }
+    }
+    recount(st);
+}
+
 /// How long a complete world of a job the store has not seen is held for that job, ms.
 pub const UNKNOWN_JOB_HOLD_MS: u64 = 10_000;
 
@@ -156,8 +213,8 @@ impl Assembler {
         Self::sharded(cap_bytes, ShardSpec::default())
     }
 
-    /// A table that keeps only the worlds of `shard` but counts every complete world towards
-    /// its job, so that every shard closes a job at the same count.
+    /// A table that keeps and counts only the worlds of `shard`; the authority (shard 0) adds
+    /// the other shards' counts ([`on_shard_count`](Self::on_shard_count)) and closes jobs.
     pub fn sharded(cap_bytes: u64, shard: ShardSpec) -> Self {
         Self {
             jobs: BTreeMap::new(),
@@ -262,19 +319,20 @@ impl Assembler {
                     rec.state.cancelled = true;
                 }
                 rec.state.target_worlds = rec.job.target_worlds;
-                if rec.state.worlds_done >= rec.state.target_worlds {
-                    rec.state.closed = true;
-                }
+                close_if_done(&mut rec.state, self.shard);
                 rec.state.revision += 1;
                 Some(rec.state.clone())
             }
             None => {
+                let count = self.shard.count as usize;
                 let state = JobState {
                     job_id: job.id.clone(),
                     revision: 1,
                     target_worlds: job.target_worlds,
                     closed: job.cancelled || job.target_worlds == 0,
                     cancelled: job.cancelled,
+                    shard_worlds: vec![0; count],
+                    shard_bytes: vec![0; count],
                     ..Default::default()
                 };
                 self.jobs.insert(
@@ -283,6 +341,7 @@ impl Assembler {
                         job,
                         state: state.clone(),
                         seeds: HashSet::new(),
+                        acked_own: 0,
                     },
                 );
                 Some(state)
@@ -290,16 +349,101 @@ impl Assembler {
         }
     }
 
-    /// The authority's view of a job (another shard): its count is adopted when higher (this
-    /// shard joined late and missed worlds), and its closure is followed, so that worlds the
-    /// authority counts as late are not kept here.
+    /// The worlds of `job` this shard stored, and their bytes.
+    pub fn own_count(&self, job: &str) -> Option<(u32, u64)> {
+        let st = &self.jobs.get(job)?.state;
+        let i = self.shard.index as usize;
+        Some((
+            st.shard_worlds.get(i).copied().unwrap_or(0),
+            st.shard_bytes.get(i).copied().unwrap_or(0),
+        ))
+    }
+
+    /// Jobs this shard stored worlds of.
+    pub fn jobs_with_worlds(&self) -> Vec<String> {
+        self.jobs
+            .keys()
+            .filter(|id| self.own_count(id).is_some_and(|(n, _)| n > 0))
+            .cloned()
+            .collect()
+    }
+
+    /// Jobs whose count on this shard is ahead of what the authority's latest state shows (a
+    /// `ShardCount` lost, or an authority restarted from a journal that predates it): to send
+    /// again. Empty on the authority, whose own count is in the states it publishes.
+    pub fn unacknowledged_counts(&self) -> Vec<String> {
+        if self.shard.is_authority() {
+            return Vec::new();
+        }
+        self.jobs
+            .iter()
+            .filter(|(id, rec)| self.own_count(id).is_some_and(|(n, _)| n > rec.acked_own))
+            .map(|(id, _)| id.clone())
+            .collect()
+    }
+
+    /// Another shard's count of its durable worlds of a job (`ShardCount`, authority only):
+    /// kept when higher than the one held (counts only grow; a late or repeated one changes
+    /// nothing), added into `worlds_done`, and the job closed once the sum reaches its target.
+    /// Returns the state to publish when something changed. Counts for this shard's own index,
+    /// for an index or a shard count that is not this table's, or for an unknown job are
+    /// ignored (the sender repeats its count until the authority's state shows it).
+    pub fn on_shard_count(
+        &mut self,
+        job: &str,
+        shard: ShardSpec,
+        worlds: u32,
+        bytes: u64,
+        now_ms: u64,
+    ) -> Option<JobState> {
+        if !self.shard.is_authority()
+            || shard.count != self.shard.count
+            || shard.index >= shard.count
+            || shard.index == self.shard.index
+        {
+            return None;
+        }
+        let st = &mut self.jobs.get_mut(job)?.state;
+        fit(st, self.shard);
+        let i = shard.index as usize;
+        if worlds <= st.shard_worlds[i] {
+            return None;
+        }
+        st.shard_worlds[i] = worlds;
+        st.shard_bytes[i] = st.shard_bytes[i].max(bytes);
+        recount(st);
+        if st.first_world_unix_ms == 0 {
+            st.first_world_unix_ms = now_ms;
+        }
+        st.last_world_unix_ms = st.last_world_unix_ms.max(now_ms);
+        close_if_done(st, self.shard);
+        st.revision += 1;
+        Some(st.clone())
+    }
+
+    /// The authority's view of a job (a non-authority shard follows it): its closure is
+    /// followed, so that worlds it refuses as late are not kept here either; the other shards'
+    /// counts are taken where higher (this shard's own count is what it stored, never theirs);
+    /// and what it shows of this shard's count is remembered, so that a count it lacks is
+    /// sent again.
     pub fn adopt_state(&mut self, theirs: &JobState) {
+        let shard = self.shard;
         let Some(rec) = self.jobs.get_mut(&theirs.job_id) else {
             return;
         };
+        if shard.is_authority() {
+            return;
+        }
+        // The latest, not the highest: an authority restarted from its journal may have lost
+        // what it last heard from this shard, and must be told again.
+        rec.acked_own = theirs
+            .shard_worlds
+            .get(shard.index as usize)
+            .copied()
+            .unwrap_or(0);
         let st = &mut rec.state;
         let before = (st.worlds_done, st.closed);
-        st.worlds_done = st.worlds_done.max(theirs.worlds_done);
+        merge_others(st, theirs, shard);
         st.closed |= theirs.closed;
         st.cancelled |= theirs.cancelled;
         if (st.worlds_done, st.closed) != before {
@@ -307,19 +451,31 @@ impl Assembler {
         }
     }
 
-    /// A job state read back from the store's own journal ([`crate::journal`]): counts,
-    /// closure and revision are taken where they are ahead of the table's (worlds of other
-    /// shards are counted there, not journaled; and the revision must not go back, or those
-    /// who follow the job would ignore the next states).
+    /// A job state read back from the store's own journal ([`crate::journal`]): every shard's
+    /// count (this one's, and the others' as the authority last had them), closure and
+    /// revision are taken where they are ahead of the table's — a journal file starts with a
+    /// checkpoint and reads alone, the worlds of the files before it counted there; and the
+    /// revision must not go back, or those who follow the job would ignore the next states.
     pub fn restore_state(&mut self, saved: &JobState) {
+        let shard = self.shard;
         let Some(rec) = self.jobs.get_mut(&saved.job_id) else {
             return;
         };
         let st = &mut rec.state;
-        st.worlds_done = st.worlds_done.max(saved.worlds_done);
+        merge_others(st, saved, shard);
+        let own = shard.index as usize;
+        if let (Some(&n), Some(&b)) = (saved.shard_worlds.get(own), saved.shard_bytes.get(own)) {
+            st.shard_worlds[own] = st.shard_worlds[own].max(n);
+            st.shard_bytes[own] = st.shard_bytes[own].max(b);
+        } else if shard.count == 1 {
+            // A state from a store older than the per-shard counts: one shard's count is the
+            // job's.
+            st.shard_worlds[own] = st.shard_worlds[own].max(saved.worlds_done);
+            st.shard_bytes[own] = st.shard_bytes[own].max(saved.bytes_stored);
+        }
+        recount(st);
         st.worlds_rejected = st.worlds_rejected.max(saved.worlds_rejected);
         st.worlds_late = st.worlds_late.max(saved.worlds_late);
-        st.bytes_stored = st.bytes_stored.max(saved.bytes_stored);
         st.closed |= saved.closed;
         st.cancelled |= saved.cancelled;
         st.revision = st.revision.max(saved.revision);
@@ -457,22 +613,33 @@ impl Assembler {
             // within a time and byte bound, and completed when the job arrives.
             return self.hold(key, now_ms);
         };
-        if rec.state.closed {
-            return self.reject(&key, Rejection::Late);
-        }
-        if rec.seeds.contains(&done.seed) {
-            return self.reject(&key, Rejection::DuplicateSeed);
-        }
-        let world_bytes = p.bytes + done.encoded_len() as u64;
         // A refined world lives on its parent's shard, whose motion it is composed with.
         let parent_index = refine_parent(&rec.job);
         let owned = match parent_index {
             Some(parent) => self.shard.local(parent).is_some(),
             None => self.shard.owns(&job_id, done.seed),
         };
+        if !owned {
+            self.drop_partial(&key);
+            return Outcome::Elsewhere;
+        }
+        if rec.state.closed {
+            return self.reject(&key, Rejection::Late);
+        }
+        // A shard that is not the authority never closes a job, but it need not store a world
+        // the authority will not count: when what it has stored and what the authority's
+        // states showed of the others (durable counts, which only grow) already reach the
+        // target, the authority will close the job on them.
+        if !self.shard.is_authority() && rec.state.worlds_done >= rec.state.target_worlds {
+            return self.reject(&key, Rejection::Late);
+        }
+        if rec.seeds.contains(&done.seed) {
+            return self.reject(&key, Rejection::DuplicateSeed);
+        }
+        let world_bytes = p.bytes + done.encoded_len() as u64;
         // A difference needs the parent it is composed with: held here, with as many bodies
         // (a difference outside a REFINE job has none).
-        let parent = match (owned && layered, parent_index) {
+        let parent = match (layered, parent_index) {
             (false, _) => None,
             (true, Some(i)) => match self.world(i) {
                 Some(w) if w.done.impacts.len() == done.impacts.len() => Some(w),
@@ -480,13 +647,12 @@ impl Assembler {
             },
             (true, None) => return self.reject(&key, Rejection::NoParent),
         };
-        if owned
-            && self.stored_bytes
-                + self.index_bytes
-                + world_bytes
-                + self.index_estimate()
-                + self.index_growth
-                > self.cap_bytes
+        if self.stored_bytes
+            + self.index_bytes
+            + world_bytes
+            + self.index_estimate()
+            + self.index_growth
+            > self.cap_bytes
         {
             return self.reject(&key, Rejection::MemoryCap);
         }
@@ -504,21 +670,18 @@ impl Assembler {
         };
         rec.seeds.insert(done.seed);
         let st = &mut rec.state;
-        st.worlds_done += 1;
-        // The job's bytes over all shards (each counts every world the same way).
-        st.bytes_stored += world_bytes;
+        fit(st, self.shard);
+        let own = self.shard.index as usize;
+        st.shard_worlds[own] += 1;
+        st.shard_bytes[own] += world_bytes;
+        recount(st);
         if st.first_world_unix_ms == 0 {
             st.first_world_unix_ms = now_ms;
         }
         st.last_world_unix_ms = now_ms;
-        if st.worlds_done >= st.target_worlds {
-            st.closed = true;
-        }
+        close_if_done(st, self.shard);
         st.revision += 1;
         let state = st.clone();
-        if !owned {
-            return Outcome::Counted { state };
-        }
         self.stored_bytes += world_bytes;
         self.worlds.push(Arc::new(StoredWorld {
             index,
@@ -751,13 +914,45 @@ mod tests {
         ));
     }
 
+    /// Seeds of job `job` owned by shard `index` of `count`, from `from` on.
+    fn seeds_of(job: &str, index: u32, count: u32, from: u64, n: usize) -> Vec<u64> {
+        (from..)
+            .filter(|&s| ShardSpec::shard_of(job, s, count) == index)
+            .take(n)
+            .collect()
+    }
+
+    fn shard(index: u32, count: u32) -> Assembler {
+        Assembler::sharded(1 << 20, ShardSpec { index, count })
+    }
+
+    /// Feeds the world of `seed` (from sampler `node`, counter = seed).
+    fn feed_seed(a: &mut Assembler, job: &str, seed: u64) -> Outcome {
+        let (s, d) = world(job, "n", seed, seed, 2);
+        feed(a, s, d)
+    }
+
+    fn done_of(a: &Assembler, job: &str) -> u32 {
+        a.job_state(job).map_or(0, |s| s.worlds_done)
+    }
+
+    fn closed(a: &Assembler, job: &str) -> bool {
+        a.job_state(job).is_some_and(|s| s.closed)
+    }
+
+    /// What shard 1 of two sends after a commit, taken by the authority.
+    fn report(from: &Assembler, to: &mut Assembler, job: &str) -> Option<JobState> {
+        let (worlds, bytes) = from.own_count(job).unwrap_or_default();
+        to.on_shard_count(job, from.shard(), worlds, bytes, 9)
+    }
+
     #[test]
-    fn a_shard_keeps_its_worlds_and_counts_all() {
+    fn a_shard_keeps_and_counts_only_its_own_worlds() {
         let spec = ShardSpec { index: 1, count: 2 };
         let mut a = Assembler::sharded(1 << 20, spec);
         a.submit_job(job("j", 6));
         let mut kept = Vec::new();
-        let mut counted = 0;
+        let mut elsewhere = 0;
         for seed in 0..6u64 {
             let (s, d) = world("j", "n", seed, 100 + seed, 2);
             match feed(&mut a, s, d) {
@@ -765,18 +960,18 @@ mod tests {
                     assert!(spec.owns("j", 100 + seed));
                     assert_eq!(index % 2, 1, "shard 1 numbers odd");
                     kept.push(index);
-                    assert_eq!(state.worlds_done as usize, kept.len() + counted);
+                    assert_eq!(state.worlds_done as usize, kept.len());
+                    assert_eq!(state.shard_worlds, [0, kept.len() as u32]);
                 }
-                Outcome::Counted { state } => {
+                Outcome::Elsewhere => {
                     assert!(!spec.owns("j", 100 + seed));
-                    counted += 1;
-                    assert_eq!(state.worlds_done as usize, kept.len() + counted);
+                    elsewhere += 1;
                 }
                 other => panic!("{other:?}"),
             }
         }
         assert!(
-            !kept.is_empty() && counted > 0,
+            !kept.is_empty() && elsewhere > 0,
             "seeds 100..106 all on one shard"
         );
         assert_eq!(
@@ -786,55 +981,369 @@ mod tests {
                 .collect::<Vec<_>>()
         );
         assert_eq!(a.world_count(), kept.len());
-        assert!(
-            a.job_state("j")
-                .is_some_and(|st| st.closed && st.worlds_done == 6)
-        );
+        assert_eq!(a.own_count("j").map(|(n, _)| n as usize), Some(kept.len()));
+        assert!(!closed(&a, "j"));
         for &i in &kept {
             assert_eq!(a.world(i).map(|w| w.index), Some(i));
         }
         assert!(a.world(0).is_none());
-        // Only kept worlds take memory.
+        // Only kept worlds take memory, and only they count as the job's bytes.
         let stored: u64 = a.stored().map(|w| w.bytes).sum();
         assert_eq!(a.memory_bytes(), stored);
+        assert_eq!(a.own_count("j").map(|(_, b)| b), Some(stored));
     }
 
+    /// The authority adds the others' counts; a count never goes back, and one for its own
+    /// index or another sharding is ignored.
     #[test]
-    fn a_late_shard_adopts_the_authority_count_and_closure() {
-        let mut a = Assembler::sharded(1 << 20, ShardSpec { index: 1, count: 2 });
-        a.submit_job(job("j", 10));
-        let theirs = JobState {
-            job_id: "j".into(),
-            worlds_done: 7,
-            target_worlds: 10,
-            ..Default::default()
-        };
-        a.adopt_state(&theirs);
-        assert_eq!(a.job_state("j").map(|s| s.worlds_done), Some(7));
-        // A lower count never lowers ours.
-        a.adopt_state(&JobState {
-            worlds_done: 2,
-            ..theirs.clone()
-        });
-        assert_eq!(a.job_state("j").map(|s| s.worlds_done), Some(7));
-        a.adopt_state(&JobState {
-            closed: true,
-            ..theirs
-        });
-        let (s, d) = world("j", "n", 0, 5, 1);
+    fn the_authority_sums_the_shards_counts_and_closes_on_the_sum() {
+        let mut a0 = shard(0, 2);
+        a0.submit_job(job("j", 4));
+        let mine = seeds_of("j", 0, 2, 0, 2);
         assert!(matches!(
-            feed(&mut a, s, d),
+            feed_seed(&mut a0, "j", mine[0]),
+            Outcome::Stored { .. }
+        ));
+        let one = ShardSpec { index: 1, count: 2 };
+        let st = a0.on_shard_count("j", one, 2, 200, 5);
+        assert!(
+            st.as_ref()
+                .is_some_and(|s| s.worlds_done == 3 && s.shard_worlds == [1, 2] && !s.closed)
+        );
+        assert_eq!(
+            a0.on_shard_count("j", one, 1, 100, 6),
+            None,
+            "counts only grow"
+        );
+        assert_eq!(
+            a0.on_shard_count("j", one, 2, 200, 6),
+            None,
+            "a repeat changes nothing"
+        );
+        assert_eq!(
+            a0.on_shard_count("j", ShardSpec { index: 0, count: 2 }, 9, 0, 6),
+            None
+        );
+        assert_eq!(
+            a0.on_shard_count("j", ShardSpec { index: 1, count: 3 }, 9, 0, 6),
+            None
+        );
+        assert_eq!(a0.on_shard_count("nope", one, 9, 0, 6), None);
+        let Outcome::Stored { state, .. } = feed_seed(&mut a0, "j", mine[1]) else {
+            panic!("not stored")
+        };
+        assert!(state.closed && state.worlds_done == 4 && state.shard_worlds == [2, 2]);
+        // A world shard 1 stored before it heard of the closure is still counted.
+        let st = a0.on_shard_count("j", one, 3, 300, 7);
+        assert!(st.is_some_and(|s| s.closed && s.worlds_done == 5 && s.bytes_stored > 300));
+        // Only the authority takes counts.
+        let mut a1 = shard(1, 2);
+        a1.submit_job(job("j", 4));
+        assert_eq!(
+            a1.on_shard_count("j", ShardSpec { index: 0, count: 2 }, 3, 0, 1),
+            None
+        );
+    }
+
+    /// Issue 21, case 3: two worlds X (shard 0's) and Y (shard 1's) reach the two shards in
+    /// opposite orders when one world is missing. Counting what it saw, each shard took the
+    /// other's as the last one and refused its own as late: neither stored, one acknowledged.
+    #[test]
+    fn crossing_worlds_at_the_target_are_stored_and_acknowledged() {
+        let zero = seeds_of("j", 0, 2, 0, 2);
+        let one = seeds_of("j", 1, 2, 0, 2);
+        for follower_hears_closure_first in [false, true] {
+            let (mut a0, mut a1) = (shard(0, 2), shard(1, 2));
+            a0.submit_job(job("j", 3));
+            a1.submit_job(job("j", 3));
+            // One world each, reported and acknowledged: 2 of 3.
+            assert!(matches!(
+                feed_seed(&mut a0, "j", zero[0]),
+                Outcome::Stored { .. }
+            ));
+            assert!(matches!(
+                feed_seed(&mut a1, "j", one[0]),
+                Outcome::Stored { .. }
+            ));
+            let st = report(&a1, &mut a0, "j").unwrap_or_default();
+            a1.adopt_state(&st);
+            assert_eq!((done_of(&a0, "j"), done_of(&a1, "j")), (2, 2));
+            let (x, y) = (zero[1], one[1]);
+            // Shard 0 sees Y, then X; shard 1 sees X, then Y.
+            assert_eq!(feed_seed(&mut a0, "j", y), Outcome::Elsewhere);
+            let Outcome::Stored { state: closing, .. } = feed_seed(&mut a0, "j", x) else {
+                panic!("X not stored")
+            };
+            assert!(closing.closed && closing.worlds_done == 3);
+            assert_eq!(feed_seed(&mut a1, "j", x), Outcome::Elsewhere);
+            if follower_hears_closure_first {
+                a1.adopt_state(&closing);
+                assert!(matches!(
+                    feed_seed(&mut a1, "j", y),
+                    Outcome::Rejected {
+                        reason: Rejection::Late,
+                        ..
+                    }
+                ));
+            } else {
+                assert!(matches!(feed_seed(&mut a1, "j", y), Outcome::Stored { .. }));
+            }
+            if let Some(st) = report(&a1, &mut a0, "j") {
+                a1.adopt_state(&st);
+            }
+            let stored = (a0.world_count() + a1.world_count()) as u32;
+            assert_eq!(done_of(&a0, "j"), stored, "acknowledged = stored");
+            assert_eq!(stored, if follower_hears_closure_first { 3 } else { 4 });
+            assert!(closed(&a0, "j") && closed(&a1, "j"));
+        }
+    }
+
+    /// A shard that is not the authority never closes a job on its own count; it refuses a
+    /// world the authority will not count (its own and the others' durable counts already
+    /// reach the target), and follows the authority's closure.
+    #[test]
+    fn a_follower_never_closes_on_its_own_count() {
+        let mut a1 = shard(1, 2);
+        a1.submit_job(job("j", 2));
+        let one = seeds_of("j", 1, 2, 0, 3);
+        for &s in &one[..2] {
+            assert!(matches!(feed_seed(&mut a1, "j", s), Outcome::Stored { .. }));
+        }
+        assert!(!closed(&a1, "j"), "closing is the authority's");
+        assert!(matches!(
+            feed_seed(&mut a1, "j", one[2]),
             Outcome::Rejected {
                 reason: Rejection::Late,
                 ..
             }
         ));
+        assert!(!closed(&a1, "j"));
+        assert_eq!(a1.world_count(), 2);
+        // The authority closes on the count, and the follower follows.
+        let mut a0 = shard(0, 2);
+        a0.submit_job(job("j", 2));
+        let st = report(&a1, &mut a0, "j").unwrap_or_default();
+        assert!(st.closed && st.worlds_done == 2 && st.shard_worlds == [0, 2]);
+        a1.adopt_state(&st);
+        assert!(closed(&a1, "j"));
+        assert!(a1.unacknowledged_counts().is_empty());
         // Unknown jobs are ignored.
-        a.adopt_state(&JobState {
+        a1.adopt_state(&JobState {
             job_id: "other".into(),
             ..Default::default()
         });
-        assert!(a.job_state("other").is_none());
+        assert!(a1.job_state("other").is_none());
+    }
+
+    /// Issue 21, case 2: the authority restarts from a journal that lacks counts shard 1 sent
+    /// while it was down. Shard 1 keeps storing (it never closes on its own count), sees its
+    /// count missing from the authority's states, sends it again, and the job closes on the
+    /// sum: every acknowledged world is stored.
+    #[test]
+    fn a_restarted_authority_relearns_the_counts_it_missed() {
+        let zero = seeds_of("j", 0, 2, 0, 3);
+        let one = seeds_of("j", 1, 2, 0, 4);
+        let (mut a0, mut a1) = (shard(0, 2), shard(1, 2));
+        a0.submit_job(job("j", 6));
+        a1.submit_job(job("j", 6));
+        for &s in &zero[..2] {
+            assert!(matches!(feed_seed(&mut a0, "j", s), Outcome::Stored { .. }));
+        }
+        assert!(matches!(
+            feed_seed(&mut a1, "j", one[0]),
+            Outcome::Stored { .. }
+        ));
+        let journaled = report(&a1, &mut a0, "j").unwrap_or_default();
+        a1.adopt_state(&journaled);
+        assert_eq!(journaled.shard_worlds, [2, 1]);
+        // The authority dies; shard 1 stores three more (their counts go nowhere).
+        for &s in &one[1..4] {
+            assert!(matches!(feed_seed(&mut a1, "j", s), Outcome::Stored { .. }));
+        }
+        assert!(
+            !closed(&a1, "j"),
+            "shard 1 reached 6 on its own view, but never closes"
+        );
+        // Restarted: its journal gives back its job, its two worlds, the last state it wrote.
+        let mut b0 = shard(0, 2);
+        b0.submit_job(job("j", 6));
+        for &s in &zero[..2] {
+            assert!(matches!(feed_seed(&mut b0, "j", s), Outcome::Stored { .. }));
+        }
+        b0.restore_state(&journaled);
+        let restored = b0.job_state("j").cloned().unwrap_or_default();
+        assert_eq!((restored.worlds_done, restored.closed), (3, false));
+        assert!(restored.revision >= journaled.revision);
+        // Its next state shows shard 1 behind: shard 1 sends its count again.
+        a1.adopt_state(&restored);
+        assert_eq!(a1.unacknowledged_counts(), ["j"]);
+        let st = report(&a1, &mut b0, "j").unwrap_or_default();
+        assert!(st.closed && st.worlds_done == 6 && st.shard_worlds == [2, 4]);
+        a1.adopt_state(&st);
+        assert!(a1.unacknowledged_counts().is_empty() && closed(&a1, "j"));
+        assert_eq!(
+            st.worlds_done as usize,
+            b0.world_count() + a1.world_count(),
+            "acknowledged = stored"
+        );
+        // Late now on both.
+        assert!(matches!(
+            feed_seed(&mut b0, "j", zero[2]),
+            Outcome::Rejected {
+                reason: Rejection::Late,
+                ..
+            }
+        ));
+    }
+
+    /// A journal file reads alone: its checkpoint's counts (this shard's and the others') are
+    /// taken where ahead, and the worlds that follow it add to them.
+    #[test]
+    fn a_restored_state_keeps_the_counts_of_its_checkpoint() {
+        let mut a1 = shard(1, 2);
+        a1.submit_job(job("j", 20));
+        a1.restore_state(&JobState {
+            job_id: "j".into(),
+            worlds_done: 9,
+            shard_worlds: vec![4, 5],
+            shard_bytes: vec![40, 50],
+            revision: 7,
+            ..Default::default()
+        });
+        let st = a1.job_state("j").cloned().unwrap_or_default();
+        assert_eq!(
+            (st.worlds_done, st.shard_worlds.clone(), st.revision),
+            (9, vec![4, 5], 7)
+        );
+        let mine = seeds_of("j", 1, 2, 0, 1);
+        assert!(matches!(
+            feed_seed(&mut a1, "j", mine[0]),
+            Outcome::Stored { .. }
+        ));
+        assert_eq!(a1.own_count("j").map(|(n, _)| n), Some(6));
+        // A lower one (an older state further on) lowers nothing.
+        a1.restore_state(&JobState {
+            job_id: "j".into(),
+            shard_worlds: vec![1, 1],
+            shard_bytes: vec![1, 1],
+            ..Default::default()
+        });
+        assert_eq!(done_of(&a1, "j"), 10);
+        // A single store's state from before per-shard counts.
+        let mut a = Assembler::new(1 << 20);
+        a.submit_job(job("j", 20));
+        a.restore_state(&JobState {
+            job_id: "j".into(),
+            worlds_done: 3,
+            bytes_stored: 30,
+            ..Default::default()
+        });
+        assert_eq!(a.own_count("j"), Some((3, 30)));
+    }
+
+    /// A tiny deterministic generator for the interleavings below (no dependency).
+    struct XorShift(u64);
+    impl XorShift {
+        fn below(&mut self, n: usize) -> usize {
+            self.0 ^= self.0 << 13;
+            self.0 ^= self.0 >> 7;
+            self.0 ^= self.0 << 17;
+            (self.0 % n as u64) as usize
+        }
+    }
+
+    /// Two shards, every world sent to both, shard 1's counts and the authority's states on
+    /// their own channels, all delivered in random interleavings (each channel in order).
+    /// Whatever the order: the authority never acknowledges more than the shards store, and at
+    /// the end it acknowledges exactly what they store, at least the target, and the job is
+    /// closed on both.
+    #[test]
+    fn any_interleaving_acknowledges_exactly_the_stored_worlds() {
+        use std::collections::VecDeque;
+        const TARGET: u32 = 5;
+        for run in 0..500u64 {
+            let mut rng = XorShift(0x9E37_79B9_7F4A_7C15 ^ (run + 1));
+            let (mut a0, mut a1) = (shard(0, 2), shard(1, 2));
+            a0.submit_job(job("j", TARGET));
+            a1.submit_job(job("j", TARGET));
+            // Channels: worlds to 0, worlds to 1, counts 1 → 0, states 0 → 1.
+            let worlds: Vec<u64> = (0..TARGET as u64 + 4).map(|s| 1000 * run + s).collect();
+            let mut to0: VecDeque<u64> = worlds.iter().copied().collect();
+            let mut to1: VecDeque<u64> = worlds.iter().copied().collect();
+            let mut counts: VecDeque<(u32, u64)> = VecDeque::new();
+            let mut states: VecDeque<JobState> = VecDeque::new();
+            loop {
+                let ready: Vec<usize> = [
+                    !to0.is_empty(),
+                    !to1.is_empty(),
+                    !counts.is_empty(),
+                    !states.is_empty(),
+                ]
+                .iter()
+                .enumerate()
+                .filter(|(_, r)| **r)
+                .map(|(i, _)| i)
+                .collect();
+                if ready.is_empty() {
+                    break;
+                }
+                match ready[rng.below(ready.len())] {
+                    0 => {
+                        let s = to0.pop_front().unwrap_or_default();
+                        if let Outcome::Stored { state, .. } = feed_seed(&mut a0, "j", s) {
+                            states.push_back(state);
+                        }
+                    }
+                    1 => {
+                        let s = to1.pop_front().unwrap_or_default();
+                        if let Outcome::Stored { .. } = feed_seed(&mut a1, "j", s) {
+                            counts.push_back(a1.own_count("j").unwrap_or_default());
+                        }
+                    }
+                    2 => {
+                        let (n, b) = counts.pop_front().unwrap_or_default();
+                        let one = ShardSpec { index: 1, count: 2 };
+                        states.extend(a0.on_shard_count("j", one, n, b, 1));
+                    }
+                    _ => {
+                        let st = states.pop_front().unwrap_or_default();
+                        a1.adopt_state(&st);
+                    }
+                }
+                let stored = (a0.world_count() + a1.world_count()) as u32;
+                assert!(
+                    done_of(&a0, "j") <= stored,
+                    "run {run}: acknowledged > stored"
+                );
+                assert!(!closed(&a1, "j") || closed(&a0, "j"), "run {run}");
+            }
+            let stored = (a0.world_count() + a1.world_count()) as u32;
+            assert_eq!(done_of(&a0, "j"), stored, "run {run}");
+            assert!(stored >= TARGET, "run {run}: {stored}");
+            assert!(closed(&a0, "j") && closed(&a1, "j"), "run {run}");
+            assert!(a1.unacknowledged_counts().is_empty(), "run {run}");
+        }
+    }
+
+    /// One shard: the sum is its own count, as before sharding counted anything.
+    #[test]
+    fn a_single_store_counts_as_before() {
+        let mut a = Assembler::new(1 << 20);
+        a.submit_job(job("j", 2));
+        for s in 0..2 {
+            assert!(matches!(feed_seed(&mut a, "j", s), Outcome::Stored { .. }));
+        }
+        let st = a.job_state("j").cloned().unwrap_or_default();
+        assert!(st.closed && st.worlds_done == 2 && st.shard_worlds == [2]);
+        assert_eq!(st.bytes_stored, a.stored().map(|w| w.bytes).sum::<u64>());
+        assert!(a.unacknowledged_counts().is_empty());
+        assert!(matches!(
+            feed_seed(&mut a, "j", 2),
+            Outcome::Rejected {
+                reason: Rejection::Late,
+                ..
+            }
+        ));
     }
 
     #[test]

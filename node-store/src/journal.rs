@@ -16,7 +16,13 @@
 //! follows it). The store applies its ingest in batches (group commit: whatever is queued, up
 //! to [`MAX_BATCH`] messages), appends the batch's records, ends the MCAP chunk, and calls
 //! `fdatasync` on the file — and only then publishes the batch's job states. A store killed
-//! at any moment therefore finds, on restart, every world it had acknowledged. Queries read
+//! at any moment therefore finds, on restart, every world it had acknowledged. With several
+//! shards, each publishes its own count of a job's worlds (`ShardCount`) only after the commit
+//! that made them durable, and the authority's job state counts the sum of those counts and its
+//! own: a world is acknowledged only once the shard that keeps it has synced it (see
+//! [`crate::assembly`]). The job states in the journal carry every shard's count as the store
+//! had it (`shard_worlds`), so a restarted authority starts from what the others had told it,
+//! and learns the rest as they send their counts again. Queries read
 //! the live table, so a world can be fetched (or counted in a queried job state) up to one
 //! group commit before it is durable; a crash inside that window loses only worlds nobody was
 //! told were kept. New files are created beside the old ones, and the directory is synced

@@ -3,6 +3,14 @@
 //! browsing index's paths, browsing requests and statistics as queryables; publishes job
 //! states and stats. [`run_store`] declares what the node listens to and starts one task per
 //! duty; each task is a function below.
+//!
+//! **Acknowledgement across shards.** After each group commit every shard publishes, for each
+//! job whose count it changed, how many worlds of it it has stored (`ShardCount` on
+//! `job/<id>/shard/<index>`): durable worlds only. The authority (shard 0) sums those counts
+//! and its own into the job states it publishes (see [`crate::assembly`]), so an acknowledged
+//! world is always on the disk of the shard that keeps it. A count the authority's states do
+//! not show yet is sent again every [`COUNT_RESEND`], and every count when a store appears
+//! (an authority restarted from its journal learns what it missed while it was down).
 
 use crate::assembly::{Assembler, Outcome};
 use crate::browse::{Shard, ShardSpec};
@@ -17,9 +25,9 @@ use mwb_core::keys::{Keys, SceneRev, check_identifier, last_chunk, role};
 use mwb_node::bus::{self, Queries, Subscription};
 use mwb_node::{Node, NodeError};
 use mwb_proto::v1::{
-    Job, JobState, Message, MotionSegment, NodeStats, PathsRequest, Scene, WorldDone,
+    Job, JobState, Message, MotionSegment, NodeStats, PathsRequest, Scene, ShardCount, WorldDone,
 };
-use std::collections::HashMap;
+use std::collections::{BTreeSet, HashMap};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -40,6 +48,9 @@ const INGEST_QUEUE: usize = 4096;
 pub const DEFAULT_PATH_BATCH: usize = 256;
 /// How often the applier looks for partial worlds to discard.
 const TICK: Duration = Duration::from_millis(250);
+/// How often a shard sends again the counts the authority's job states do not show yet (a
+/// `ShardCount` lost while the authority was down or a link was cut).
+pub const COUNT_RESEND: Duration = Duration::from_secs(1);
 
 /// Store settings.
 #[derive(Debug, Clone)]
@@ -259,7 +270,12 @@ enum Incoming {
     Scene(Scene),
     /// A job state read back from the journal.
     Restored(JobState),
+    /// Another shard's count of its durable worlds of a job (the authority only).
+    Count(ShardCount),
+    /// A producer of worlds (or a store) left.
     Left(String),
+    /// A store appeared (perhaps the authority, restarted): every count is sent again.
+    StoreAppeared,
     Tick,
 }
 
@@ -268,6 +284,13 @@ fn valid_job(job: Job) -> Option<Incoming> {
     check_identifier("job id", &job.id)
         .is_ok()
         .then_some(Incoming::Job(job))
+}
+
+/// A shard count whose job id can be a key chunk; `None` (counted as malformed) otherwise.
+fn valid_count(c: ShardCount) -> Option<Incoming> {
+    check_identifier("job id", &c.job_id)
+        .is_ok()
+        .then_some(Incoming::Count(c))
 }
 
 /// Starts a store node on `session` (in the current tokio runtime).
@@ -295,18 +318,21 @@ pub async fn run_store(session: Session, cfg: StoreConfig) -> Result<StoreHandle
     // never mixes job states of different shards; the other shards follow its job states.
     let authority = cfg.shard.is_authority();
     // Scene revisions too: one shard keeps them all, so "latest" has one answer.
-    let (job_queries, state_queries, authority_states, scene_puts, scene_queries) = if authority {
-        (
-            Some(node.queryable(keys.jobs()).await?),
-            Some(node.queryable(keys.job_states()).await?),
-            None,
-            Some(node.subscribe(keys.scenes()).await?),
-            Some(node.queryable(keys.scene_queries()).await?),
-        )
-    } else {
-        let states = node.subscribe(keys.job_states()).await?;
-        (None, None, Some(states), None, None)
-    };
+    // The authority also sums the other shards' counts into the job states it publishes.
+    let (job_queries, state_queries, authority_states, scene_puts, scene_queries, shard_counts) =
+        if authority {
+            (
+                Some(node.queryable(keys.jobs()).await?),
+                Some(node.queryable(keys.job_states()).await?),
+                None,
+                Some(node.subscribe(keys.scenes()).await?),
+                Some(node.queryable(keys.scene_queries()).await?),
+                Some(node.subscribe(keys.job_shards()).await?),
+            )
+        } else {
+            let states = node.subscribe(keys.job_states()).await?;
+            (None, None, Some(states), None, None, None)
+        };
     let browse_queries = node.queryable(keys.shard_browse_all(node.id())).await?;
     let world_queries = node.queryable(keys.worlds()).await?;
     let stats_queries = node.queryable(keys.store_stats()).await?;
@@ -322,6 +348,7 @@ pub async fn run_store(session: Session, cfg: StoreConfig) -> Result<StoreHandle
         move || shared.stats()
     };
     let scene_tx = tx.clone();
+    let count_tx = tx.clone();
     let mut tasks = vec![
         tokio::spawn(bus::hold(token)),
         tokio::spawn(bus::forward(node.clone(), segments, tx.clone(), |m| {
@@ -331,7 +358,7 @@ pub async fn run_store(session: Session, cfg: StoreConfig) -> Result<StoreHandle
             Some(Incoming::Done(m))
         })),
         tokio::spawn(bus::forward(node.clone(), jobs, tx.clone(), valid_job)),
-        tokio::spawn(watch_departures(departures, tx.clone())),
+        tokio::spawn(watch_departures(departures, keys.clone(), tx.clone())),
         tokio::spawn(tick(tx.clone())),
         tokio::spawn(catch_up(node.clone(), tx, authority_states)),
         tokio::spawn(apply(applier, rx)),
@@ -348,6 +375,14 @@ pub async fn run_store(session: Session, cfg: StoreConfig) -> Result<StoreHandle
     if let Some(q) = state_queries {
         tasks.push(tokio::spawn(serve_job_states(shared.clone(), q)));
     }
+    if let Some(sub) = shard_counts {
+        tasks.push(tokio::spawn(bus::forward(
+            node.clone(),
+            sub,
+            count_tx,
+            valid_count,
+        )));
+    }
     if let (Some(sub), Some(q)) = (scene_puts, scene_queries) {
         tasks.push(tokio::spawn(forward_scenes(node.clone(), sub, scene_tx)));
         tasks.push(tokio::spawn(serve_scenes(shared.clone(), q)));
@@ -360,15 +395,23 @@ pub async fn run_store(session: Session, cfg: StoreConfig) -> Result<StoreHandle
     })
 }
 
-/// Liveliness deletes: a producer of worlds left (its partial worlds will be discarded).
-async fn watch_departures(sub: Subscription, tx: mpsc::Sender<Incoming>) {
+/// Liveliness: a producer of worlds left (its partial worlds will be discarded), or a store
+/// appeared (this shard's counts are sent again, for an authority that restarted).
+async fn watch_departures(sub: Subscription, keys: Keys, tx: mpsc::Sender<Incoming>) {
     while let Ok(s) = sub.recv_async().await {
-        if s.kind() == SampleKind::Delete
-            && tx
-                .send(Incoming::Left(last_chunk(s.key_expr().as_str()).to_owned()))
-                .await
-                .is_err()
-        {
+        let key = s.key_expr().as_str();
+        let msg = match s.kind() {
+            SampleKind::Delete => Incoming::Left(last_chunk(key).to_owned()),
+            SampleKind::Put
+                if keys
+                    .split(key)
+                    .is_some_and(|c| c.len() == 3 && c[0] == "alive" && c[1] == role::STORE) =>
+            {
+                Incoming::StoreAppeared
+            }
+            SampleKind::Put => continue,
+        };
+        if tx.send(msg).await.is_err() {
             break;
         }
     }
@@ -452,6 +495,10 @@ struct Applier {
     rest: HashMap<String, JobScene>,
     keys: Keys,
     journal: Option<Journal>,
+    /// Jobs whose count this shard publishes after the next commit.
+    counts_due: BTreeSet<String>,
+    /// When the counts the authority lacks were last sent again.
+    last_resend: Instant,
 }
 
 impl Applier {
@@ -465,6 +512,8 @@ impl Applier {
             rest: HashMap::new(),
             keys,
             journal: None,
+            counts_due: BTreeSet::new(),
+            last_resend: Instant::now(),
         }
     }
 
@@ -652,10 +701,35 @@ impl Applier {
             }
             Incoming::State(st) => t.adopt_state(&st),
             Incoming::Restored(st) => t.restore_state(&st),
+            Incoming::Count(c) => {
+                let spec = t.shard();
+                if c.shard_count != spec.count || c.shard_index >= spec.count {
+                    // Stores started with different shard counts: their worlds cannot be
+                    // summed (nor found by index). Said loudly, not counted.
+                    warn!(
+                        job = %c.job_id, node = %c.node_id, shard = c.shard_index,
+                        shards = c.shard_count, ours = spec.count,
+                        "shard count from a store with another sharding, ignored"
+                    );
+                } else {
+                    let from = ShardSpec {
+                        index: c.shard_index,
+                        count: c.shard_count,
+                    };
+                    states.extend(t.on_shard_count(
+                        &c.job_id,
+                        from,
+                        c.worlds_stored,
+                        c.bytes_stored,
+                        now,
+                    ));
+                }
+            }
             Incoming::Left(node) => {
                 debug!(%node, "producer of worlds left");
                 t.node_left(&node, now);
             }
+            Incoming::StoreAppeared => self.counts_due.extend(t.jobs_with_worlds()),
             Incoming::Tick => {
                 let n = t.expire(now, self.grace_ms, self.idle_ms);
                 if n > 0 {
@@ -663,6 +737,10 @@ impl Applier {
                         discarded = n,
                         "discarded partial worlds of departed samplers"
                     );
+                }
+                if self.last_resend.elapsed() >= COUNT_RESEND {
+                    self.last_resend = Instant::now();
+                    self.counts_due.extend(t.unacknowledged_counts());
                 }
             }
         }
@@ -672,6 +750,11 @@ impl Applier {
             states.extend(outcome_state(o, &mut index));
             stored.extend(index.and_then(|i| t.world(i)));
         }
+        self.counts_due.extend(
+            stored
+                .iter()
+                .map(|w: &Arc<crate::StoredWorld>| w.job_id.clone()),
+        );
         if let Some(journal) = self.journal.as_mut() {
             for w in &stored {
                 journal.append_world(&self.keys, w);
@@ -681,6 +764,37 @@ impl Applier {
             }
         }
         (states, stored)
+    }
+
+    /// Publishes this shard's count of every job in `counts_due` (after the commit that made
+    /// those worlds durable: the authority acknowledges what the counts say).
+    async fn publish_counts(&mut self) {
+        if self.counts_due.is_empty() {
+            return;
+        }
+        let node = self.shared.node.clone();
+        let counts: Vec<ShardCount> = {
+            let t = self.shared.lock();
+            let spec = t.shard();
+            std::mem::take(&mut self.counts_due)
+                .into_iter()
+                .filter_map(|job| {
+                    let (worlds, bytes) = t.own_count(&job)?;
+                    Some(ShardCount {
+                        job_id: job,
+                        shard_index: spec.index,
+                        shard_count: spec.count,
+                        worlds_stored: worlds,
+                        bytes_stored: bytes,
+                        node_id: node.id().to_owned(),
+                    })
+                })
+                .collect()
+        };
+        for c in counts {
+            let key = self.keys.job_shard(&c.job_id, c.shard_index);
+            node.put(&key, c.encode_to_vec()).await;
+        }
     }
 
     /// Indexes a stored world for browsing; a world that cannot be indexed stays stored (and
@@ -734,6 +848,7 @@ async fn apply(mut a: Applier, mut rx: mpsc::Receiver<Incoming>) {
                     .await;
             }
         }
+        a.publish_counts().await;
     }
 }
 
@@ -935,7 +1050,7 @@ fn outcome_state(o: Outcome, stored: &mut Option<u32>) -> Option<JobState> {
             *stored = Some(index);
             Some(state)
         }
-        Outcome::Counted { state } => Some(state),
+        Outcome::Elsewhere => None,
         Outcome::Rejected { reason, state } => {
             debug!(?reason, "world rejected");
             state

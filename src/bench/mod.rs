@@ -4,6 +4,7 @@
 use anyhow::Result;
 use clap::Subcommand;
 
+pub mod chaos;
 pub mod codec;
 pub mod fidelity;
 pub mod query;
@@ -42,6 +43,10 @@ pub enum BenchCommand {
     Fidelity(fidelity::FidelityArgs),
     /// Validating big scene files: parse and instantiate time by body count.
     Scene(scene::SceneArgs),
+    /// Faults across hosts (issue 21): two store shards and four samplers in network
+    /// namespaces, samplers killed, links cut, a shard restarted; lost, duplicate and damaged
+    /// worlds against a clean run; a store's real RSS under a flood against its cap. Root only.
+    Chaos(chaos::ChaosArgs),
 }
 
 /// Runs `mwb bench …`.
@@ -57,6 +62,7 @@ pub async fn run(command: BenchCommand) -> Result<()> {
         BenchCommand::Viewer(args) => viewer::run(args).await,
         BenchCommand::Scene(args) => scene::run(args),
         BenchCommand::Fidelity(args) => fidelity::run(args),
+        BenchCommand::Chaos(args) => chaos::run(args).await,
     }
 }
 
