@@ -130,6 +130,15 @@ impl Family {
         }
     }
 
+    /// Whether `key` is a store shard's count of a job's durable worlds
+    /// (`job/<id>/shard/<index>`): the recorded cluster's own bookkeeping, recorded (as `Raw`)
+    /// but never replayed — a store that takes in a replay counts the worlds it stores itself,
+    /// and a recorded count of another cluster's shard would close its jobs early.
+    pub fn is_shard_count(key: &str) -> bool {
+        let rest: Vec<&str> = key.split('/').skip(2).collect();
+        key.starts_with("mwb/") && matches!(rest.as_slice(), ["job", _, "shard", _])
+    }
+
     /// Whether `payload` is a valid message of this family's type (`Raw` takes anything).
     pub fn accepts(self, payload: &[u8]) -> bool {
         match self {
@@ -269,6 +278,22 @@ pub fn schema_data(family: Family) -> Vec<u8> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A shard's count is recognised (and so never replayed); nothing else is.
+    #[test]
+    fn shard_counts_are_recognised() {
+        assert!(Family::is_shard_count("mwb/demo/job/j1/shard/1"));
+        for key in [
+            "mwb/demo/job/j1",
+            "mwb/demo/job/j1/state",
+            "mwb/demo/job/j1/shard",
+            "mwb/demo/job/j1/shard/1/x",
+            "other/demo/job/j1/shard/1",
+            "mwb/demo/seg/j1/shard/1",
+        ] {
+            assert!(!Family::is_shard_count(key), "{key}");
+        }
+    }
 
     #[test]
     fn keys_map_to_families() {

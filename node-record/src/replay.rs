@@ -136,7 +136,8 @@ pub enum ReplayError {
 pub struct ReplaySummary {
     pub published: u64,
     pub by_family: BTreeMap<Family, u64>,
-    /// Messages whose key is not `mwb/<space>/…`: not published.
+    /// Messages whose key is not `mwb/<space>/…`, and store shards' counts
+    /// ([`Family::is_shard_count`]): not published.
     pub skipped_keys: u64,
     pub put_failures: u64,
     /// The reader's counts (unknown channels skipped, chunks, complete).
@@ -232,7 +233,8 @@ pub async fn replay(
                 () = &mut stop => { s.stopped = true; break; }
             }
         }
-        let Some(key) = retarget(&m.key, &cfg.space) else {
+        let Some(key) = retarget(&m.key, &cfg.space).filter(|_| !Family::is_shard_count(&m.key))
+        else {
             s.skipped_keys += 1;
             continue;
         };
