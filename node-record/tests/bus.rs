@@ -476,7 +476,10 @@ async fn a_replayed_session_gives_a_fresh_store_the_same_worlds_byte_for_byte() 
     assert!(r.subscribers_seen);
     // Everything is replayed but the recorded store's counts of its own worlds (a store that
     // takes in the replay counts what it stores).
-    assert!(r.skipped_keys >= 1, "the store's counts were recorded: {r:?}");
+    assert!(
+        r.skipped_keys >= 1,
+        "the store's counts were recorded: {r:?}"
+    );
     assert_eq!(r.published + r.skipped_keys, sum.written.messages);
     until("the fresh store to hold every world", || {
         fresh.world_count() == stored

@@ -160,6 +160,10 @@ pub struct ScenePlausibility {
     pub plausible_fraction: f64,
     /// Median excess (m; ≤ 0: plausible).
     pub excess_p50: f64,
+    /// The implausible worlds counted by the clause their worst body breaks
+    /// ([`crate::plausible::Clause`]): faster than a fall, fell from too high, sank in. Why a
+    /// scene falls short, in one look.
+    pub implausible_by_clause: [usize; 3],
     /// Median and 95th percentile of energy growth (m).
     pub energy_growth_p50: f64,
     /// See `energy_growth_p50`.
@@ -240,10 +244,14 @@ fn scene_plausibility(
         source: Box::new(source),
     };
     let (mut plausible, mut excess, mut growth, mut spin) = (0, vec![], vec![], vec![]);
+    let mut by_clause = [0; 3];
     for k in 0..worlds as u64 {
         let run = run_world(scene, seed.wrapping_add(k)).map_err(err)?;
         let r = &run.report;
         plausible += usize::from(r.plausibility.plausible);
+        if !r.plausibility.plausible {
+            by_clause[clause_slot(r.plausibility.worst_clause)] += 1;
+        }
         excess.push(r.plausibility.excess_m);
         growth.push(r.energy_growth);
         spin.push(r.angular_speed_peak);
@@ -256,11 +264,22 @@ fn scene_plausibility(
             f64::NAN
         },
         excess_p50: median(excess),
+        implausible_by_clause: by_clause,
         energy_growth_p50: median(growth.clone()),
         energy_growth_p95: percentile(growth, 0.95),
         angular_speed_peak_p95: percentile(spin, 0.95),
         seconds: t.elapsed().as_secs_f64(),
     })
+}
+
+/// Where a clause counts in [`ScenePlausibility::implausible_by_clause`].
+fn clause_slot(c: crate::plausible::Clause) -> usize {
+    use crate::plausible::Clause;
+    match c {
+        Clause::FasterThanFall => 0,
+        Clause::TooHigh => 1,
+        Clause::Penetration => 2,
+    }
 }
 
 /// The lorem world: one run, as `mwb reverse` samples it.

@@ -81,6 +81,9 @@ pub struct ReverseLine {
     pub plausible_excess_p50: BTreeMap<String, f64>,
     /// Per scene, the fraction of its sampled worlds that are plausible.
     pub plausible_fraction: BTreeMap<String, f64>,
+    /// Per scene, its implausible worlds by the clause their worst body breaks
+    /// (docs/reverse.md#plausibility): `faster_than_fall`, `too_high`, `penetration`.
+    pub implausible_by_clause: BTreeMap<String, BTreeMap<String, usize>>,
     /// Per scene, how many worlds were sampled.
     pub plausible_worlds: BTreeMap<String, usize>,
     pub ratio: f64,
@@ -120,6 +123,22 @@ impl From<ReverseBench> for ReverseLine {
             lorem_steps: lorem.map(|l| l.steps),
             plausible_excess_p50: by_scene(|s| s.excess_p50),
             plausible_fraction: by_scene(|s| s.plausible_fraction),
+            implausible_by_clause: b
+                .scenes
+                .iter()
+                .map(|(n, s)| {
+                    let [fall, high, sank] = s.implausible_by_clause;
+                    let counts = [
+                        ("faster_than_fall", fall),
+                        ("too_high", high),
+                        ("penetration", sank),
+                    ];
+                    (
+                        n.clone(),
+                        counts.into_iter().map(|(k, v)| (k.to_owned(), v)).collect(),
+                    )
+                })
+                .collect(),
             plausible_worlds: b
                 .scenes
                 .iter()
