@@ -181,6 +181,35 @@ async fn store_ready(session: &zenoh::Session, keys: &Keys) {
     .unwrap_or_else(|e| panic!("{e:#}"));
 }
 
+/// Submits a tumble job of `worlds` worlds named `name` and waits for its final state.
+async fn tumble_job(
+    session: &zenoh::Session,
+    keys: &Keys,
+    worlds: u32,
+    name: &str,
+) -> mwb_proto::v1::JobState {
+    let (file, text) = mwb::client::load_scene("tumble").unwrap_or_else(|e| panic!("{e}"));
+    let job = mwb::client::make_job(&file, &text, worlds, 0, Some(name.into()))
+        .unwrap_or_else(|e| panic!("{e}"));
+    tokio::time::timeout(STEP, mwb::client::submit_job(session, keys, &job))
+        .await
+        .unwrap_or_else(|_| panic!("submit timed out"))
+        .unwrap_or_else(|e| panic!("submit: {e:#}"));
+    tokio::time::timeout(
+        Duration::from_secs(240),
+        mwb::client::wait_job(
+            session,
+            keys,
+            &job.id,
+            Some(Duration::from_secs(200)),
+            |_| {},
+        ),
+    )
+    .await
+    .unwrap_or_else(|_| panic!("job wait timed out"))
+    .unwrap_or_else(|e| panic!("wait: {e:#}"))
+}
+
 async fn put(session: &zenoh::Session, key: &str, bytes: Vec<u8>) {
     tokio::time::timeout(
         STEP,
@@ -228,26 +257,7 @@ async fn authorised_client_job_completes_over_tls_and_acl() {
     cluster.spawn_sampler();
     let keys = cluster.keys();
     let session = cluster.open("client.json5", "client-0").await;
-    let (file, text) = mwb::client::load_scene("tumble").unwrap_or_else(|e| panic!("{e}"));
-    let job = mwb::client::make_job(&file, &text, 3, 0, Some("secure".into()))
-        .unwrap_or_else(|e| panic!("{e}"));
-    tokio::time::timeout(STEP, mwb::client::submit_job(&session, &keys, &job))
-        .await
-        .unwrap_or_else(|_| panic!("submit timed out"))
-        .unwrap_or_else(|e| panic!("submit: {e:#}"));
-    let state = tokio::time::timeout(
-        Duration::from_secs(240),
-        mwb::client::wait_job(
-            &session,
-            &keys,
-            &job.id,
-            Some(Duration::from_secs(200)),
-            |_| {},
-        ),
-    )
-    .await
-    .unwrap_or_else(|_| panic!("job wait timed out"))
-    .unwrap_or_else(|e| panic!("wait: {e:#}"));
+    let state = tumble_job(&session, &keys, 3, "secure").await;
     assert!(state.closed && !state.cancelled, "{state:?}");
     assert_eq!(state.worlds_done, 3);
 
@@ -553,26 +563,7 @@ async fn recorder_certificate_records_and_replays_a_client_cannot() {
     .unwrap_or_else(|_| panic!("spy start timed out"))
     .unwrap_or_else(|e| panic!("spy: {e}"));
 
-    let (file, text) = mwb::client::load_scene("tumble").unwrap_or_else(|e| panic!("{e}"));
-    let job = mwb::client::make_job(&file, &text, 2, 0, Some("recorded".into()))
-        .unwrap_or_else(|e| panic!("{e}"));
-    tokio::time::timeout(STEP, mwb::client::submit_job(&client, &keys, &job))
-        .await
-        .unwrap_or_else(|_| panic!("submit timed out"))
-        .unwrap_or_else(|e| panic!("submit: {e:#}"));
-    let state = tokio::time::timeout(
-        Duration::from_secs(240),
-        mwb::client::wait_job(
-            &client,
-            &keys,
-            &job.id,
-            Some(Duration::from_secs(200)),
-            |_| {},
-        ),
-    )
-    .await
-    .unwrap_or_else(|_| panic!("job wait timed out"))
-    .unwrap_or_else(|e| panic!("wait: {e:#}"));
+    let state = tumble_job(&client, &keys, 2, "recorded").await;
     assert!(state.closed && state.worlds_done == 2, "{state:?}");
     // The store closed the job after both summaries: they have reached every subscriber.
     tokio::time::sleep(Duration::from_millis(500)).await;
