@@ -66,6 +66,29 @@ fn the_check_rejects_what_mwb_rejects() {
     }
 }
 
+/// The files deploy/Dockerfile copies into /etc/mwb/ (from `COPY deploy/… /etc/mwb/` lines).
+fn dockerfile_configs() -> Vec<String> {
+    let text = read(&deploy().join("Dockerfile"));
+    let configs: Vec<String> = text
+        .lines()
+        .filter_map(|l| l.strip_prefix("COPY "))
+        .filter(|l| l.trim_end().ends_with(" /etc/mwb/"))
+        .flat_map(|l| {
+            l.split_whitespace()
+                .filter_map(|w| w.strip_prefix("deploy/"))
+        })
+        .map(str::to_owned)
+        .collect();
+    assert!(!configs.is_empty(), "deploy/Dockerfile copies no config");
+    for c in &configs {
+        assert!(
+            deploy().join(c).is_file(),
+            "deploy/Dockerfile copies missing deploy/{c}"
+        );
+    }
+    configs
+}
+
 #[test]
 fn compose_runs_only_what_mwb_has() {
     let path = deploy().join("compose.yaml");
@@ -74,6 +97,7 @@ fn compose_runs_only_what_mwb_has() {
         .as_mapping()
         .unwrap_or_else(|| panic!("{}: no services", path.display()));
     assert!(services.len() >= 3, "store, sampler, reverse expected");
+    let image_configs = dockerfile_configs();
     for (name, svc) in services {
         let name = name.as_str().unwrap_or("?");
         let place = format!("{} services.{name}", path.display());
@@ -84,6 +108,13 @@ fn compose_runs_only_what_mwb_has() {
             Some("manyworlds/mwb:latest"),
             "{place}: image"
         );
+        // Every config a command names is in the image.
+        for config in command.iter().filter_map(|a| a.strip_prefix("/etc/mwb/")) {
+            assert!(
+                image_configs.iter().any(|c| c == config),
+                "{place}: /etc/mwb/{config} is not copied by deploy/Dockerfile ({image_configs:?})"
+            );
+        }
         // Each service mounts a bundle of `mwb certs` where the shipped configs look.
         let volumes = strings(&svc["volumes"], &place);
         assert!(

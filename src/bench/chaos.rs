@@ -1300,6 +1300,7 @@ impl Sampler {
 /// The store process's resident set under a flood.
 #[derive(Debug, Clone, Default, serde::Serialize)]
 pub struct FloodReport {
+    #[serde(rename = "rss_cap_bytes")]
     pub cap_bytes: u64,
     /// The store's RSS once started, before any world.
     pub rss_baseline_bytes: u64,
@@ -1309,8 +1310,11 @@ pub struct FloodReport {
     /// max(RSS − baseline − cap, 0): what the worlds made the process grow beyond its cap.
     pub rss_growth_over_cap_bytes: u64,
     /// The store's own accounting at the end (`NodeStats.memory_bytes`).
+    #[serde(rename = "flood_memory_bytes")]
     pub memory_bytes: u64,
+    #[serde(rename = "flood_worlds")]
     pub worlds_stored: u64,
+    #[serde(rename = "flood_refused_memory")]
     pub refused_memory: u64,
     pub flood_s: f64,
 }
@@ -1523,37 +1527,16 @@ pub struct ChaosBench {
     pub seed: u64,
     pub samplers: usize,
     pub shards: u32,
-    pub kills: u32,
-    pub kills_mid_world: u32,
-    pub link_cuts: u32,
-    pub cuts_mid_world: u32,
-    pub partitions_seen: u32,
     pub cut_s: f64,
-    pub shard_restarts: u32,
     pub restart_shard: u32,
-    pub faults_skipped: u32,
-    pub unexpected_exits: u32,
-    pub worlds_expected: u32,
-    pub worlds_acknowledged: u32,
-    pub worlds_stored: u32,
-    pub lost: u32,
-    pub duplicates: u32,
-    pub crc_failures: u32,
-    pub incomplete: u32,
-    pub unacknowledged: u32,
-    pub partial_discarded: u64,
-    pub worlds_rejected: u32,
-    pub completion_s: f64,
+    /// The chaos run.
+    #[serde(flatten)]
+    pub chaos: RunReport,
     pub clean_completion_s: f64,
     pub clean_lost: u32,
-    pub rss_cap_bytes: u64,
-    pub rss_baseline_bytes: u64,
-    pub rss_max_bytes: u64,
-    pub rss_over_cap_bytes: u64,
-    pub rss_growth_over_cap_bytes: u64,
-    pub flood_memory_bytes: u64,
-    pub flood_worlds: u64,
-    pub flood_s: f64,
+    /// The flood (its fields prefixed `rss_` or `flood_` on the line).
+    #[serde(flatten)]
+    pub flood: FloodReport,
 }
 
 impl Summary for ChaosBench {
@@ -1618,37 +1601,12 @@ pub async fn run(args: ChaosArgs) -> Result<()> {
         seed: args.seed,
         samplers: SAMPLERS,
         shards: SHARDS,
-        kills: chaos.kills,
-        kills_mid_world: chaos.kills_mid_world,
-        link_cuts: chaos.link_cuts,
-        cuts_mid_world: chaos.cuts_mid_world,
-        partitions_seen: chaos.partitions_seen,
         cut_s: args.cut_s,
-        shard_restarts: chaos.shard_restarts,
         restart_shard: args.restart_shard,
-        faults_skipped: chaos.faults_skipped,
-        unexpected_exits: chaos.unexpected_exits,
-        worlds_expected: chaos.worlds_expected,
-        worlds_acknowledged: chaos.worlds_acknowledged,
-        worlds_stored: chaos.worlds_stored,
-        lost: chaos.lost,
-        duplicates: chaos.duplicates,
-        crc_failures: chaos.crc_failures,
-        incomplete: chaos.incomplete,
-        unacknowledged: chaos.unacknowledged,
-        partial_discarded: chaos.partial_discarded,
-        worlds_rejected: chaos.worlds_rejected,
-        completion_s: chaos.completion_s,
         clean_completion_s: clean.completion_s,
         clean_lost: clean.lost,
-        rss_cap_bytes: f.cap_bytes,
-        rss_baseline_bytes: f.rss_baseline_bytes,
-        rss_max_bytes: f.rss_max_bytes,
-        rss_over_cap_bytes: f.rss_over_cap_bytes,
-        rss_growth_over_cap_bytes: f.rss_growth_over_cap_bytes,
-        flood_memory_bytes: f.memory_bytes,
-        flood_worlds: f.worlds_stored,
-        flood_s: f.flood_s,
+        chaos,
+        flood: f,
     };
     crate::output::print(&b, args.json)
 }
@@ -1783,6 +1741,56 @@ mod tests {
         );
         let t = tally("j", 8, &worlds);
         assert_eq!((t.lost, t.unacknowledged), (0, 2));
+    }
+
+    #[test]
+    fn the_line_names_the_issue_fields_once_each() {
+        let b = ChaosBench {
+            scene: "s".into(),
+            flood_scene: "f".into(),
+            seed: 1,
+            samplers: SAMPLERS,
+            shards: SHARDS,
+            cut_s: 15.0,
+            restart_shard: 0,
+            chaos: RunReport::default(),
+            clean_completion_s: 1.0,
+            clean_lost: 0,
+            flood: FloodReport::default(),
+        };
+        let text = serde_json::to_string(&b).unwrap_or_default();
+        // Flattened structs put their fields beside the line's own: a name used twice would
+        // be written twice, and a reader would keep one of them silently.
+        let keys: Vec<String> = text
+            .trim_matches(|c| c == '{' || c == '}')
+            .split(',')
+            .filter_map(|kv| {
+                kv.split_once(':')
+                    .map(|(k, _)| k.trim_matches('"').to_owned())
+            })
+            .filter(|k| !k.is_empty() && !k.starts_with(|c: char| c.is_ascii_digit()))
+            .collect();
+        let mut unique = keys.clone();
+        unique.sort();
+        unique.dedup();
+        assert_eq!(unique.len(), keys.len(), "{keys:?}");
+        for name in [
+            "kills",
+            "link_cuts",
+            "shard_restarts",
+            "worlds_expected",
+            "worlds_stored",
+            "lost",
+            "duplicates",
+            "crc_failures",
+            "completion_s",
+            "clean_completion_s",
+            "rss_over_cap_bytes",
+            "rss_cap_bytes",
+            "flood_worlds",
+        ] {
+            assert!(keys.iter().any(|k| k == name), "{name} missing from {text}");
+        }
     }
 
     #[test]
