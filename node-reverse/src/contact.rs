@@ -64,6 +64,22 @@ pub struct Contact {
 }
 
 impl Contact {
+    /// The faster of the two bodies' velocities at the contact point, `|v + ω × (p − x)|`
+    /// (m/s; a static's is 0): how far into the contact that point can have moved in one step,
+    /// per second, in a stepper without continuous collision detection.
+    pub fn point_speed(&self, bodies: &[crate::Body]) -> f64 {
+        let at = |b: usize| {
+            bodies.get(b).map_or(0.0, |b| {
+                (b.linvel + b.angvel.cross(&(self.point - b.position))).norm()
+            })
+        };
+        let partner = match self.partner {
+            Partner::Body(p) => at(p),
+            Partner::Static(_) => 0.0,
+        };
+        at(self.body).max(partner)
+    }
+
     /// Re-aligns the tangents so that `tangent_u` is along the tangential part of `direction`;
     /// when that part is (numerically) zero, keeps a deterministic basis. Returns whether the
     /// direction was used.

@@ -19,10 +19,11 @@
 //!    `G` ([`MAX_ENERGY_GROWTH_M`]): however it started, it fell no further than that.
 //!
 //! 3. it never sinks into another body or a static by more than `P` ([`MAX_PENETRATION_M`])
-//!    plus the distance it (or what it touches) moves in one step, `Δt |v|` (the stepper has
-//!    no continuous collision detection, so a fast body enters a contact by up to one step's
-//!    travel; it has no position correction either, and a body pushed slowly into the floor
-//!    would otherwise look "plausible" by its low height).
+//!    plus the distance the contact point moves in one step, `Δt |v + ω × r|` of the faster of
+//!    the two bodies there ([`crate::Contact::point_speed`]: the stepper has no continuous
+//!    collision detection, so a fast body — or a spinning box's corner — enters a contact by up
+//!    to one step's travel; it has no position correction either, and a body pushed slowly
+//!    into the floor would otherwise look "plausible" by its low height).
 //!
 //! A world is plausible when every body is. A body's *excess* is the largest of `max e − H − a`,
 //! `max e − e_last − G` and `max depth − P` (metres; ≤ 0: plausible); the world's is its worst
@@ -236,15 +237,14 @@ impl PlausibilityMeter {
     }
 
     /// Takes the contacts of one frame of `world` into account: their penetration depths,
-    /// less one step's travel of the faster of the two bodies.
+    /// less one step's travel of the contact point ([`crate::Contact::point_speed`] × Δt).
     pub fn observe_contacts(&mut self, contacts: &crate::ContactSet, world: &World) {
-        let speed = |b: usize| world.bodies.get(b).map_or(0.0, |b| b.linvel.norm());
         for c in &contacts.contacts {
             let partner = match c.partner {
                 crate::Partner::Body(p) => Some(p),
                 crate::Partner::Static(_) => None,
             };
-            let travel = self.dt * speed(c.body).max(partner.map_or(0.0, speed));
+            let travel = self.dt * c.point_speed(&world.bodies);
             let depth = -c.dist - travel;
             let depth = if depth.is_nan() { f64::INFINITY } else { depth };
             for b in [Some(c.body), partner].into_iter().flatten() {

@@ -58,7 +58,8 @@ pub struct Heuristics {
     /// fraction of [`crate::plausible::PLAUSIBILITY_ALLOWANCE_M`]. A body's *debt* is its
     /// energy height minus the highest point it can be shown to fall from (the highest point it
     /// reached so far in the run or, rising backward, the apex it is flying to) minus the
-    /// budget.
+    /// budget — or, if more, its energy height minus the last frame's minus
+    /// [`ENERGY_CAP_FRACTION`] of [`crate::plausible::MAX_ENERGY_GROWTH_M`] (clause 2).
     ///
     /// * Before a step, a body in debt gets no friction and no rolling resistance (reversed,
     ///   they are what speeds a body up along the ground and spins it) and restitution 1 at its
@@ -73,7 +74,22 @@ pub struct Heuristics {
     ///
     /// `None`: off. Default [`DEFAULT_ENERGY_BUDGET`].
     pub energy_budget: Option<f64>,
+    /// Depenetration (ours): after each backward step, bodies that overlap by more than this
+    /// many metres plus one step's travel of the contact point are pushed apart to that,
+    /// positions only ([`World::depenetrate`]). The stepper corrects no positions, and
+    /// neighbours a sampled slide sends into each other otherwise keep sinking in (clause 3 of
+    /// [`crate::plausible`]): 2 cm deep between the lorem scene's balls. The travel is left
+    /// alone because a bounce ends one step's travel inside its contact: pushing that out too
+    /// lifted every bounce by `|v| Δt` and pumped energy into small rattles (word worlds gained
+    /// 8 cm instead of 1). `None`: off. Default [`DEFAULT_DEPENETRATION_SLOP`].
+    pub depenetration: Option<f64>,
 }
+
+/// Default [`Heuristics::depenetration`] (m): well inside the plausibility test's
+/// [`crate::plausible::MAX_PENETRATION_M`].
+pub const DEFAULT_DEPENETRATION_SLOP: f64 = 0.001;
+/// Gauss–Seidel sweeps of [`Heuristics::depenetration`].
+const DEPENETRATION_SWEEPS: usize = 4;
 
 /// Default [`Heuristics::energy_budget`]: a quarter of the allowance.
 pub const DEFAULT_ENERGY_BUDGET: f64 = 0.1;
@@ -93,6 +109,7 @@ impl Default for Heuristics {
             rattle_friction: Some(DEFAULT_RATTLE_FRICTION),
             stacking_glue: Some(DEFAULT_STACKING_GLUE),
             energy_budget: Some(DEFAULT_ENERGY_BUDGET),
+            depenetration: Some(DEFAULT_DEPENETRATION_SLOP),
         }
     }
 }
@@ -106,6 +123,7 @@ impl Heuristics {
             rattle_friction: None,
             stacking_glue: None,
             energy_budget: None,
+            depenetration: None,
         }
     }
 }
@@ -276,6 +294,8 @@ pub struct BackwardRunReport {
     /// Steps taken again because they would have put a body over its energy budget
     /// ([`Heuristics::energy_budget`]).
     pub budget_resteps: usize,
+    /// Largest position correction of [`Heuristics::depenetration`] in one step (m).
+    pub max_depenetration: f64,
     /// Body-steps the energy budget turned into free flight: a body that gained more than
     /// 5 cm of debt in one step even with conservative contacts (an unsolved island).
     pub budget_free_flights: usize,
@@ -353,13 +373,17 @@ fn body_contacts(
 /// Per body of `world`, how far (m) its energy height exceeds what a fall can explain plus its
 /// budget, `fraction` of the allowance ([`Heuristics::energy_budget`]): energy height minus the
 /// highest point reached so far (`meter`) or, rising backward, the apex it is flying to, minus
-/// the budget. > 0: over budget. NaN (a body gone non-finite) reads as +∞.
+/// the budget — or, if more, how far it exceeds the last frame's energy height plus
+/// [`ENERGY_CAP_FRACTION`] of `G` (clause 2 of [`crate::plausible`]: a backward bounce off the
+/// floor multiplies a falling body's speed by 1/e, and a few of them lift it from a table-top
+/// fall to a fall from the roof). > 0: over budget. NaN (a body gone non-finite) reads as +∞.
 fn debts(world: &World, meter: &PlausibilityMeter, dt: f64, fraction: f64) -> Vec<f64> {
     let g = world.gravity.norm();
     let up = (-world.gravity)
         .try_normalize(1e-12)
         .unwrap_or(Vector3::z());
     let budget = fraction * crate::plausible::PLAUSIBILITY_ALLOWANCE_M;
+    let cap = ENERGY_CAP_FRACTION * crate::plausible::MAX_ENERGY_GROWTH_M;
     world
         .bodies
         .iter()
@@ -372,7 +396,9 @@ fn debts(world: &World, meter: &PlausibilityMeter, dt: f64, fraction: f64) -> Ve
             // Rising backward (falling when played forward): its apex comes later in the run.
             let vz = up.dot(&body.linvel);
             let apex = if vz < 0.0 { h + vz * vz / (2.0 * g) } else { h };
-            let d = e - peaks.source_height.max(apex) - budget;
+            let fall = e - peaks.source_height.max(apex) - budget;
+            let growth = e - peaks.last_energy_height - cap;
+            let d = fall.max(growth);
             if d.is_nan() { f64::INFINITY } else { d }
         })
         .collect()
@@ -615,6 +641,10 @@ fn run_backward_metered(
             for b in world.bodies.iter_mut().filter(|b| b.enabled) {
                 b.angvel *= scale;
             }
+        }
+        if let Some(slop) = h.depenetration {
+            let moved = world.depenetrate(&mut step.contacts, slop, dt, DEPENETRATION_SWEEPS);
+            report.max_depenetration = report.max_depenetration.max(moved);
         }
         if let Some(at_t) = at_t {
             let mut replay = world.clone();

@@ -234,6 +234,93 @@ impl World {
         )
     }
 
+    /// Pushes penetrating bodies apart, positions only: every contact of `contacts` deeper
+    /// than `slop` plus `dt` × its point's speed ([`crate::Contact::point_speed`], one step's
+    /// travel without continuous collision detection) is moved out to that along its normal, shared between its two bodies in
+    /// proportion to their inverse masses (statics and disabled bodies do not move), by
+    /// `iterations` Gauss–Seidel sweeps (a body in several contacts is settled against all of
+    /// them). Velocities are untouched, so no kinetic energy is added; the bodies rise by at most
+    /// the depth removed. Each contact's `dist` is updated to the bodies' new positions (exact
+    /// for a translation, which is all this does). Returns the largest displacement (m).
+    ///
+    /// The stepper has no position correction of its own (every condition is on velocities,
+    /// §3.4), so a backward step whose contact appeared only at the earlier poses keeps the
+    /// overlap; forward engines correct it the same way (split impulses, post-stabilisation).
+    pub fn depenetrate(
+        &mut self,
+        contacts: &mut ContactSet,
+        slop: f64,
+        dt: f64,
+        iterations: usize,
+    ) -> f64 {
+        if !(slop.is_finite() && slop >= 0.0) {
+            return 0.0;
+        }
+        let dt = if dt.is_finite() { dt.max(0.0) } else { 0.0 };
+        let allowed: Vec<f64> = contacts
+            .contacts
+            .iter()
+            .map(|c| slop + dt * c.point_speed(&self.bodies))
+            .collect();
+        let weight = |b: &Body| {
+            if b.enabled && b.inv_mass.is_finite() {
+                b.inv_mass.max(0.0)
+            } else {
+                0.0
+            }
+        };
+        let mut moved = vec![Vector3::zeros(); self.bodies.len()];
+        let shift = |moved: &[Vector3<f64>], c: &crate::Contact| {
+            let own = moved.get(c.body).copied().unwrap_or_default();
+            let other = match c.partner {
+                crate::Partner::Body(p) => moved.get(p).copied().unwrap_or_default(),
+                crate::Partner::Static(_) => Vector3::zeros(),
+            };
+            c.normal.dot(&(own - other))
+        };
+        for _ in 0..iterations {
+            let mut any = false;
+            for (c, allowed) in contacts.contacts.iter().zip(&allowed) {
+                let depth = -(c.dist + shift(&moved, c)) - allowed;
+                if !(depth > 0.0 && depth.is_finite()) {
+                    continue;
+                }
+                let w1 = self.bodies.get(c.body).map_or(0.0, weight);
+                let w2 = match c.partner {
+                    crate::Partner::Body(p) => self.bodies.get(p).map_or(0.0, weight),
+                    crate::Partner::Static(_) => 0.0,
+                };
+                let total = w1 + w2;
+                if total <= 0.0 {
+                    continue;
+                }
+                if let Some(m) = moved.get_mut(c.body) {
+                    *m += c.normal * (depth * w1 / total);
+                }
+                if let crate::Partner::Body(p) = c.partner
+                    && let Some(m) = moved.get_mut(p)
+                {
+                    *m -= c.normal * (depth * w2 / total);
+                }
+                any = true;
+            }
+            if !any {
+                break;
+            }
+        }
+        for c in &mut contacts.contacts {
+            c.dist += shift(&moved, c);
+        }
+        let mut largest = 0.0f64;
+        for (b, m) in self.bodies.iter_mut().zip(&moved) {
+            if m.iter().all(|x| x.is_finite()) {
+                b.position += m;
+                largest = largest.max(m.norm());
+            }
+        }
+        largest
+    }
+
     /// The largest anchor separation (m) of the world's joints at the current poses.
     pub fn joint_separation(&self) -> f64 {
         crate::joint::max_separation(&self.joints, &self.bodies)

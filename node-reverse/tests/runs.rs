@@ -418,3 +418,125 @@ fn stack_holds_while_the_top_brick_slides_away() {
     }
     assert!(r.held_contacts > 0);
 }
+
+// Contact distances come from parry in f32: positions agree to ~1e-7 m.
+
+/// Two balls of radius 0.1 overlapping by `depth` along x, above a floor at z = 0 they do not
+/// touch; `heavy` makes the second one 1000 times denser.
+fn overlapping_balls(depth: f64, heavy: bool) -> World {
+    let mut w = World::new();
+    w.add_static(StaticBody::plane(Vector3::z(), 0.0).expect("unit normal"));
+    let at = |x: f64| Vector3::new(x, 0.0, 1.0);
+    w.add_body(
+        Body::ball(0.1, 1000.0)
+            .expect("positive radius")
+            .at(at(0.0), UnitQuaternion::identity())
+            .moving(Vector3::new(0.3, 0.0, 0.0), Vector3::zeros()),
+    );
+    w.add_body(
+        Body::ball(0.1, if heavy { 1e6 } else { 1000.0 })
+            .expect("positive radius")
+            .at(at(0.2 - depth), UnitQuaternion::identity()),
+    );
+    w
+}
+
+#[test]
+fn depenetration_pushes_bodies_apart_by_inverse_mass_without_touching_velocities() {
+    let slop = 0.001;
+    for heavy in [false, true] {
+        let mut w = overlapping_balls(0.02, heavy);
+        let (mut set, _) = w.detect_contacts();
+        assert_eq!(set.contacts.len(), 1, "one ball-ball contact");
+        assert!((set.contacts[0].dist + 0.02).abs() < 1e-6);
+        let before: Vec<_> = w.bodies.iter().map(|b| (b.position, b.linvel)).collect();
+        let moved = w.depenetrate(&mut set, slop, 0.0, 4);
+        let gap = (w.bodies[1].position - w.bodies[0].position).norm() - 0.2;
+        assert!((gap + slop).abs() < 1e-6, "gap {gap}");
+        assert!((set.contacts[0].dist + slop).abs() < 1e-6, "dist updated");
+        let shift: Vec<f64> = w
+            .bodies
+            .iter()
+            .zip(&before)
+            .map(|(b, (p, _))| (b.position - p).norm())
+            .collect();
+        if heavy {
+            // 1000 times the inverse mass: the light ball takes 1000/1001 of the correction.
+            assert!(
+                (shift[0] - 0.019 * 1000.0 / 1001.0).abs() < 1e-6,
+                "{shift:?}"
+            );
+        } else {
+            assert!((shift[0] - shift[1]).abs() < 1e-12, "{shift:?}");
+        }
+        assert!((moved - shift[0].max(shift[1])).abs() < 1e-12);
+        for (b, (_, v)) in w.bodies.iter().zip(&before) {
+            assert_eq!(b.linvel, *v, "velocities untouched");
+        }
+    }
+    // One step's travel of the contact point is left: the first ball moves at 0.3 m/s, so at
+    // dt = 0.05 s an overlap of 1.5 cm + slop stays as it is, and a deeper one comes out to it.
+    for (depth, stays) in [(0.016 - 1e-4, true), (0.02, false)] {
+        let mut w = overlapping_balls(depth, false);
+        let (mut set, _) = w.detect_contacts();
+        let moved = w.depenetrate(&mut set, slop, 0.05, 4);
+        let gap = (w.bodies[1].position - w.bodies[0].position).norm() - 0.2;
+        if stays {
+            assert!(moved < 1e-6, "moved {moved}");
+        } else {
+            assert!((gap + slop + 0.3 * 0.05).abs() < 1e-6, "gap {gap}");
+        }
+    }
+}
+
+#[test]
+fn depenetration_lifts_a_sunken_body_out_of_a_static_and_leaves_shallow_contacts() {
+    let mut w = World::new();
+    w.add_static(StaticBody::plane(Vector3::z(), 0.0).expect("unit normal"));
+    w.add_body(
+        Body::ball(0.1, 1000.0)
+            .expect("positive radius")
+            .at(Vector3::new(0.0, 0.0, 0.07), UnitQuaternion::identity()),
+    );
+    let (mut set, _) = w.detect_contacts();
+    w.depenetrate(&mut set, 0.001, 0.0, 4);
+    assert!((w.bodies[0].position.z - 0.099).abs() < 1e-6);
+    // Within the slop: nothing moves (but for parry's f32 rounding).
+    let (mut set, _) = w.detect_contacts();
+    assert!(w.depenetrate(&mut set, 0.001, 0.0, 4) < 1e-6);
+    assert!((w.bodies[0].position.z - 0.099).abs() < 1e-6);
+}
+
+#[test]
+fn default_heuristics_keep_the_lorem_balls_out_of_each_other() {
+    // Two neighbouring bins of the lorem scene, 18 balls 2 mm apart, 1 s back: slides and
+    // lift-offs send them into each other; without depenetration they sink 2.3 cm in.
+    let src = builtin::LOREM;
+    let mut w = scene(src, "lorem.toml");
+    let keep: Vec<usize> = (0..18).collect();
+    w.bodies = w
+        .bodies
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| keep.contains(i))
+        .map(|(_, b)| b.clone())
+        .collect();
+    let settings = ReverseSettings {
+        duration: 1.0,
+        chain: Some(quick_chain(&w)),
+        measure_departure: false,
+        ..Default::default()
+    };
+    let run = run_backward(&mut w.clone(), 3, &settings);
+    let deepest = run
+        .report
+        .plausibility_bodies
+        .iter()
+        .map(|p| p.max_penetration)
+        .fold(0.0, f64::max);
+    assert!(
+        deepest <= mwb_reverse::MAX_PENETRATION_M,
+        "deepest {deepest}"
+    );
+    assert!(run.report.max_depenetration > 0.0, "{:?}", run.report);
+}
