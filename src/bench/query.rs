@@ -110,6 +110,10 @@ pub struct QueryBench {
     /// rebuild, no live constraint): mean over the worlds, and the slowest (a rebuild).
     pub ingest_mean_us: f64,
     pub ingest_max_ms: f64,
+    /// Worlds inserted per second of insert time (one thread, nothing else in the shard).
+    pub ingest_worlds_per_s: f64,
+    /// Inserts that took longer than 10 ms (the longest allowed pause).
+    pub ingest_pauses_over_10ms: usize,
     /// The shard's heap bytes per world (`Shard::heap_bytes`, by capacity): paths, hierarchies,
     /// metrics, world records, bitsets — everything the store holds for browsing.
     pub memory_bytes_per_world: f64,
@@ -448,6 +452,13 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
     }
     let ingest_mean_us = ingest.iter().sum::<f64>() * 1e3 / ingest.len().max(1) as f64;
     let ingest_max_ms = ingest.iter().copied().fold(0.0, f64::max);
+    let ingest_s = ingest.iter().sum::<f64>() / 1e3;
+    let ingest_worlds_per_s = if ingest_s > 0.0 {
+        ingest.len() as f64 / ingest_s
+    } else {
+        f64::NAN
+    };
+    let ingest_pauses_over_10ms = ingest.iter().filter(|ms| **ms > 10.0).count();
     let plain: Vec<PlainWorld> = synthetic
         .iter()
         .map(|w| w.objects.iter().map(|o| (o.polyline(), o.radius)).collect())
@@ -556,6 +567,8 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
         rank_p50_ms: percentile(&mut rank, 0.5),
         ingest_mean_us,
         ingest_max_ms,
+        ingest_worlds_per_s,
+        ingest_pauses_over_10ms,
         memory_bytes_per_world: memory,
         paths_bytes_per_world: per_world(parts.paths),
         hierarchy_bytes_per_world: per_world(parts.hierarchies),
@@ -607,7 +620,11 @@ mod tests {
             b.motion_bytes_per_world + b.memory_bytes_per_world
         );
         assert!(
-            b.vertices_per_object >= 2.0 && b.ingest_max_ms >= 0.0,
+            b.vertices_per_object >= 2.0 && b.ingest_max_ms >= 0.0 && b.ingest_worlds_per_s > 0.0,
+            "{b:?}"
+        );
+        assert!(
+            (b.ingest_worlds_per_s * b.ingest_mean_us / 1e6 - 1.0).abs() < 1e-9,
             "{b:?}"
         );
         assert!(b.obb_speedup > 0.0 && b.obb_speedup.is_finite(), "{b:?}");
