@@ -236,16 +236,17 @@ impl World {
 
     /// Pushes penetrating bodies apart, positions only: every contact of `contacts` deeper
     /// than `slop` plus `dt` × its point's speed ([`crate::Contact::point_speed`], one step's
-    /// travel without continuous collision detection) is moved out to that along its normal, shared between its two bodies in
-    /// proportion to their inverse masses (statics and disabled bodies do not move), by
-    /// `iterations` Gauss–Seidel sweeps (a body in several contacts is settled against all of
-    /// them). Velocities are untouched, so no kinetic energy is added; the bodies rise by at most
-    /// the depth removed. Each contact's `dist` is updated to the bodies' new positions (exact
-    /// for a translation, which is all this does). Returns the largest displacement (m).
+    /// travel without continuous collision detection) is moved out to that depth along its
+    /// normal, shared between its two bodies in proportion to their inverse masses (statics and
+    /// disabled bodies do not move), by `iterations` Gauss–Seidel sweeps (a body in several
+    /// contacts is settled against all of them). Velocities are untouched, so no kinetic energy
+    /// is added; the bodies rise by at most the depth removed. Each contact's `dist` is updated
+    /// to the bodies' new positions (exact for a translation, which is all this does; contact
+    /// points are left). Returns the largest displacement (m).
     ///
-    /// The stepper has no position correction of its own (every condition is on velocities,
-    /// §3.4), so a backward step whose contact appeared only at the earlier poses keeps the
-    /// overlap; forward engines correct it the same way (split impulses, post-stabilisation).
+    /// The stepper has no position correction of its own (every condition is on velocities),
+    /// so a backward step whose contact appeared only at the earlier poses keeps the overlap;
+    /// forward engines correct it the same way (split impulses, post-stabilisation).
     pub fn depenetrate(
         &mut self,
         contacts: &mut ContactSet,
