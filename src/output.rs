@@ -46,14 +46,19 @@ pub fn print<T: Summary>(v: &T, json: bool) -> Result<()> {
     if json { json_line(v) } else { out(&v.table()) }
 }
 
+/// A summary's JSON fields in the order its line has them, a name written twice listed twice.
+pub fn fields<T: Serialize>(v: &T) -> Vec<(String, serde_json::Value)> {
+    // Through the JSON text, so that the order is the struct's (serde_json's own map sorts).
+    serde_json::to_string(v)
+        .and_then(|text| serde_json::from_str::<Fields>(&text))
+        .map(|f| f.0)
+        .unwrap_or_default()
+}
+
 /// A flat summary as a table: one field per line, named as in its JSON line and in the order
 /// the JSON line has them.
 pub fn fields_table<T: Serialize>(v: &T) -> String {
-    // Through the JSON text, so that the order is the struct's (serde_json's own map sorts).
-    let fields = serde_json::to_string(v)
-        .and_then(|text| serde_json::from_str::<Fields>(&text))
-        .map(|f| f.0)
-        .unwrap_or_default();
+    let fields = fields(v);
     let width = fields.iter().map(|(k, _)| k.len()).max().unwrap_or(0);
     let mut out = String::new();
     for (name, value) in &fields {

@@ -450,9 +450,9 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
         shard.insert(copy);
         ingest.push(t.elapsed().as_secs_f64() * 1e3);
     }
-    let ingest_mean_us = ingest.iter().sum::<f64>() * 1e3 / ingest.len().max(1) as f64;
-    let ingest_max_ms = ingest.iter().copied().fold(0.0, f64::max);
     let ingest_s = ingest.iter().sum::<f64>() / 1e3;
+    let ingest_mean_us = ingest_s * 1e6 / ingest.len().max(1) as f64;
+    let ingest_max_ms = ingest.iter().copied().fold(0.0, f64::max);
     let ingest_worlds_per_s = if ingest_s > 0.0 {
         ingest.len() as f64 / ingest_s
     } else {
