@@ -3,7 +3,7 @@
 //! stored and [`ShardRequest`]s from node-query, and sends back the [`ShardReply`].
 
 use crate::index::{IndexedObject, IndexedWorld};
-use crate::spatial::{Aabb, Part, PathBvh, region_box};
+use crate::spatial::{Aabb, Part, PathBvh, Piece, region_box};
 use mwb_core::browse::api::{
     ConstraintStatus, Reply, Request, SceneBodies, SessionStatus, ShardReply, ShardRequest,
     WorldSummary, merge_bodies,
@@ -13,9 +13,8 @@ use mwb_core::browse::{
     RegionCache, Scope, WorldSet, top_k_counted,
 };
 use mwb_proto::v1::PathBatch;
-use std::cell::RefCell;
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 
 /// Which worlds a store keeps when several split them (DESIGN.md: world → shard by hash).
 ///
@@ -145,6 +144,8 @@ pub struct Shard {
     all: WorldSet,
     /// Per object index, the boxes of that object's paths in every world.
     bvh: Vec<PathBvh>,
+    /// Pieces a hierarchy block is built from ([`crate::spatial::BLOCK`]; smaller in tests).
+    block: usize,
     sessions: HashMap<String, Session>,
     threads: usize,
     /// Σ over indexed worlds of their heap bytes (kept as they come and go, so that
@@ -168,6 +169,9 @@ pub struct ShardBytes {
     pub bitsets: usize,
 }
 
+/// Pieces whose paths a query reads together (see [`Shard::touched_by`]).
+const BATCH: usize = 32;
+
 /// Sessions a shard keeps at most (each holds one bitset per constraint).
 pub const MAX_SESSIONS: usize = 256;
 
@@ -181,10 +185,18 @@ impl Shard {
             indexed: 0,
             all: WorldSet::new(),
             bvh: Vec::new(),
+            block: crate::spatial::BLOCK,
             sessions: HashMap::new(),
             threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
             world_bytes: 0,
         }
+    }
+
+    /// Builds hierarchy blocks of `pieces` (for tests: small stores with many blocks). Takes
+    /// effect for object indexes not seen yet.
+    #[cfg(test)]
+    fn set_block(&mut self, pieces: usize) {
+        self.block = pieces;
     }
 
     /// Threads used to evaluate a new constraint over all worlds (default: every core).
@@ -316,7 +328,9 @@ impl Shard {
             }
         }
         if self.bvh.len() < world.objects.len() {
-            self.bvh.resize_with(world.objects.len(), PathBvh::default);
+            let block = self.block;
+            self.bvh
+                .resize_with(world.objects.len(), || PathBvh::with_block(block));
         }
         for (o, obj) in world.objects.iter().enumerate() {
             self.bvh[o].insert(global, obj);
@@ -436,18 +450,19 @@ impl Shard {
     /// negative ones the others.
     pub fn evaluate_all(&self, constraint: &Constraint) -> WorldSet {
         let touched = match constraint.quantifier {
-            Quantifier::Any => self.touched_by(constraint, &constraint.objects),
+            Quantifier::Any => self.touched_by(constraint, &constraint.objects, None),
             Quantifier::All => {
                 let mut objects = constraint.objects.iter();
                 match objects.next() {
                     None => WorldSet::new(),
                     Some(&first) => {
-                        let mut acc = self.touched_by(constraint, &[first]);
+                        // Each later pass looks only at the worlds every earlier one kept.
+                        let mut acc = self.touched_by(constraint, &[first], None);
                         for &o in objects {
                             if acc.is_empty() {
                                 break;
                             }
-                            acc.and_assign(&self.touched_by(constraint, &[o]));
+                            acc = self.touched_by(constraint, &[o], Some(&acc));
                         }
                         acc
                     }
@@ -461,8 +476,18 @@ impl Shard {
     }
 
     /// The worlds in which some object of `objects` enters `constraint`'s frustum (its window
-    /// and scope apply; its objects and quantifier do not).
-    fn touched_by(&self, constraint: &Constraint, objects: &[u32]) -> WorldSet {
+    /// and scope apply; its objects and quantifier do not), among `within` if given.
+    ///
+    /// The work is every object's hierarchy in parts, ordered by block so that the threads
+    /// work on the same few thousand worlds at a time (their paths then come from the caches),
+    /// the objects of one block side by side. A world found touched is marked in one set all
+    /// threads share, and its other pieces — of any object — are passed over unread.
+    fn touched_by(
+        &self,
+        constraint: &Constraint,
+        objects: &[u32],
+        within: Option<&WorldSet>,
+    ) -> WorldSet {
         let threads = self.threads.max(1);
         let mut work: Vec<(usize, &PathBvh, Option<Aabb>, Part)> = Vec::new();
         let mut pieces = 0;
@@ -479,26 +504,88 @@ impl Shard {
                     .map(|p| (o as usize, b, region, p)),
             );
         }
+        // Stable: a block's subtrees stay in order.
+        work.sort_by_key(|&(o, _, _, p)| (p.block(), o));
         // A final-pose constraint has no window: every path's last piece reaches to +∞ anyway.
         let window = match constraint.scope {
             Scope::Motion => constraint.window,
             Scope::FinalPose => None,
         };
+        // Global indices of this shard's worlds are below this.
+        let end = self
+            .worlds
+            .len()
+            .checked_sub(1)
+            .and_then(|last| self.spec.global(last as u32))
+            .map_or(0, |g| g as usize + 1);
+        let found: Vec<AtomicU64> = (0..end.div_ceil(64)).map(|_| AtomicU64::new(0)).collect();
+        let is_found = |w: u32| {
+            found
+                .get(w as usize / 64)
+                .is_some_and(|x| x.load(Ordering::Relaxed) & (1 << (w % 64)) != 0)
+        };
+        let mark = |w: u32| {
+            if let Some(x) = found.get(w as usize / 64) {
+                x.fetch_or(1 << (w % 64), Ordering::Relaxed);
+            }
+        };
         let next = AtomicUsize::new(0);
-        let run = || -> WorldSet {
+        let run = || {
             // The frustum inflated by each path radius met: radii are rounded at ingest, so
             // there are only a few.
             let mut regions = RegionCache::new(&constraint.frustum);
-            // Worlds this thread has found touched: their other pieces are passed over.
-            let found = RefCell::new(WorldSet::new());
+            let mut batch = Vec::with_capacity(BATCH);
+            let mut paths = Vec::with_capacity(BATCH);
             while let Some(&(o, bvh, region, part)) = work.get(next.fetch_add(1, Ordering::Relaxed))
             {
+                // The exact test of a batch of pieces: the paths they are cut from are read
+                // stage by stage (world records, the objects, the paths' headers, the pieces'
+                // vertices), each stage a run of independent loads, so that their cache
+                // misses overlap (each costs a trip to main memory, dependent on the one
+                // before: one after another they were most of a query's time).
+                let mut test = |batch: &mut Vec<Piece<'_>>, regions: &mut RegionCache<'_>| {
+                    batch.retain(|p| !is_found(p.world()));
+                    paths.clear();
+                    paths.extend(
+                        batch
+                            .iter()
+                            .map(|p| self.world(p.world()).and_then(|w| w.objects.get(o))),
+                    );
+                    let mut touched = 0u64;
+                    for path in paths.iter().flatten() {
+                        touched ^= path.radius.to_bits();
+                    }
+                    for path in paths.iter().flatten() {
+                        touched ^= u64::from(path.header_byte());
+                    }
+                    for (p, path) in batch.iter().zip(&paths) {
+                        if let Some(path) = path {
+                            touched ^= u64::from(path.vertex_byte(p.first_segment()));
+                        }
+                    }
+                    std::hint::black_box(touched);
+                    for (p, path) in batch.iter().zip(&paths) {
+                        let Some(path) = path else { continue };
+                        if is_found(p.world()) {
+                            continue;
+                        }
+                        let region = regions.region(path.radius);
+                        let hit = match constraint.scope {
+                            Scope::Motion => p.first_entry(path, region, window).is_some(),
+                            Scope::FinalPose => p.final_pose_inside(path, region),
+                        };
+                        if hit {
+                            mark(p.world());
+                        }
+                    }
+                    batch.clear();
+                };
                 bvh.query(
                     part,
                     &constraint.frustum,
                     region.as_ref(),
                     window,
-                    |w| found.borrow().contains(w),
+                    |w| is_found(w) || within.is_some_and(|s| !s.contains(w)),
                     |p| {
                         // Answers that need no look-up of the path (each is what the exact
                         // test would say): only a last piece holds the final pose, and a piece
@@ -508,40 +595,30 @@ impl Shard {
                             Scope::FinalPose => p.inside_all().then_some(true),
                             Scope::Motion => (p.inside_all() && window.is_none()).then_some(true),
                         };
-                        let hit = match decided {
-                            Some(hit) => hit,
+                        match decided {
+                            Some(true) => mark(p.world()),
+                            Some(false) => {}
                             None => {
-                                // The piece's vertices and radius are its world's object's:
-                                // reading them costs a few cache misses per piece.
-                                let Some(path) =
-                                    self.world(p.world()).and_then(|w| w.objects.get(o))
-                                else {
-                                    return;
-                                };
-                                let region = regions.region(path.radius);
-                                match constraint.scope {
-                                    Scope::Motion => p.first_entry(path, region, window).is_some(),
-                                    Scope::FinalPose => p.final_pose_inside(path, region),
+                                batch.push(p);
+                                if batch.len() == BATCH {
+                                    test(&mut batch, &mut regions);
                                 }
                             }
-                        };
-                        if hit {
-                            found.borrow_mut().insert(p.world());
                         }
                     },
                 );
+                test(&mut batch, &mut regions);
             }
-            found.into_inner()
         };
         let threads = threads.min(pieces / 4096).max(1);
         std::thread::scope(|s| {
             let handles: Vec<_> = (1..threads).map(|_| s.spawn(run)).collect();
-            let mut touched = run();
+            run();
             for h in handles {
-                touched.or_assign(&h.join().unwrap_or_else(|e| std::panic::resume_unwind(e)));
+                h.join().unwrap_or_else(|e| std::panic::resume_unwind(e));
             }
-            touched
-        })
+        });
+        WorldSet::from_words(found.into_iter().map(AtomicU64::into_inner).collect())
     }
 
     /// [`evaluate_all`](Self::evaluate_all) without the hierarchies: every world's paths,
@@ -1072,6 +1149,8 @@ mod tests {
     #[test]
     fn hierarchy_answers_like_testing_every_world() {
         let mut shard = Shard::new(ShardSpec::default(), "a");
+        // Small hierarchy blocks: the re-insertion below rebuilds the one that held world 5.
+        shard.set_block(256);
         for i in 0..2000u32 {
             let y = f64::from(i % 97) * 0.05 - 2.0;
             shard.insert(world(i, y, 0.0));
@@ -1112,6 +1191,8 @@ mod tests {
         use mwb_core::rng::{Stream, WorldRng};
         let mut rng = WorldRng::new(11, Stream::Scene);
         let mut shard = Shard::new(ShardSpec::default(), "a");
+        // Small hierarchy blocks: many of them, and the pending list, are tested.
+        shard.set_block(300);
         let mut paths = Vec::new();
         for i in 0..1500u32 {
             let mut p = [
@@ -1226,6 +1307,8 @@ mod tests {
         use mwb_core::rng::{Stream, WorldRng};
         let mut rng = WorldRng::new(24, Stream::Scene);
         let mut shard = Shard::new(ShardSpec::default(), "a");
+        // Small hierarchy blocks: many of them, and the pending list, are tested.
+        shard.set_block(200);
         let mut paths: Vec<[(Polyline, f64); 2]> = Vec::new();
         let walk = |rng: &mut WorldRng, n: u32| {
             let mut p = [rng.uniform(-1.0, 1.0), rng.uniform(0.0, 1.0), 0.0];
@@ -1418,6 +1501,8 @@ mod tests {
             Shard::new(ShardSpec { index: 1, count: 2 }, "b"),
         ];
         two[1].set_threads(1);
+        // Another block size must not change an answer either.
+        two[0].set_block(64);
         // Same worlds: global index i in `one`, split by parity in `two` (index = i as well).
         for (i, &(y, spin)) in worlds.iter().enumerate() {
             one.insert(world(i as u32, y, spin));

@@ -352,6 +352,23 @@ impl IndexedObject {
         Layout::of(&self.data)
     }
 
+    /// The first byte of the stored path: a caller about to test many paths reads it for each
+    /// first, so that their cache misses overlap instead of coming one after another.
+    #[inline]
+    pub fn header_byte(&self) -> u8 {
+        self.data.first().copied().unwrap_or(0)
+    }
+
+    /// The first byte of vertex `i`'s packed bits (clamped to the last vertex), for the same
+    /// purpose as [`header_byte`](Self::header_byte): the vertices of a piece past the first
+    /// lie in another cache line than the header.
+    #[inline]
+    pub fn vertex_byte(&self, i: usize) -> u8 {
+        let layout = self.layout();
+        let bit = i.min(layout.len.saturating_sub(1)) * layout.stride;
+        self.packed().get(bit / 8).copied().unwrap_or(0)
+    }
+
     /// The packed vertices (after the header).
     fn packed(&self) -> &[u8] {
         &self.data[HEADER..]

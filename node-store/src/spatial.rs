@@ -16,22 +16,29 @@
 //! holds (it is the last vertex), so windows past the end still reach it
 //! ([`rest_entry`](mwb_core::browse::rest_entry)).
 //!
-//! The work of one query comes in [`Part`]s (subtrees near the top, runs of the pending list)
-//! that threads take one at a time. Pieces that arrive after the last build wait in a pending
-//! list (tested one by one) until it is a quarter of the built part, then the hierarchy is
-//! rebuilt: ingest stays amortised O(log n) per piece and queries O(pieces near the frustum +
-//! pending). The pieces used to carry f64 copies of their vertices (no lookup into the world
-//! for a surviving piece), at 232 bytes a piece the largest part of the store; they refer to
-//! the one compact copy now (see docs/performance.md for what that costs a query).
+//! **Blocks.** Pieces are built into the hierarchy in fixed-size blocks of [`BLOCK`] pieces,
+//! in the order they arrive, and a block once built is never merged or rebuilt (unless a world
+//! in it is replaced): a new piece waits in a pending list (tested one by one) until the list
+//! holds a block's worth, which is then built on its own — a few hundred microseconds, so
+//! ingest never pauses for a rebuild of everything held. The price: every block's root is tested
+//! by every query, and the upper levels of one global tree (which would separate far-apart
+//! pieces) are missing; in a compact scene they pruned nothing anyway, in a spread one a
+//! block's own top levels do it. The gain beyond ingest: a block holds the pieces of a few
+//! thousand consecutively stored worlds, so the exact tests a query runs in one block read
+//! those worlds' paths, which lie near each other in memory, rather than paths scattered over
+//! every world held (with one global tree each piece tested cost a few cache misses from main
+//! memory). The work of one query comes in [`Part`]s (blocks or subtrees of them, runs of the
+//! pending list) that threads take one at a time.
 //!
-//! **Size.** Boxes are stored as i16 steps of one grid per hierarchy (a power-of-two step
-//! from a fixed origin, rounded outward, so a stored box always holds the exact one) and times
-//! as u16 steps of [`TIME_STEP_S`], also rounded outward: a piece is 24 bytes and a node 20
-//! (44 and 56 with f32 and f64 boxes). A grid value never needs rounding again — a rebuild
-//! moves pieces without re-encoding them, so boxes do not grow rebuild after rebuild — and when
-//! a piece lies beyond the grid's i16 reach the grid's step doubles (every box rounded outward
-//! once more) up to [`BOX_GRID_MAX_EXP`]; a piece farther still gets an infinite side, which
-//! prunes less but never misses.
+//! **Size.** Boxes are stored as i16 steps of one grid per block (a power-of-two step from a
+//! fixed origin, rounded outward, so a stored box always holds the exact one) and times as u16
+//! steps of [`TIME_STEP_S`], also rounded outward: a piece is 24 bytes and a node 20 (44 and
+//! 56 with f32 and f64 boxes). A grid value never needs rounding again — building a block moves
+//! pieces without re-encoding them — and when a pending piece lies beyond its grid's i16 reach
+//! the pending grid's step doubles (every pending box rounded outward once more; built blocks
+//! keep their own grids) up to [`BOX_GRID_MAX_EXP`]; a piece farther still gets an infinite
+//! side, which prunes less but never misses. Each block starts a fresh grid, so one far piece
+//! coarsens only its own block.
 
 use crate::index::IndexedObject;
 use mwb_core::browse::{ALL_PLANES, Frustum, Plane, TimeWindow};
@@ -133,7 +140,7 @@ pub fn region_box(region: &Frustum) -> Option<Aabb> {
     Some(b)
 }
 
-/// Finest step of a hierarchy's box grid, as a power of two (2⁻⁹ m ≈ 2 mm: i16 steps reach
+/// Finest step of a block's box grid, as a power of two (2⁻⁹ m ≈ 2 mm: i16 steps reach
 /// ±64 m from the grid's origin). A box grows by less than a step on each side when rounded
 /// outward to it, a fraction of the never-miss radius (~11 mm on tumble).
 const BOX_GRID_EXP: i32 = -9;
@@ -152,9 +159,9 @@ fn pow2(exp: i32) -> f64 {
     f64::from_bits(((exp + 1023) as u64) << 52)
 }
 
-/// The grid of one hierarchy's boxes: code `s` is `origin + s · 2^exp`, except
-/// [`i16::MIN`] (−∞) and [`i16::MAX`] (+∞). The origin is fixed at the first insertion (whole
-/// metres near the first path), the step only ever doubles.
+/// The grid of one block's boxes: code `s` is `origin + s · 2^exp`, except [`i16::MIN`] (−∞)
+/// and [`i16::MAX`] (+∞). The origin is fixed at the block's first piece (whole metres near
+/// its path), the step only ever doubles.
 #[derive(Debug, Clone, Copy, PartialEq)]
 struct Grid {
     origin: Vec3,
@@ -433,46 +440,177 @@ impl Piece<'_> {
     }
 }
 
-/// A share of a query's work: a subtree of the hierarchy, or a run of the pending pieces.
+/// Pieces a block is built from: the pending list is built into a block when the next path's
+/// pieces would take it past this. 4096 pieces (~1 400 ten-object tumble worlds per object
+/// index) build in well under a millisecond, and the worlds' paths a block's queries read
+/// (~2 MB) stay in the caches.
+pub const BLOCK: usize = 4096;
+
+/// A share of a query's work: a subtree of a block (its root, or one near it), or a run of the
+/// pending pieces.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Part {
-    Subtree(u32),
+    Subtree { block: u32, node: u32 },
     Pending { start: u32, end: u32 },
 }
 
-/// The hierarchy over the path pieces of one object index.
-#[derive(Debug, Clone, Default)]
+impl Part {
+    /// The block this part belongs to ([`u32::MAX`] for the pending list): parts of different
+    /// object indexes with the same block number hold the pieces of roughly the same worlds.
+    pub fn block(&self) -> u32 {
+        match self {
+            Part::Subtree { block, .. } => *block,
+            Part::Pending { .. } => u32::MAX,
+        }
+    }
+}
+
+/// Pieces built into a hierarchy of their own, on their own grid.
+#[derive(Debug, Clone)]
+struct Block {
+    grid: Grid,
+    /// In hierarchy order.
+    entries: Box<[Entry]>,
+    nodes: Box<[Node]>,
+    /// Lowest and highest world with a piece here: a removal looks only at blocks whose range
+    /// holds its world.
+    worlds: (u32, u32),
+}
+
+impl Block {
+    /// The hierarchy over `entries` (boxes on `grid`); `None` when there are none.
+    fn build(grid: Grid, mut entries: Box<[Entry]>) -> Option<Block> {
+        let first = entries.first()?;
+        let mut worlds = (first.world, first.world);
+        for e in entries.iter() {
+            worlds = (worlds.0.min(e.world), worlds.1.max(e.world));
+        }
+        // A full binary tree whose leaves hold at least LEAF / 2 pieces.
+        let mut nodes = Vec::with_capacity(4 * entries.len() / LEAF + 1);
+        nodes.push(Node {
+            bounds: first.bounds,
+            first: 0,
+            count: 0,
+        });
+        let n = entries.len();
+        build(&mut entries, &mut nodes, 0, 0, n);
+        Some(Block {
+            grid,
+            entries,
+            nodes: nodes.into_boxed_slice(),
+            worlds,
+        })
+    }
+
+    fn heap_bytes(&self) -> usize {
+        self.entries.len() * std::mem::size_of::<Entry>()
+            + self.nodes.len() * std::mem::size_of::<Node>()
+    }
+}
+
+/// Builds node `at` over `entries[lo..hi]`: median split along the longest axis of the
+/// entries' centres.
+fn build(entries: &mut [Entry], nodes: &mut Vec<Node>, at: usize, lo: usize, hi: usize) {
+    let bounds = entries[lo + 1..hi]
+        .iter()
+        .fold(entries[lo].bounds, |b, e| b.union(&e.bounds));
+    if hi - lo <= LEAF {
+        nodes[at] = Node {
+            bounds,
+            first: lo as u32,
+            count: (hi - lo) as u32,
+        };
+        return;
+    }
+    let (mut cmin, mut cmax) = ([i32::MAX; 3], [i32::MIN; 3]);
+    for e in &entries[lo..hi] {
+        for k in 0..3 {
+            let c = e.bounds.centre2(k);
+            cmin[k] = cmin[k].min(c);
+            cmax[k] = cmax[k].max(c);
+        }
+    }
+    let axis = (0..3).max_by_key(|&k| cmax[k] - cmin[k]).unwrap_or(0);
+    let mid = lo + (hi - lo) / 2;
+    entries[lo..hi].select_nth_unstable_by_key(mid - lo, |e| e.bounds.centre2(axis));
+    let left = nodes.len();
+    for _ in 0..2 {
+        nodes.push(Node {
+            bounds,
+            first: 0,
+            count: 0,
+        });
+    }
+    nodes[at] = Node {
+        bounds,
+        first: left as u32,
+        count: 0,
+    };
+    build(entries, nodes, left, lo, mid);
+    build(entries, nodes, left + 1, mid, hi);
+}
+
+/// The hierarchy over the path pieces of one object index: built blocks and the pending list.
+#[derive(Debug, Clone)]
 pub struct PathBvh {
-    /// Built part, in hierarchy order.
-    entries: Vec<Entry>,
-    nodes: Vec<Node>,
-    /// Inserted since the last build.
+    /// Pieces a block is built from ([`BLOCK`]; smaller in tests).
+    block: usize,
+    blocks: Vec<Block>,
+    /// Inserted since the last block was built.
     pending: Vec<Entry>,
+    /// The grid of the pending pieces (`None` when there are none): the next block's.
+    grid: Option<Grid>,
     /// Largest radius inserted (for the vertex box of the inflated frustum).
     max_radius: f64,
-    /// The grid of every box held (`None` until the first insertion).
-    grid: Option<Grid>,
     /// Most pieces one path has added (what the next one is expected to add, for
     /// [`growth_bytes`](Self::growth_bytes)).
     most_pieces: usize,
 }
 
+impl Default for PathBvh {
+    fn default() -> Self {
+        PathBvh {
+            block: BLOCK,
+            blocks: Vec::new(),
+            pending: Vec::new(),
+            grid: None,
+            max_radius: 0.0,
+            most_pieces: 0,
+        }
+    }
+}
+
 impl PathBvh {
+    /// A hierarchy whose blocks are built from `block` pieces (at least 1; tests use small
+    /// blocks so that small stores hold many).
+    pub(crate) fn with_block(block: usize) -> PathBvh {
+        PathBvh {
+            block: block.max(1),
+            ..PathBvh::default()
+        }
+    }
+
     /// Adds `world`'s path with its never-miss radius (NaN: unknown, taken as +∞, so the path is
     /// never pruned), cut into pieces of [`PIECE_SEGMENTS`] segments. A one-vertex path is one
-    /// degenerate segment, as [`IndexedObject::segment_count`] counts it.
+    /// degenerate segment, as [`IndexedObject::segment_count`] counts it. When the path's
+    /// pieces would take the pending list past [`BLOCK`], the list is built into a block first
+    /// (the only work an insertion does beyond its own pieces).
     pub fn insert(&mut self, world: u32, path: &IndexedObject) {
         let radius = if path.radius.is_nan() {
             f64::INFINITY
         } else {
             path.radius.max(0.0)
         };
+        let segments = path.segment_count();
+        let pieces = segments.div_ceil(PIECE_SEGMENTS);
+        if !self.pending.is_empty() && self.pending.len() + pieces > self.block {
+            self.seal();
+        }
         self.max_radius = self.max_radius.max(radius);
         let mut grid = *self.grid.get_or_insert_with(|| Grid {
             origin: path.vertex(0).0.map(f64::round),
             exp: BOX_GRID_EXP,
         });
-        let segments = path.segment_count();
         let mut span = Vec::with_capacity(PIECE_SEGMENTS + 1);
         for first in (0..segments).step_by(PIECE_SEGMENTS) {
             let count = PIECE_SEGMENTS.min(segments - first);
@@ -485,7 +623,7 @@ impl PathBvh {
                 Some(bounds) => bounds,
                 None => {
                     // Beyond the grid's reach: the coarsest grid (up to the limit) that holds it,
-                    // every box held rounded outward to it; else an infinite side.
+                    // every pending box rounded outward to it; else an infinite side.
                     let mut coarser = grid;
                     while coarser.exp < BOX_GRID_MAX_EXP && coarser.encode(&b).is_none() {
                         coarser.exp += 1;
@@ -510,18 +648,23 @@ impl PathBvh {
                 piece: (first / PIECE_SEGMENTS) as u32 | if last { LAST } else { 0 },
             });
         }
-        self.most_pieces = self
-            .most_pieces
-            .max(segments.div_ceil(PIECE_SEGMENTS).max(1));
-        if self.pending.len() >= 256 && self.pending.len() * 4 >= self.entries.len() {
-            self.rebuild();
-        }
+        self.most_pieces = self.most_pieces.max(pieces.max(1));
+    }
+
+    /// Builds the pending pieces into a block of their own.
+    fn seal(&mut self) {
+        let Some(grid) = self.grid.take() else {
+            return;
+        };
+        // A copy of exactly the pieces' size; the pending list keeps its room for the next.
+        let entries: Box<[Entry]> = self.pending.drain(..).collect();
+        self.blocks.extend(Block::build(grid, entries));
     }
 
     /// Bytes that [`heap_bytes`](Self::heap_bytes) may grow by, beyond the new pieces' own,
-    /// when the next path is inserted: the pending list doubling its capacity, or a rebuild's
-    /// larger node array. A store admits a world only if this fits under its cap too, so that
-    /// a vector's doubling never carries it past the cap.
+    /// when the next path is inserted: the pending list doubling its capacity, or a block being
+    /// built (its nodes, and the block list doubling). A store admits a world only if this fits
+    /// under its cap too, so that a vector's doubling never carries it past the cap.
     pub fn growth_bytes(&self) -> usize {
         let k = 2 * self.most_pieces.max(1);
         let entry = std::mem::size_of::<Entry>();
@@ -529,52 +672,78 @@ impl PathBvh {
         if self.pending.len() + k > self.pending.capacity() {
             grow += self.pending.capacity().max(k).max(4) * entry;
         }
-        let pending = self.pending.len() + k;
-        if pending >= 256 && pending * 4 >= self.entries.len() {
-            // A build has at most one node per entry (leaves hold one or more).
-            grow += pending * std::mem::size_of::<Node>();
+        if self.pending.len() + k > self.block {
+            // The pieces move from the pending list (which keeps its room) into the block, and
+            // a block has fewer nodes than pieces.
+            grow += self.pending.len() * (entry + std::mem::size_of::<Node>());
+            if self.blocks.len() == self.blocks.capacity() {
+                grow += self.blocks.capacity().max(4) * std::mem::size_of::<Block>();
+            }
         }
         grow
     }
 
-    /// Doubles the grid's step until its exponent is `exp`, every box held rounded outward.
+    /// Doubles the pending grid's step until its exponent is `exp`, every pending box rounded
+    /// outward (built blocks keep their grids).
     fn coarsen(&mut self, exp: i32) {
         let Some(grid) = self.grid.as_mut() else {
             return;
         };
         while grid.exp < exp {
             grid.exp += 1;
-            for e in self.entries.iter_mut().chain(self.pending.iter_mut()) {
+            for e in &mut self.pending {
                 e.bounds = e.bounds.coarsened();
-            }
-            for n in &mut self.nodes {
-                n.bounds = n.bounds.coarsened();
             }
         }
     }
 
-    /// Removes every piece of `world`.
+    /// Removes every piece of `world`: the blocks that held one are built again without them
+    /// (a world is replaced rarely: when it is sampled again).
     pub fn remove(&mut self, world: u32) {
-        let before = self.entries.len() + self.pending.len();
-        self.entries.retain(|e| e.world != world);
+        let mut i = 0;
+        while i < self.blocks.len() {
+            let b = &self.blocks[i];
+            let held = (b.worlds.0..=b.worlds.1).contains(&world)
+                && b.entries.iter().any(|e| e.world == world);
+            if !held {
+                i += 1;
+                continue;
+            }
+            let kept: Box<[Entry]> = b
+                .entries
+                .iter()
+                .filter(|e| e.world != world)
+                .cloned()
+                .collect();
+            match Block::build(b.grid, kept) {
+                Some(rebuilt) => {
+                    self.blocks[i] = rebuilt;
+                    i += 1;
+                }
+                None => {
+                    self.blocks.remove(i);
+                }
+            }
+        }
         self.pending.retain(|e| e.world != world);
-        if self.entries.len() + self.pending.len() != before {
-            self.rebuild();
+        if self.pending.is_empty() {
+            self.grid = None;
         }
     }
 
     /// Pieces held.
     pub fn len(&self) -> usize {
-        self.entries.len() + self.pending.len()
+        self.blocks.iter().map(|b| b.entries.len()).sum::<usize>() + self.pending.len()
     }
 
     pub fn is_empty(&self) -> bool {
-        self.len() == 0
+        self.blocks.is_empty() && self.pending.is_empty()
     }
 
     pub fn heap_bytes(&self) -> usize {
-        (self.entries.capacity() + self.pending.capacity()) * std::mem::size_of::<Entry>()
-            + self.nodes.capacity() * std::mem::size_of::<Node>()
+        self.blocks.capacity() * std::mem::size_of::<Block>()
+            + self.blocks.iter().map(Block::heap_bytes).sum::<usize>()
+            + self.pending.capacity() * std::mem::size_of::<Entry>()
     }
 
     /// Largest radius of any piece inserted: a query's `region_box` must bound the frustum
@@ -583,88 +752,21 @@ impl PathBvh {
         self.max_radius
     }
 
-    fn rebuild(&mut self) {
-        // Exactly the room needed: `append` alone would double the array for a moment.
-        self.entries.reserve_exact(self.pending.len());
-        self.entries.append(&mut self.pending);
-        self.nodes.clear();
-        if self.entries.is_empty() {
-            return;
-        }
-        self.nodes.push(Node {
-            bounds: self.entries[0].bounds,
-            first: 0,
-            count: 0,
-        });
-        let n = self.entries.len();
-        self.build(0, 0, n);
-        // Rebuilds are rare (the pending list must reach a quarter of the built part), so the
-        // spare room of the vectors' doubling is given back each time.
-        self.entries.shrink_to_fit();
-        self.nodes.shrink_to_fit();
-        self.pending.shrink_to_fit();
-    }
-
-    /// Builds node `at` over `entries[lo..hi]`: median split along the longest axis of the
-    /// entries' centres.
-    fn build(&mut self, at: usize, lo: usize, hi: usize) {
-        let bounds = self.entries[lo + 1..hi]
-            .iter()
-            .fold(self.entries[lo].bounds, |b, e| b.union(&e.bounds));
-        if hi - lo <= LEAF {
-            self.nodes[at] = Node {
-                bounds,
-                first: lo as u32,
-                count: (hi - lo) as u32,
-            };
-            return;
-        }
-        let (mut cmin, mut cmax) = ([i32::MAX; 3], [i32::MIN; 3]);
-        for e in &self.entries[lo..hi] {
-            for k in 0..3 {
-                let c = e.bounds.centre2(k);
-                cmin[k] = cmin[k].min(c);
-                cmax[k] = cmax[k].max(c);
-            }
-        }
-        let axis = (0..3).max_by_key(|&k| cmax[k] - cmin[k]).unwrap_or(0);
-        let mid = lo + (hi - lo) / 2;
-        self.entries[lo..hi].select_nth_unstable_by_key(mid - lo, |e| e.bounds.centre2(axis));
-        let left = self.nodes.len();
-        for _ in 0..2 {
-            self.nodes.push(Node {
-                bounds,
-                first: 0,
-                count: 0,
-            });
-        }
-        self.nodes[at] = Node {
-            bounds,
-            first: left as u32,
-            count: 0,
-        };
-        self.build(left, lo, mid);
-        self.build(left + 1, mid, hi);
-    }
-
-    /// The whole hierarchy as at least `at_least` shares where it is big enough (subtrees near
-    /// the top, then runs of up to 256 pending pieces), for threads to take one at a time.
+    /// The whole hierarchy as at least `at_least` shares where it is big enough (the blocks,
+    /// split into subtrees near their tops while there are too few, then runs of up to 256
+    /// pending pieces), for threads to take one at a time.
     pub fn parts(&self, at_least: usize) -> Vec<Part> {
-        let mut level: Vec<u32> = if self.nodes.is_empty() {
-            vec![]
-        } else {
-            vec![0]
-        };
+        let mut level: Vec<(u32, u32)> = (0..self.blocks.len() as u32).map(|b| (b, 0)).collect();
         while level.len() < at_least {
             let mut next = Vec::with_capacity(2 * level.len());
             let mut split = false;
-            for &i in &level {
-                let n = &self.nodes[i as usize];
+            for &(b, i) in &level {
+                let n = &self.blocks[b as usize].nodes[i as usize];
                 if n.count == 0 {
-                    next.extend([n.first, n.first + 1]);
+                    next.extend([(b, n.first), (b, n.first + 1)]);
                     split = true;
                 } else {
-                    next.push(i);
+                    next.push((b, i));
                 }
             }
             level = next;
@@ -672,7 +774,10 @@ impl PathBvh {
                 break;
             }
         }
-        let mut parts: Vec<Part> = level.into_iter().map(Part::Subtree).collect();
+        let mut parts: Vec<Part> = level
+            .into_iter()
+            .map(|(block, node)| Part::Subtree { block, node })
+            .collect();
         let n = self.pending.len() as u32;
         parts.extend((0..n).step_by(256).map(|start| Part::Pending {
             start,
@@ -688,17 +793,33 @@ impl PathBvh {
     /// outside ([`Aabb::classify`], with plane masking down the hierarchy: a node inside a
     /// plane spares everything below it that plane), or when its box misses `region_box`
     /// ([`region_box`] of the frustum inflated by [`max_radius`](Self::max_radius) or more).
-    pub fn query(
-        &self,
+    pub fn query<'s>(
+        &'s self,
         part: Part,
         frustum: &Frustum,
         region_box: Option<&Aabb>,
         window: Option<TimeWindow>,
         skip: impl Fn(u32) -> bool,
-        mut visit: impl FnMut(Piece<'_>),
+        mut visit: impl FnMut(Piece<'s>),
     ) {
-        let Some(grid) = self.grid else {
-            return;
+        let (grid, entries, nodes, root) = match part {
+            Part::Subtree { block, node } => {
+                let Some(b) = self.blocks.get(block as usize) else {
+                    return;
+                };
+                if b.nodes.get(node as usize).is_none() {
+                    return;
+                }
+                (b.grid, &b.entries[..], &b.nodes[..], Some(node as usize))
+            }
+            Part::Pending { start, end } => {
+                let Some(grid) = self.grid else {
+                    return;
+                };
+                let end = (end as usize).min(self.pending.len());
+                let run = self.pending.get(start as usize..end).unwrap_or_default();
+                (grid, run, &[][..], None)
+            }
         };
         let planes = frustum.planes();
         let test = |b: &GridBox, mask: u8| {
@@ -708,7 +829,7 @@ impl PathBvh {
             }
             b.classify(planes, mask)
         };
-        let mut leaf = |entry: &Entry, mask: u8| {
+        let mut leaf = |entry: &'s Entry, mask: u8| {
             if window
                 .is_some_and(|w| time_to(entry.t1) < w.start() || time_from(entry.t0) > w.end())
                 || skip(entry.world)
@@ -719,33 +840,26 @@ impl PathBvh {
                 visit(Piece { entry, mask });
             }
         };
-        match part {
-            Part::Subtree(root) => {
-                if self.nodes.get(root as usize).is_none() {
-                    return;
-                }
-                let mut stack = vec![(root as usize, ALL_PLANES)];
-                while let Some((i, mask)) = stack.pop() {
-                    let node = &self.nodes[i];
-                    let Some(mask) = test(&node.bounds, mask) else {
-                        continue;
-                    };
-                    if node.count > 0 {
-                        let (a, n) = (node.first as usize, node.count as usize);
-                        for e in &self.entries[a..a + n] {
-                            leaf(e, mask);
-                        }
-                    } else {
-                        stack.push((node.first as usize + 1, mask));
-                        stack.push((node.first as usize, mask));
-                    }
-                }
+        let Some(root) = root else {
+            for e in entries {
+                leaf(e, ALL_PLANES);
             }
-            Part::Pending { start, end } => {
-                let end = (end as usize).min(self.pending.len());
-                for e in self.pending.get(start as usize..end).unwrap_or_default() {
-                    leaf(e, ALL_PLANES);
+            return;
+        };
+        let mut stack = vec![(root, ALL_PLANES)];
+        while let Some((i, mask)) = stack.pop() {
+            let node = &nodes[i];
+            let Some(mask) = test(&node.bounds, mask) else {
+                continue;
+            };
+            if node.count > 0 {
+                let (a, n) = (node.first as usize, node.count as usize);
+                for e in &entries[a..a + n] {
+                    leaf(e, mask);
                 }
+            } else {
+                stack.push((node.first as usize + 1, mask));
+                stack.push((node.first as usize, mask));
             }
         }
     }
@@ -759,6 +873,29 @@ mod tests {
     use std::collections::BTreeSet;
 
     const DT: f64 = 1.0 / 120.0;
+
+    impl PathBvh {
+        /// Every stored piece with the grid its box is on: the blocks', then the pending ones.
+        fn stored(&self) -> Vec<(Grid, &Entry)> {
+            let mut out: Vec<(Grid, &Entry)> = Vec::new();
+            for b in &self.blocks {
+                out.extend(b.entries.iter().map(|e| (b.grid, e)));
+            }
+            if let Some(grid) = self.grid {
+                out.extend(self.pending.iter().map(|e| (grid, e)));
+            }
+            out
+        }
+
+        /// The grids in use: each block's, and the pending list's.
+        fn grids(&self) -> Vec<Grid> {
+            self.blocks
+                .iter()
+                .map(|b| b.grid)
+                .chain(self.grid)
+                .collect()
+        }
+    }
 
     /// Random-walk paths of 1 to 40 vertices on a 120 Hz frame grid, radii from 0 to 5 cm (one
     /// unknown, NaN), stored as the index stores them.
@@ -839,14 +976,16 @@ mod tests {
     }
 
     /// Pieces, hierarchy pruning (planes with masking, vertex box, time ranges) and the exact
-    /// test on the entries' own copies of the vertices keep exactly the worlds a
-    /// segment-by-segment test of the whole path against the inflated frustum keeps — whatever
-    /// the insertion order, the rebuild points, a removal, and however the work is split.
+    /// test of the pieces' segments keep exactly the worlds a segment-by-segment test of the
+    /// whole path against the inflated frustum keeps — whatever the block size, a removal, and
+    /// however the work is split.
     #[test]
     fn pieces_keep_exactly_the_worlds_brute_force_keeps() {
         let mut rng = WorldRng::new(3, Stream::Scene);
         let paths = paths(&mut rng, 3000);
-        keeps_exactly_what_brute_force_keeps(&mut rng, &paths, 10.0);
+        for block in [BLOCK, 700] {
+            keeps_exactly_what_brute_force_keeps(&mut rng, &paths, 10.0, block);
+        }
     }
 
     /// The same over paths spread across 1.2 km, and two far beyond the grid's reach (50 km
@@ -868,30 +1007,32 @@ mod tests {
             paths[w] =
                 IndexedObject::new(&far, DT, paths[w].radius).unwrap_or_else(|e| panic!("{e}"));
         }
-        let mut bvh = PathBvh::default();
+        let mut bvh = PathBvh::with_block(1000);
         for (w, path) in paths.iter().enumerate() {
             bvh.insert(w as u32, path);
         }
-        let grid = bvh.grid.unwrap_or_else(|| panic!("a grid"));
-        assert_eq!(grid.exp, BOX_GRID_MAX_EXP, "coarsened as far as allowed");
+        let grids = bvh.grids();
+        // The first blocks hold only the paths near the origin: the finest grid; the later
+        // ones are coarsened, as far as allowed where the far paths are.
+        assert_eq!(grids[0].exp, BOX_GRID_EXP);
+        assert!(grids.iter().any(|g| g.exp == BOX_GRID_MAX_EXP));
+        assert!(grids.iter().all(|g| g.exp <= BOX_GRID_MAX_EXP));
         assert!(
-            bvh.entries
+            bvh.stored()
                 .iter()
-                .chain(&bvh.pending)
-                .any(|e| e.bounds.lo.contains(&i16::MIN) || e.bounds.hi.contains(&i16::MAX)),
+                .any(|(_, e)| e.bounds.lo.contains(&i16::MIN) || e.bounds.hi.contains(&i16::MAX)),
             "some pieces beyond reach"
         );
         assert_boxes_hold_their_pieces(&bvh, &paths);
-        keeps_exactly_what_brute_force_keeps(&mut rng, &paths, 10.0);
+        keeps_exactly_what_brute_force_keeps(&mut rng, &paths, 10.0, 1000);
     }
 
     /// Every stored piece's box, decoded, holds each of its vertices grown by the path's
     /// radius along every axis, and its time range holds the piece's vertex times (the last
     /// piece's to +∞); each path's pieces are all there, once, the last one marked.
     fn assert_boxes_hold_their_pieces(bvh: &PathBvh, paths: &[IndexedObject]) {
-        let grid = bvh.grid.unwrap_or_else(|| panic!("a grid"));
         let mut seen = vec![Vec::new(); paths.len()];
-        for e in bvh.entries.iter().chain(&bvh.pending) {
+        for (grid, e) in bvh.stored() {
             let path = &paths[e.world as usize];
             let piece = Piece { entry: e, mask: 0 };
             let first = piece.first_segment();
@@ -928,13 +1069,13 @@ mod tests {
         }
     }
 
-    /// Boxes survive rebuilds and coarsenings unchanged or grown, never shrunk below their
+    /// Boxes survive block builds and coarsenings unchanged or grown, never shrunk below their
     /// pieces: checked after every 100 insertions of paths spreading ever wider.
     #[test]
-    fn boxes_hold_their_pieces_through_rebuilds_and_coarsening() {
+    fn boxes_hold_their_pieces_through_blocks_and_coarsening() {
         let mut rng = WorldRng::new(6, Stream::Scene);
         let mut paths = Vec::new();
-        let mut bvh = PathBvh::default();
+        let mut bvh = PathBvh::with_block(500);
         for round in 0..12 {
             let spread = 2f64.powi(round);
             for path in spread_paths(&mut rng, 100, spread) {
@@ -942,13 +1083,65 @@ mod tests {
                 paths.push(path);
             }
             assert_boxes_hold_their_pieces(&bvh, &paths);
-            // The grid is the finest whose reach (±2¹⁵ steps) holds the paths, up to the limit.
+            // Each grid is the finest whose reach (±2¹⁵ steps) holds its pieces, up to the
+            // limit: the pending pieces are from this round or earlier ones.
+            assert!(bvh.grids().iter().all(|g| g.exp <= BOX_GRID_MAX_EXP));
             let grid = bvh.grid.unwrap_or_else(|| panic!("a grid"));
-            assert!(grid.exp <= BOX_GRID_MAX_EXP);
             if spread + 5.0 < 2f64.powi(15 + BOX_GRID_EXP - 1) {
                 assert_eq!(grid.exp, BOX_GRID_EXP, "round {round}");
             }
         }
+        assert!(bvh.blocks.len() >= 5, "{} blocks", bvh.blocks.len());
+    }
+
+    /// Ingest never rebuilds: a block, once built, stays where it is, unchanged, however many
+    /// paths come after it; each holds at most a block's pieces (a path is never split across
+    /// blocks); a removal rebuilds only the blocks that held the world.
+    #[test]
+    fn blocks_are_built_once_and_never_merged() {
+        let mut rng = WorldRng::new(9, Stream::Scene);
+        let paths = paths(&mut rng, 2000);
+        let mut bvh = PathBvh::with_block(256);
+        let mut built: Vec<(*const Entry, usize)> = Vec::new();
+        for (w, path) in paths.iter().enumerate() {
+            bvh.insert(w as u32, path);
+            let now: Vec<(*const Entry, usize)> = bvh
+                .blocks
+                .iter()
+                .map(|b| (b.entries.as_ptr(), b.entries.len()))
+                .collect();
+            assert!(now.len() <= built.len() + 1, "one block at most per path");
+            assert_eq!(now[..built.len()], built[..], "built blocks untouched");
+            built = now;
+            assert!(bvh.pending.len() <= 256);
+        }
+        assert!(bvh.blocks.len() > 20, "{} blocks", bvh.blocks.len());
+        for b in &bvh.blocks {
+            assert!(b.entries.len() <= 256);
+            let mut worlds: Vec<u32> = b.entries.iter().map(|e| e.world).collect();
+            worlds.sort_unstable();
+            worlds.dedup();
+            // Whole paths: every piece of each world it holds.
+            for w in worlds {
+                let want = paths[w as usize].segment_count().div_ceil(PIECE_SEGMENTS);
+                assert_eq!(b.entries.iter().filter(|e| e.world == w).count(), want);
+            }
+        }
+        let before = bvh.len();
+        let held = bvh
+            .blocks
+            .iter()
+            .position(|b| b.entries.iter().any(|e| e.world == 1000))
+            .unwrap_or_else(|| panic!("world 1000 is in a block"));
+        bvh.remove(1000);
+        assert_eq!(
+            bvh.len(),
+            before - paths[1000].segment_count().div_ceil(PIECE_SEGMENTS)
+        );
+        for (i, b) in bvh.blocks.iter().enumerate() {
+            assert_eq!(i == held, b.entries.as_ptr() != built[i].0, "block {i}");
+        }
+        assert!(bvh.stored().iter().all(|(_, e)| e.world != 1000));
     }
 
     /// Time codes round outward: a start code never reads later than the time, an end code
@@ -972,9 +1165,11 @@ mod tests {
         rng: &mut WorldRng,
         paths: &[IndexedObject],
         spread: f64,
+        block: usize,
     ) {
-        let mut bvh = PathBvh::default();
-        // A removal rebuilds; the last paths then wait in the pending list.
+        let mut bvh = PathBvh::with_block(block);
+        // A removal rebuilds the block that held the world; the last paths then wait in the
+        // pending list.
         for (w, path) in paths.iter().enumerate() {
             if w == 2950 {
                 bvh.remove(17);
@@ -989,8 +1184,8 @@ mod tests {
             .sum();
         assert_eq!(bvh.len(), pieces);
         assert!(
-            !bvh.pending.is_empty() && !bvh.nodes.is_empty(),
-            "both halves are tested"
+            !bvh.pending.is_empty() && bvh.blocks.len() >= 2,
+            "blocks and the pending list are tested"
         );
         let splits = [bvh.parts(1), bvh.parts(5), bvh.parts(64)];
         assert!(splits[2].len() >= 64);
@@ -1051,7 +1246,7 @@ mod tests {
     #[test]
     fn parts_cover_every_piece_once() {
         let mut rng = WorldRng::new(5, Stream::Scene);
-        let mut bvh = PathBvh::default();
+        let mut bvh = PathBvh::with_block(400);
         for (w, path) in paths(&mut rng, 700).iter_mut().enumerate() {
             path.radius = 0.01;
             bvh.insert(w as u32, path);

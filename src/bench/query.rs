@@ -22,7 +22,12 @@
 //!   All three must agree on every world;
 //! * rank: top 10 by angular travel summed over all objects, over every world;
 //! * ingest: `Shard::insert` of each world as the shard is filled (no live constraint), mean
-//!   and slowest — the slowest is a rebuild of the hierarchies.
+//!   and slowest — the slowest builds a block of the hierarchies;
+//! * `--shards N`: world i is shard (i mod N)'s, as stores number them; each shard uses every
+//!   core, as its own process would, and every request goes to all of them at once (answers
+//!   merged) — N store processes on one machine, without the bus;
+//! * `--no-brute`: no brute force and no copy of the worlds for it, so `rss_bytes` is the
+//!   stores' own (the index is still checked against the world-by-world test).
 
 use crate::output::{Summary, fields_table};
 use anyhow::{Result, bail};
@@ -36,7 +41,7 @@ use mwb_core::scene::SceneTemplate;
 use mwb_proto::v1::Message;
 use mwb_sampler::{RunOptions, run_world, segment_message, world_done};
 use mwb_store::index::{DEFAULT_PATH_TOLERANCE_M, IndexedObject};
-use mwb_store::{IndexedWorld, Shard, ShardSpec, StoredWorld, index_world};
+use mwb_store::{IndexedWorld, Shard, ShardBytes, ShardSpec, StoredWorld, index_world};
 use std::ops::ControlFlow;
 use std::time::Instant;
 
@@ -60,6 +65,16 @@ pub struct QueryArgs {
     /// Shift each synthetic object path sideways by up to this many metres.
     #[arg(long, default_value_t = 1.0)]
     pub spread_m: f64,
+    /// Split the worlds over this many store shards in this process (world i to shard
+    /// i mod N, as the stores number them), each using every core as its own process would,
+    /// asked at once: how one machine does with 1, 2 or 4 store processes.
+    #[arg(long, default_value_t = 1)]
+    pub shards: u32,
+    /// Skip brute force, and with it the bench's own copy of every world: `rss_bytes` is then
+    /// the stores' (and the process's runtime). The index is still checked against the store's
+    /// world-by-world test.
+    #[arg(long)]
+    pub no_brute: bool,
     /// Print the result as one JSON line.
     #[arg(long)]
     pub json: bool,
@@ -74,6 +89,8 @@ pub async fn run(args: QueryArgs) -> Result<()> {
         constraints: args.constraints,
         path_tolerance_m: args.path_tolerance_mm * 1e-3,
         spread_m: args.spread_m,
+        shards: args.shards,
+        brute: !args.no_brute,
     };
     let b = tokio::task::spawn_blocking(move || bench_query(&opts)).await??;
     crate::output::print(&b, args.json)
@@ -86,6 +103,8 @@ pub struct QueryBench {
     pub spread_m: f64,
     pub worlds: u32,
     pub objects: u32,
+    /// Store shards the worlds are split over (one process; each shard uses every core).
+    pub shards: u32,
     pub threads: usize,
     pub constraints: usize,
     /// Fraction of worlds a constraint kept, median (how selective the boxes were).
@@ -100,14 +119,15 @@ pub struct QueryBench {
     /// Every world's stored paths, world by world, without the hierarchy (the store's
     /// `evaluate_each`; `per_world_trees_p50_ms` when worlds held §4.4.2 OBB trees).
     pub per_world_p50_ms: f64,
-    pub brute_p50_ms: f64,
+    /// Absent with `--no-brute`.
+    pub brute_p50_ms: Option<f64>,
     /// brute ÷ index (the issue's name for it).
-    pub obb_speedup: f64,
+    pub obb_speedup: Option<f64>,
     /// brute ÷ per-world.
-    pub per_world_speedup: f64,
+    pub per_world_speedup: Option<f64>,
     pub rank_p50_ms: f64,
-    /// `Shard::insert` of one indexed world (its pieces into the hierarchies, the occasional
-    /// rebuild, no live constraint): mean over the worlds, and the slowest (a rebuild).
+    /// `Shard::insert` of one indexed world (its pieces into the hierarchies, now and then a
+    /// block built, no live constraint): mean over the worlds, and the slowest.
     pub ingest_mean_us: f64,
     pub ingest_max_ms: f64,
     /// Worlds inserted per second of insert time (one thread, nothing else in the shard).
@@ -132,8 +152,9 @@ pub struct QueryBench {
     pub motion_bytes_per_world: f64,
     /// `motion_bytes_per_world + memory_bytes_per_world`: the store's total per world.
     pub total_bytes_per_world: f64,
-    /// Resident set of the whole bench process at the end (the shard, and the bench's own copies
-    /// of the worlds for brute force), from /proc/self/status; 0 where unavailable.
+    /// Resident set of the whole bench process at the end (the shards, and unless `--no-brute`
+    /// the bench's own copy of the worlds for brute force), from /proc/self/status; 0 where
+    /// unavailable.
     pub rss_bytes: u64,
     /// Polyline vertices per object, mean (the index's size driver).
     pub vertices_per_object: f64,
@@ -240,8 +261,15 @@ fn shifted(obj: &IndexedObject, frame_dt: f64, d: [f64; 3]) -> Result<IndexedObj
     Ok(IndexedObject::new(&moved, frame_dt, obj.radius)?)
 }
 
-fn random_constraint(rng: &mut Rng, id: u64, worlds: &[IndexedWorld]) -> Result<Constraint> {
-    let w = &worlds[rng.index(worlds.len())];
+/// World `g` of the bench's shards (world i is shard i mod N's).
+fn world_of(shards: &[Shard], g: u32) -> Option<&IndexedWorld> {
+    shards.get(g as usize % shards.len().max(1))?.world(g)
+}
+
+fn random_constraint(rng: &mut Rng, id: u64, worlds: u32, shards: &[Shard]) -> Result<Constraint> {
+    let Some(w) = world_of(shards, rng.index(worlds as usize) as u32) else {
+        bail!("a synthetic world is missing from its shard");
+    };
     let o = rng.index(w.objects.len());
     let path = &w.objects[o];
     let (target, _) = path.vertex(rng.index(path.len()));
@@ -369,6 +397,10 @@ pub struct QueryBenchOptions {
     /// scene as compact as it was sampled (every box meets most paths); larger values spread
     /// the worlds' objects over a wider set, as in a scene with many separate areas.
     pub spread_m: f64,
+    /// Store shards the worlds are split over.
+    pub shards: u32,
+    /// Also run brute force (keeping its own copy of every world).
+    pub brute: bool,
 }
 
 impl Default for QueryBenchOptions {
@@ -380,6 +412,8 @@ impl Default for QueryBenchOptions {
             constraints: 60,
             path_tolerance_m: DEFAULT_PATH_TOLERANCE_M,
             spread_m: 1.0,
+            shards: 1,
+            brute: true,
         }
     }
 }
@@ -392,8 +426,8 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
     if !(opts.path_tolerance_m.is_finite() && opts.path_tolerance_m >= 0.0) {
         bail!("--path-tolerance-mm must be a non-negative number");
     }
-    if worlds == 0 || objects == 0 || constraints == 0 {
-        bail!("--worlds, --objects and --constraints must be positive");
+    if worlds == 0 || objects == 0 || constraints == 0 || opts.shards == 0 {
+        bail!("--worlds, --objects, --constraints and --shards must be positive");
     }
     let (file, text) = crate::client::load_scene(&opts.scene)?;
     let (pool, motion) = sample_pool(&file, &text, 24, opts.path_tolerance_m)?;
@@ -405,11 +439,19 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
         bail!("{file}: no dynamic bodies to take paths from");
     }
     let mut rng = Rng(WorldRng::new(0x5EED, Stream::Scene));
-    let mut shard = Shard::new(ShardSpec::default(), "bench");
+    let mut shards = (0..opts.shards)
+        .map(|i| {
+            Ok(Shard::new(
+                ShardSpec::new(i, opts.shards)?,
+                format!("bench-{i}"),
+            ))
+        })
+        .collect::<Result<Vec<Shard>>>()?;
+    let count = opts.shards;
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-    let mut synthetic = Vec::with_capacity(worlds as usize);
     let mut vertices = 0usize;
     let mut radii = Vec::new();
+    let mut ingest = Vec::with_capacity(worlds as usize);
     for i in 0..worlds {
         let mut objs = Vec::with_capacity(objects as usize);
         let mut metrics = Vec::with_capacity(objects as usize);
@@ -439,15 +481,10 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
             world_metrics: Default::default(),
             refined: None,
         };
-        synthetic.push(w);
-    }
-    // The shard's copy and brute force's are each allocated in one pass, world after world, so
-    // neither gets a tidier memory layout than the other.
-    let mut ingest = Vec::with_capacity(synthetic.len());
-    for w in &synthetic {
-        let copy = w.clone();
+        // World i is shard (i mod N)'s, as stores number their worlds.
+        let shard = &mut shards[(i % count) as usize];
         let t = Instant::now();
-        shard.insert(copy);
+        shard.insert(w);
         ingest.push(t.elapsed().as_secs_f64() * 1e3);
     }
     let ingest_s = ingest.iter().sum::<f64>() / 1e3;
@@ -459,29 +496,20 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
         f64::NAN
     };
     let ingest_pauses_over_10ms = ingest.iter().filter(|ms| **ms > 10.0).count();
-    let plain: Vec<PlainWorld> = synthetic
-        .iter()
-        .map(|w| w.objects.iter().map(|o| (o.polyline(), o.radius)).collect())
-        .collect();
-    let mut seq = 0u64;
-    let mut send = |shard: &mut Shard, request: Request| -> Result<Reply> {
-        let edit = request.is_edit();
-        if edit {
-            seq += 1;
-        }
-        match shard.handle(&ShardRequest {
-            session: "bench".into(),
-            seq: edit.then_some(seq),
-            request,
-        }) {
-            ShardReply::Ok {
-                reply: Reply::Error { message },
-                ..
-            } => bail!("{message}"),
-            ShardReply::Ok { reply, .. } => Ok(reply),
-            ShardReply::OutOfSync { edits } => bail!("bench session out of sync at {edits}"),
-        }
+    // Brute force's own copy, allocated in one pass after the stores' (so neither gets a
+    // tidier memory layout than the other).
+    let plain: Vec<PlainWorld> = if opts.brute {
+        (0..worlds)
+            .map(|g| {
+                world_of(&shards, g).map_or_else(Vec::new, |w| {
+                    w.objects.iter().map(|o| (o.polyline(), o.radius)).collect()
+                })
+            })
+            .collect()
+    } else {
+        Vec::new()
     };
+    let mut seq = 0u64;
     let (mut add, mut remove, mut index, mut brute_ms, mut rank, mut kept) =
         (vec![], vec![], vec![], vec![], vec![], vec![]);
     let mut per_world = vec![];
@@ -491,31 +519,43 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
         aggregate: Aggregate::Sum,
     };
     for round in 0..constraints {
-        let c = random_constraint(&mut rng, round as u64 + 1, &synthetic)?;
-        // Index, world by world and brute force on the same threads, same constraint.
+        let c = random_constraint(&mut rng, round as u64 + 1, worlds, &shards)?;
+        // Index, world by world and brute force on the same threads, same constraint; every
+        // shard at once, their answers merged as node-query merges them.
         let t = Instant::now();
-        let by_index = shard.evaluate_all(&c);
+        let by_index = on_every_shard(&shards, |s| s.evaluate_all(&c));
         index.push(t.elapsed().as_secs_f64() * 1e3);
         let t = Instant::now();
-        let each = shard.evaluate_each(&c);
+        let each = on_every_shard(&shards, |s| s.evaluate_each(&c));
         per_world.push(t.elapsed().as_secs_f64() * 1e3);
-        let t = Instant::now();
-        let by_brute = brute(&plain, &c, threads);
-        brute_ms.push(t.elapsed().as_secs_f64() * 1e3);
-        if by_index != by_brute || each != by_brute {
+        if opts.brute {
+            let t = Instant::now();
+            let by_brute = brute(&plain, &c, threads);
+            brute_ms.push(t.elapsed().as_secs_f64() * 1e3);
+            if by_index != by_brute {
+                bail!(
+                    "constraint {round}: the index kept {} worlds, brute force {} (not the \
+                     same worlds)",
+                    by_index.len(),
+                    by_brute.len()
+                );
+            }
+        }
+        if by_index != each {
             bail!(
-                "constraint {round}: the index kept {} worlds, world by world {}, brute force {} \
-                 (not the same worlds)",
+                "constraint {round}: the index kept {} worlds, world by world {} (not the same \
+                 worlds)",
                 by_index.len(),
-                each.len(),
-                by_brute.len()
+                each.len()
             );
         }
         kept.push(by_index.len() as f64 / f64::from(worlds));
         // Add it to the session (evaluation + AND), keeping at most four live.
+        seq += 1;
         let t = Instant::now();
         send(
-            &mut shard,
+            &mut shards,
+            seq,
             Request::Add {
                 constraint: Box::new(c),
             },
@@ -524,13 +564,15 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
         if round >= 3 {
             // Remove one of the older ones (not the newest): AND of the rest only.
             let id = ConstraintId((round - 3) as u64 + 1);
+            seq += 1;
             let t = Instant::now();
-            send(&mut shard, Request::Remove { id })?;
+            send(&mut shards, seq, Request::Remove { id })?;
             remove.push(t.elapsed().as_secs_f64() * 1e3);
         }
         let t = Instant::now();
         send(
-            &mut shard,
+            &mut shards,
+            seq,
             Request::Rank {
                 key: key.clone(),
                 order: Order::Descending,
@@ -543,16 +585,26 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
     }
     let index_p50 = percentile(&mut index, 0.5);
     let per_world_p50 = percentile(&mut per_world, 0.5);
-    let brute_p50 = percentile(&mut brute_ms, 0.5);
+    let brute_p50 = opts.brute.then(|| percentile(&mut brute_ms, 0.5));
     let per_world = |bytes: usize| bytes as f64 / f64::from(worlds);
-    let memory = per_world(shard.heap_bytes());
-    let parts = shard.heap_bytes_by_part();
+    let memory = per_world(shards.iter().map(Shard::heap_bytes).sum());
+    let parts = shards
+        .iter()
+        .map(Shard::heap_bytes_by_part)
+        .fold(ShardBytes::default(), |a, b| ShardBytes {
+            paths: a.paths + b.paths,
+            hierarchies: a.hierarchies + b.hierarchies,
+            metrics: a.metrics + b.metrics,
+            records: a.records + b.records,
+            bitsets: a.bitsets + b.bitsets,
+        });
     Ok(QueryBench {
         scene: file,
         path_tolerance_mm: opts.path_tolerance_m * 1e3,
         spread_m: opts.spread_m,
         worlds,
         objects,
+        shards: count,
         threads,
         constraints,
         kept_fraction_p50: percentile(&mut kept, 0.5),
@@ -562,8 +614,8 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
         index_p50_ms: index_p50,
         per_world_p50_ms: per_world_p50,
         brute_p50_ms: brute_p50,
-        obb_speedup: brute_p50 / index_p50.max(1e-9),
-        per_world_speedup: brute_p50 / per_world_p50.max(1e-9),
+        obb_speedup: brute_p50.map(|b| b / index_p50.max(1e-9)),
+        per_world_speedup: brute_p50.map(|b| b / per_world_p50.max(1e-9)),
         rank_p50_ms: percentile(&mut rank, 0.5),
         ingest_mean_us,
         ingest_max_ms,
@@ -582,6 +634,55 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
         vertices_per_object: vertices as f64 / (f64::from(worlds) * f64::from(objects)),
         path_radius_mm_p50: percentile(&mut radii, 0.5),
     })
+}
+
+/// `f` run on every shard at once (one thread each; each shard uses its own threads inside),
+/// their world sets merged (global indices never collide).
+fn on_every_shard(shards: &[Shard], f: impl Fn(&Shard) -> WorldSet + Sync) -> WorldSet {
+    if let [one] = shards {
+        return f(one);
+    }
+    std::thread::scope(|s| {
+        let handles: Vec<_> = shards.iter().map(|sh| s.spawn(|| f(sh))).collect();
+        let mut out = WorldSet::new();
+        for h in handles {
+            out.or_assign(&h.join().unwrap_or_else(|e| std::panic::resume_unwind(e)));
+        }
+        out
+    })
+}
+
+/// One request of the bench's session (edit number `seq`) to every shard at once, as
+/// node-query sends it; the first shard's reply (the bench reads none of them).
+fn send(shards: &mut [Shard], seq: u64, request: Request) -> Result<Reply> {
+    let edit = request.is_edit();
+    let ask = |shard: &mut Shard| match shard.handle(&ShardRequest {
+        session: "bench".into(),
+        seq: edit.then_some(seq),
+        request: request.clone(),
+    }) {
+        ShardReply::Ok {
+            reply: Reply::Error { message },
+            ..
+        } => bail!("{message}"),
+        ShardReply::Ok { reply, .. } => Ok(reply),
+        ShardReply::OutOfSync { edits } => bail!("bench session out of sync at {edits}"),
+    };
+    let replies: Vec<Result<Reply>> = if let [one] = shards {
+        vec![ask(one)]
+    } else {
+        std::thread::scope(|s| {
+            let handles: Vec<_> = shards.iter_mut().map(|sh| s.spawn(|| ask(sh))).collect();
+            handles
+                .into_iter()
+                .map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
+                .collect()
+        })
+    };
+    replies
+        .into_iter()
+        .next()
+        .unwrap_or_else(|| bail!("no shard"))
 }
 
 /// The process's resident set (`VmRSS`), bytes; 0 where /proc is not there to ask.
@@ -627,6 +728,40 @@ mod tests {
             (b.ingest_worlds_per_s * b.ingest_mean_us / 1e6 - 1.0).abs() < 1e-9,
             "{b:?}"
         );
-        assert!(b.obb_speedup > 0.0 && b.obb_speedup.is_finite(), "{b:?}");
+        assert!(
+            b.obb_speedup.is_some_and(|x| x > 0.0 && x.is_finite()),
+            "{b:?}"
+        );
+    }
+
+    /// Split over three shards, without brute force: the merged answers still equal the
+    /// world-by-world test's (the run fails otherwise), every world is held once, and brute
+    /// force's fields are absent.
+    #[test]
+    fn shards_and_no_brute_agree_and_count_every_world_once() {
+        let one = bench_query(&QueryBenchOptions {
+            worlds: 300,
+            objects: 4,
+            constraints: 6,
+            brute: false,
+            ..QueryBenchOptions::default()
+        })
+        .unwrap_or_else(|e| panic!("{e:#}"));
+        let three = bench_query(&QueryBenchOptions {
+            worlds: 300,
+            objects: 4,
+            constraints: 6,
+            shards: 3,
+            brute: false,
+            ..QueryBenchOptions::default()
+        })
+        .unwrap_or_else(|e| panic!("{e:#}"));
+        assert_eq!(three.shards, 3);
+        assert_eq!(three.brute_p50_ms, None);
+        assert_eq!(three.obb_speedup, None);
+        // The same worlds, the same paths: the same bytes of paths and metrics.
+        assert_eq!(one.paths_bytes_per_world, three.paths_bytes_per_world);
+        assert_eq!(one.metrics_bytes_per_world, three.metrics_bytes_per_world);
+        assert_eq!(one.kept_fraction_p50, three.kept_fraction_p50);
     }
 }

@@ -38,6 +38,11 @@ impl WorldSet {
         Self { words }
     }
 
+    /// The set whose world `64·i + b` is bit `b` of `words[i]`.
+    pub fn from_words(words: Vec<u64>) -> Self {
+        Self { words }
+    }
+
     #[inline]
     fn word(&self, i: usize) -> u64 {
         self.words.get(i).copied().unwrap_or(0)
