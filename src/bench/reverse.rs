@@ -26,6 +26,10 @@ pub struct ReverseArgs {
     /// Skip the 3037-ball lorem world.
     #[arg(long)]
     pub no_lorem: bool,
+    /// Sample only this shipped reverse scene for `plausible_fraction` (repeat for several;
+    /// default: every one).
+    #[arg(long = "scene", value_name = "NAME")]
+    pub scenes: Vec<String>,
     /// Print the result as one JSON line.
     #[arg(long)]
     pub json: bool,
@@ -45,8 +49,28 @@ pub async fn run(args: ReverseArgs) -> Result<()> {
     if args.no_lorem {
         o.lorem_scene = None;
     }
+    o.scenes = only_scenes(o.scenes, &args.scenes)?;
     let b = tokio::task::spawn_blocking(move || mwb_reverse::bench(&o)).await??;
     crate::output::print(&ReverseLine::from(b), args.json)
+}
+
+/// `scenes` narrowed to the names in `only` (all of them when `only` is empty); a name that is
+/// not a shipped reverse scene is an error naming the ones there are.
+fn only_scenes(scenes: Vec<(String, String)>, only: &[String]) -> Result<Vec<(String, String)>> {
+    if only.is_empty() {
+        return Ok(scenes);
+    }
+    if let Some(unknown) = only.iter().find(|n| !scenes.iter().any(|(s, _)| s == *n)) {
+        let known: Vec<&str> = scenes.iter().map(|(s, _)| s.as_str()).collect();
+        anyhow::bail!(
+            "--scene {unknown}: not a shipped reverse scene (there are: {})",
+            known.join(", ")
+        );
+    }
+    Ok(scenes
+        .into_iter()
+        .filter(|(s, _)| only.contains(s))
+        .collect())
 }
 
 /// The bench's line: [`ReverseBench`]'s fields (documented there), in the alphabetical order
@@ -155,5 +179,36 @@ impl From<ReverseBench> for ReverseLine {
 impl Summary for ReverseLine {
     fn table(&self) -> String {
         fields_table(self)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `--scene` keeps the named scenes in their order, all of them when none is named, and
+    /// refuses a name that is not shipped, naming the ones that are.
+    #[test]
+    fn scene_filter_keeps_the_named_and_refuses_the_unknown() {
+        let all = mwb_reverse::BenchOptions::default().scenes;
+        assert!(all.len() >= 2);
+        let names = |v: &[(String, String)]| v.iter().map(|(n, _)| n.clone()).collect::<Vec<_>>();
+        assert_eq!(
+            names(&only_scenes(all.clone(), &[]).unwrap_or_default()),
+            names(&all)
+        );
+        let pick = vec![all[1].0.clone()];
+        assert_eq!(
+            names(&only_scenes(all.clone(), &pick).unwrap_or_default()),
+            pick
+        );
+        let err = only_scenes(all.clone(), &["nope".to_owned()])
+            .err()
+            .map(|e| e.to_string())
+            .unwrap_or_default();
+        assert!(
+            err.contains("--scene nope") && err.contains(&all[0].0),
+            "{err}"
+        );
     }
 }
