@@ -267,8 +267,8 @@ impl Shard {
 
     /// Bytes [`heap_bytes`](Self::heap_bytes) may grow by when the next world is inserted,
     /// beyond that world's own: vectors doubling their capacity (the world table, each
-    /// hierarchy's pending list) and a hierarchy block being built. Counted against the store's cap before
-    /// a world is admitted ([`crate::Assembler::set_index_bytes`]).
+    /// hierarchy's pending list) and a hierarchy block being built. Counted against the store's
+    /// cap before a world is admitted ([`crate::Assembler::set_index_bytes`]).
     pub fn growth_bytes(&self) -> usize {
         let table = if self.worlds.len() >= self.worlds.capacity() {
             self.worlds.capacity().max(4) * std::mem::size_of::<Option<IndexedWorld>>()
