@@ -653,8 +653,8 @@ fn on_every_shard(shards: &[Shard], f: impl Fn(&Shard) -> WorldSet + Sync) -> Wo
 }
 
 /// One request of the bench's session (edit number `seq`) to every shard at once, as
-/// node-query sends it; the first shard's reply (the bench reads none of them).
-fn send(shards: &mut [Shard], seq: u64, request: Request) -> Result<Reply> {
+/// node-query sends it; an error if any shard refused it (the bench reads no reply).
+fn send(shards: &mut [Shard], seq: u64, request: Request) -> Result<()> {
     let edit = request.is_edit();
     let ask = |shard: &mut Shard| match shard.handle(&ShardRequest {
         session: "bench".into(),
@@ -665,10 +665,10 @@ fn send(shards: &mut [Shard], seq: u64, request: Request) -> Result<Reply> {
             reply: Reply::Error { message },
             ..
         } => bail!("{message}"),
-        ShardReply::Ok { reply, .. } => Ok(reply),
+        ShardReply::Ok { .. } => Ok(()),
         ShardReply::OutOfSync { edits } => bail!("bench session out of sync at {edits}"),
     };
-    let replies: Vec<Result<Reply>> = if let [one] = shards {
+    let replies: Vec<Result<()>> = if let [one] = shards {
         vec![ask(one)]
     } else {
         std::thread::scope(|s| {
@@ -679,10 +679,7 @@ fn send(shards: &mut [Shard], seq: u64, request: Request) -> Result<Reply> {
                 .collect()
         })
     };
-    replies
-        .into_iter()
-        .next()
-        .unwrap_or_else(|| bail!("no shard"))
+    replies.into_iter().collect()
 }
 
 /// The process's resident set (`VmRSS`), bytes; 0 where /proc is not there to ask.
