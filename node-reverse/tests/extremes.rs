@@ -1,6 +1,7 @@
 //! The extremes matrix (issue 19) for our own LCP stepper, smaller than the sampler's
 //! (node-sampler/tests/extremes.rs): mass ratio 1e4 both ways, a 1 mm and a 1 km box, 1000 m/s
-//! at a 0.1 m wall, restitution 0 and 1, friction 0 and 10, 100 bodies, a 10-box stack.
+//! at a 0.1 m wall, restitution 0 and 1 over 60 s, friction 0 and 10, a 27-box pile, 1 000
+//! bodies, a 10-box stack (taller ones are measured, not run: see `a_10_box_stack`).
 //!
 //! For each: forward steps with the number of islands whose LCP was not solved (failures), no
 //! non-finite state, no energy gained; and a backward run whose every step is replayed forward
@@ -149,6 +150,14 @@ fn report(name: &str, f: &Forward, r: &RoundTrip) {
     );
 }
 
+/// The lowest body centre's height (m).
+fn lowest_centre(w: &World) -> f64 {
+    w.bodies
+        .iter()
+        .map(|b| b.position.z)
+        .fold(f64::INFINITY, f64::min)
+}
+
 fn two_boxes(lower: f64, upper: f64) -> World {
     let mut w = World::new();
     w.add_static(ground(MAT));
@@ -243,7 +252,7 @@ fn fast_balls_pass_through_a_thin_wall() {
     }
 }
 
-/// A ball dropped from 1 m, 20 s: restitution 0 never leaves the ground again; restitution 1
+/// A ball dropped from 1 m, 60 s: restitution 0 never leaves the ground again; restitution 1
 /// bounces back to 1 m every time (unlike rapier, which loses 1.1 % per bounce), with no energy
 /// gained.
 #[test]
@@ -268,7 +277,7 @@ fn restitution_0_and_1() {
             ..Forward::default()
         };
         f.energy_max = f.energy0;
-        for _ in 0..(20.0 / DT) as usize {
+        for _ in 0..(60.0 / DT) as usize {
             let step = w.step_forward(DT);
             f.steps += 1;
             f.failures += usize::from(!step.all_solved());
@@ -288,7 +297,7 @@ fn restitution_0_and_1() {
         if e == 0.0 {
             assert!(apexes.is_empty(), "{name}: {apexes:?}");
         } else {
-            assert!(apexes.len() >= 20, "{name}");
+            assert!(apexes.len() >= 60, "{name}");
             // The apex is sampled at 1/240 s: within g Δt² / 8 plus round-off of 1 m.
             for (k, a) in apexes.iter().enumerate() {
                 assert!((a - 1.0).abs() < 1e-3, "{name}: apex {k} = {a}");
@@ -347,11 +356,7 @@ fn a_pile_of_27_boxes() {
         ));
     }
     let f = forward(&mut w, 240);
-    let lowest = w
-        .bodies
-        .iter()
-        .map(|b| b.position.z)
-        .fold(f64::INFINITY, f64::min);
+    let lowest = lowest_centre(&w);
     let r = round_trip(&mut w, 24);
     report(&format!("27-box pile (lowest centre {lowest:.4})"), &f, &r);
     assert!(lowest > 0.09, "a box sank: {lowest}");
@@ -375,7 +380,49 @@ const PILE_FAILURES: usize = 68;
 const PILE_VEL: f64 = 0.1;
 const PILE_POS: f64 = 2e-3;
 
-/// Ten boxes stacked, 2 s: hard contacts, no sag (rapier's soft ones sag 23 mm).
+/// A thousand bodies, 1 s: 500 balls (restitution 0.5) and 500 boxes dropped 0–6 mm above
+/// their rest height in a 32 × 32 grid, apart from each other, so every step solves about a
+/// thousand small islands. Nothing sinks further than one step's travel, no island fails, no
+/// energy is gained, and the backward steps from the settled grid replay exactly.
+#[test]
+fn a_thousand_bodies() {
+    let bouncy = Material {
+        friction: 0.3,
+        restitution: 0.5,
+    };
+    let mut w = World::new();
+    w.add_static(ground(bouncy));
+    for i in 0..1000 {
+        let at = Vector3::new(
+            0.3 * (i % 32) as f64,
+            0.3 * (i / 32) as f64,
+            0.1 + 0.001 * (i % 7) as f64,
+        );
+        let body = if i % 2 == 0 {
+            Body::ball(0.1, 1000.0).expect("positive radius")
+        } else {
+            Body::cuboid(Vector3::new(0.1, 0.1, 0.1), 1000.0).expect("positive extents")
+        };
+        w.add_body(
+            body.with_material(bouncy)
+                .at(at, UnitQuaternion::identity()),
+        );
+    }
+    let f = forward(&mut w, 240);
+    let lowest = lowest_centre(&w);
+    // No position correction: an impact step's overlap stays, within one step's travel at the
+    // impact speed (6 mm drop: 0.36 m/s, 1.5 mm a step; measured 0.13 mm).
+    let travel = ((2.0 * 9.81 * 0.006f64).sqrt() + 9.81 * DT) * DT;
+    assert!(lowest > 0.1 - travel, "a body sank: lowest centre {lowest}");
+    let r = round_trip(&mut w, 24);
+    assert_clean(&format!("1 000 bodies (lowest centre {lowest:.6})"), &f, &r);
+}
+
+/// Ten boxes stacked, 2 s: hard contacts, no sag (rapier's soft ones sag 23 mm). Taller stacks
+/// are measured, not run here (release build, docs/fidelity.md): 20 boxes hold at 18 ms a
+/// step; from 30 the pivoting solver starts failing the column's island (four coplanar corner
+/// rows per face make its LCP degenerate), and a 50-box stack takes 7.7 s a step with 10 of 24
+/// steps unsolved — it still stands, sag 3e-11 m.
 #[test]
 fn a_10_box_stack() {
     let mut w = World::new();
