@@ -164,6 +164,10 @@ pub struct ScenePlausibility {
     /// ([`crate::plausible::Clause`]): faster than a fall, fell from too high, sank in. Why a
     /// scene falls short, in one look.
     pub implausible_by_clause: [usize; 3],
+    /// Fraction of the bodies (over all its worlds) whose earliest position is at least
+    /// [`MOVED_M`] from the given one: what the backward run did. A world in which nothing
+    /// leaves rest is plausible and useless; this says how much of the fraction is that.
+    pub moved_fraction: f64,
     /// Median and 95th percentile of energy growth (m).
     pub energy_growth_p50: f64,
     /// See `energy_growth_p50`.
@@ -231,6 +235,10 @@ fn in_any_cell(
         })
 }
 
+/// How far (m) a body must end up from its given position to count in
+/// [`ScenePlausibility::moved_fraction`]: half the shipped scenes' smallest body.
+pub const MOVED_M: f64 = 0.05;
+
 /// Samples `worlds` worlds of one prepared scene; `t` started before its preparation.
 fn scene_plausibility(
     name: &str,
@@ -245,8 +253,18 @@ fn scene_plausibility(
     };
     let (mut plausible, mut excess, mut growth, mut spin) = (0, vec![], vec![], vec![]);
     let mut by_clause = [0; 3];
+    let (mut moved, mut bodies) = (0usize, 0usize);
     for k in 0..worlds as u64 {
         let run = run_world(scene, seed.wrapping_add(k)).map_err(err)?;
+        if let (Some(first), Some(last)) = (run.frames.first(), run.frames.get(run.join)) {
+            bodies += last.poses.len();
+            moved += first
+                .poses
+                .iter()
+                .zip(&last.poses)
+                .filter(|(a, b)| (a.position - b.position).norm() >= MOVED_M)
+                .count();
+        }
         let r = &run.report;
         plausible += usize::from(r.plausibility.plausible);
         if !r.plausibility.plausible {
@@ -265,6 +283,11 @@ fn scene_plausibility(
         },
         excess_p50: median(excess),
         implausible_by_clause: by_clause,
+        moved_fraction: if bodies > 0 {
+            moved as f64 / bodies as f64
+        } else {
+            f64::NAN
+        },
         energy_growth_p50: median(growth.clone()),
         energy_growth_p95: percentile(growth, 0.95),
         angular_speed_peak_p95: percentile(spin, 0.95),

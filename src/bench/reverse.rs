@@ -110,6 +110,9 @@ pub struct ReverseLine {
     pub implausible_by_clause: BTreeMap<String, BTreeMap<String, usize>>,
     /// Per scene, how many worlds were sampled.
     pub plausible_worlds: BTreeMap<String, usize>,
+    /// Per scene, the fraction of its bodies (over all worlds) that end at least 5 cm from
+    /// their given position: how much the backward worlds do.
+    pub moved_fraction: BTreeMap<String, f64>,
     pub ratio: f64,
     pub roundtrip_departed_fraction: f64,
     pub roundtrip_max_rel_err: f64,
@@ -145,6 +148,7 @@ impl From<ReverseBench> for ReverseLine {
             lorem_plausible: lorem.map(|l| l.plausible),
             lorem_seconds: lorem.map(|l| l.seconds),
             lorem_steps: lorem.map(|l| l.steps),
+            moved_fraction: by_scene(|s| s.moved_fraction),
             plausible_excess_p50: by_scene(|s| s.excess_p50),
             plausible_fraction: by_scene(|s| s.plausible_fraction),
             implausible_by_clause: b
