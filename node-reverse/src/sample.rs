@@ -106,10 +106,16 @@ impl ReverseScene {
     /// The run goes back `[settings] end_time` seconds with the scene's `dt`, the default §5.3
     /// heuristics, and without the per-step departure measurement (it costs a forward step per
     /// step; `mwb bench reverse` measures it). The scene's `[reverse]` table, if any, sets the
-    /// user hints and the mode ([`crate::settings_toml`]).
+    /// user hints, the mode and the energy budget ([`crate::settings_toml`]).
     pub fn prepare(text: &str, file: &str) -> Result<Self, SampleError> {
-        let (template, ReverseTable { mode, hints }) =
-            parse_reverse_scene(text, file).map_err(SceneConvertError::from)?;
+        let (
+            template,
+            ReverseTable {
+                mode,
+                hints,
+                energy_budget,
+            },
+        ) = parse_reverse_scene(text, file).map_err(SceneConvertError::from)?;
         let s = template.settings();
         for (name, value) in [("dt", s.dt), ("end_time", s.end_time)] {
             if !(value.is_finite() && value > 0.0) {
@@ -122,7 +128,7 @@ impl ReverseScene {
             ..ChainLearning::default()
         };
         let chain = ContactChain::learn(&world, &learning, CHAIN_SEED);
-        let settings = ReverseSettings {
+        let mut settings = ReverseSettings {
             dt: s.dt,
             duration: s.end_time,
             chain: Some(chain),
@@ -130,6 +136,9 @@ impl ReverseScene {
             measure_departure: false,
             ..ReverseSettings::default()
         };
+        if let Some(b) = energy_budget {
+            settings.heuristics.energy_budget = Some(b);
+        }
         Ok(Self {
             template,
             settings,

@@ -1,12 +1,15 @@
 //! The optional `[reverse]` table of a reverse scene: how the scene's state is used (the last
-//! frame of a backward run, or the intermediate frame of a mixed run, §5.4.4) and per-body user
-//! hints (Figure 5.10), mapped onto [`UserHint`] / [`HintMotion`].
+//! frame of a backward run, or the intermediate frame of a mixed run, §5.4.4), the energy
+//! budget, and per-body user hints (Figure 5.10), mapped onto [`UserHint`] / [`HintMotion`].
 //!
 //! ```toml
 //! [reverse]
 //! mode = "mixed"        # "backward" (default): the state is the LAST frame, the run goes back
 //!                       # [settings] end_time; "mixed": the state is an intermediate frame,
 //! forward_time = 1.5    # reached after end_time s of backward run and left for forward_time s
+//! energy_budget = 0.1   # 0–1 of the plausibility allowance (default 0): energy a body may
+//!                       # gain beyond what a fall or its lift-off explains; more leaves rest
+//!                       # more often, less is plausible more often (run::Heuristics)
 //!
 //! [[reverse.hint]]
 //! body = "M0"               # a [[body]] name (generator instances: "name[i,j,k]")
@@ -80,9 +83,14 @@ pub struct ReverseTable {
     pub mode: RunMode,
     /// User hints by body index (scene body order), for [`crate::ReverseSettings::hints`].
     pub hints: BTreeMap<usize, UserHint>,
+    /// `energy_budget`: the energy budget heuristic's fraction of the plausibility allowance
+    /// ([`crate::run::Heuristics::energy_budget`]), in [0, 1]; `None`: the default
+    /// ([`crate::run::DEFAULT_ENERGY_BUDGET`]). More lets bodies gain height they cannot
+    /// explain, and so leave rest more (lorem's balls leave their bins), at plausibility's cost.
+    pub energy_budget: Option<f64>,
 }
 
-const TABLE_KEYS: &[&str] = &["mode", "forward_time", "hint"];
+const TABLE_KEYS: &[&str] = &["mode", "forward_time", "energy_budget", "hint"];
 const HINT_KEYS: &[&str] = &["body", "motion", "direction", "release_before_end"];
 const MOTIONS: &str = "\"free\", \"slide\", \"bounce\" or \"stay\"";
 
@@ -220,6 +228,7 @@ fn motion_of(part: Table<'_>) -> Result<RawHint<'_>, SceneError> {
 /// The `[reverse]` table as written: mode, forward time and unresolved hints.
 struct RawTable<'a> {
     mode: RunMode,
+    energy_budget: Option<f64>,
     hints: Vec<RawHint<'a>>,
 }
 
@@ -272,6 +281,20 @@ fn raw_table<'a>(src: Source<'a>, v: &'a Value<'a>) -> Result<RawTable<'a>, Scen
             ));
         }
     };
+    let energy_budget = match number(&part, "energy_budget")? {
+        None => None,
+        Some((b, _)) if (0.0..=1.0).contains(&b) => Some(b),
+        Some((b, span)) => {
+            return Err(part.err(
+                "energy_budget",
+                span,
+                format!(
+                    "must be in [0, 1] (a fraction of the {} m plausibility allowance), found {b}",
+                    crate::plausible::PLAUSIBILITY_ALLOWANCE_M
+                ),
+            ));
+        }
+    };
     let mut hints = Vec::new();
     if let Some(h) = part.get("hint") {
         let DeValue::Array(items) = h.get_ref() else {
@@ -299,7 +322,11 @@ fn raw_table<'a>(src: Source<'a>, v: &'a Value<'a>) -> Result<RawTable<'a>, Scen
             hints.push(motion_of(hint)?);
         }
     }
-    Ok(RawTable { mode, hints })
+    Ok(RawTable {
+        mode,
+        energy_budget,
+        hints,
+    })
 }
 
 /// Parses a reverse scene: the ordinary scene (`docs/scene-format.md`) plus the optional
@@ -383,6 +410,7 @@ fn resolve(template: &SceneTemplate, raw: RawTable<'_>) -> Result<ReverseTable, 
     Ok(ReverseTable {
         mode: raw.mode,
         hints,
+        energy_budget: raw.energy_budget,
     })
 }
 
@@ -423,6 +451,7 @@ mod tests {
 [reverse]
 mode = "mixed"
 forward_time = 1.5
+energy_budget = 0.25
 
 [[reverse.hint]]
 body = "M0"
@@ -445,6 +474,7 @@ release_before_end = 1
         )
         .unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(table.mode, RunMode::Mixed { forward_time: 1.5 });
+        assert_eq!(table.energy_budget, Some(0.25));
         let want = [
             (0, HintMotion::Slide(Vector3::new(1.0, 0.5, 0.0)), 0.5),
             (1, HintMotion::Free, 1.0),
@@ -469,6 +499,7 @@ release_before_end = 1
         .unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(t.mode, RunMode::Backward);
         assert_eq!(t.hints.len(), 1);
+        assert_eq!(t.energy_budget, None, "the default budget unless written");
     }
 
     #[test]
@@ -544,6 +575,24 @@ release_before_end = 1
                 "[reverse]\nforward_time = 1".into(),
                 "forward_time",
                 "only a mixed run",
+            ),
+            (
+                "energy_budget negative",
+                "[reverse]\nenergy_budget = -0.1".into(),
+                "energy_budget",
+                "must be in [0, 1]",
+            ),
+            (
+                "energy_budget above the allowance",
+                "[reverse]\nenergy_budget = 2".into(),
+                "energy_budget",
+                "must be in [0, 1]",
+            ),
+            (
+                "energy_budget text",
+                "[reverse]\nenergy_budget = \"some\"".into(),
+                "energy_budget",
+                "expected a number",
             ),
             (
                 "unknown key",

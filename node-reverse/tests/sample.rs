@@ -348,6 +348,21 @@ fn a_slide_hint_brings_the_body_in_along_its_direction() {
 }
 
 #[test]
+fn the_scene_energy_budget_reaches_the_run() {
+    let plain = prepare(&word(1.0));
+    assert_eq!(
+        plain.settings().heuristics.energy_budget,
+        Some(mwb_reverse::run::DEFAULT_ENERGY_BUDGET)
+    );
+    let loose = prepare(&format!("{}\n[reverse]\nenergy_budget = 1\n", word(1.0)));
+    assert_eq!(loose.settings().heuristics.energy_budget, Some(1.0));
+    // A looser budget takes fewer steps again, so some seed's world differs.
+    let differs = (1u64..=4)
+        .any(|seed| positions(&sample(&plain, seed).0) != positions(&sample(&loose, seed).0));
+    assert!(differs, "energy_budget = 1 changed no world of four");
+}
+
+#[test]
 fn a_bad_reverse_table_is_refused_before_any_world() {
     let text = format!("{}\n[reverse]\nmode = \"both\"\n", word(0.5));
     match ReverseScene::prepare(&text, "word.toml") {
