@@ -236,7 +236,8 @@ fn in_any_cell(
 }
 
 /// How far (m) a body must end up from its given position to count in
-/// [`ScenePlausibility::moved_fraction`]: half the shipped scenes' smallest body.
+/// [`ScenePlausibility::moved_fraction`]: more than the shipped scenes' smallest body (a ball of
+/// 2 cm radius) is across, so a rattle in place does not count.
 pub const MOVED_M: f64 = 0.05;
 
 /// Samples `worlds` worlds of one prepared scene; `t` started before its preparation.
