@@ -9,7 +9,7 @@ use mwb_core::browse::api::{
     WorldSummary, merge_bodies,
 };
 use mwb_core::browse::{
-    BrowseError, Constraint, ConstraintId, ConstraintSet, ObjectMetrics, Quantifier, RankKey,
+    BrowseError, Constraint, ConstraintId, ConstraintSet, PackedMetrics, Quantifier, RankKey,
     RegionCache, Scope, WorldSet, top_k_counted,
 };
 use mwb_proto::v1::PathBatch;
@@ -293,7 +293,7 @@ impl Shard {
             .sum();
         let metrics: usize = worlds
             .clone()
-            .map(|w| w.metrics.capacity() * std::mem::size_of::<ObjectMetrics>())
+            .map(|w| w.metrics.capacity() * std::mem::size_of::<PackedMetrics>())
             .sum();
         let total = self.heap_bytes();
         let hierarchies = self.bvh.iter().map(PathBvh::heap_bytes).sum::<usize>();
@@ -721,7 +721,7 @@ impl Shard {
                     frame_dt: w.frame_dt,
                     rested: w.rested,
                     bodies: w.bodies.to_vec(),
-                    objects: w.metrics.clone(),
+                    objects: w.metrics.iter().map(PackedMetrics::unpack).collect(),
                     path_radius: w.objects.iter().map(|o| o.radius).collect(),
                     world_metrics: w.world_metrics,
                     constraints_satisfied: set.satisfied_count(w.world),
@@ -823,6 +823,7 @@ fn status_of(set: &ConstraintSet, edits: u64) -> SessionStatus {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use mwb_core::browse::ObjectMetrics;
     use mwb_core::browse::api::SceneBodies;
     use mwb_core::browse::api::merge;
     use mwb_core::browse::{
@@ -843,14 +844,14 @@ mod tests {
             rested: true,
             bodies: std::sync::Arc::from(vec!["box".to_owned()]),
             objects: vec![IndexedObject::new(&path, 0.5, 0.001).unwrap_or_else(|e| panic!("{e}"))],
-            metrics: vec![ObjectMetrics {
+            metrics: vec![PackedMetrics::pack(&ObjectMetrics {
                 angular_travel_rad: spin,
                 time_to_rest_s: 1.0,
                 came_to_rest: true,
                 impacts: 0,
                 orientation_error_rad: 0.0,
                 final_rotation: [0.0, 0.0, 0.0, 1.0],
-            }],
+            })],
             world_metrics: Default::default(),
             refined: None,
         }
@@ -1414,7 +1415,9 @@ mod tests {
         let mut shard = Shard::new(ShardSpec::default(), "a");
         shard.insert(world(0, 0.0, 1.0));
         let mut moving = world(1, 3.0, 2.0);
-        moving.metrics[0].came_to_rest = false;
+        let mut m = moving.metrics[0].unpack();
+        m.came_to_rest = false;
+        moving.metrics[0] = PackedMetrics::pack(&m);
         shard.insert(moving);
         for (seq, req, what) in [
             (1, Request::Redo, "nothing to redo"),

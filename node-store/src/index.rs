@@ -7,8 +7,8 @@ use crate::assembly::StoredWorld;
 use mwb_codec::WorldReader;
 use mwb_core::browse::api::{RefineStep, Refined};
 use mwb_core::browse::{
-    ALL_PLANES, Frustum, ObjectMetrics, Polyline, RestThresholds, TimeWindow, Track, WorldMetrics,
-    rest_entry, segment_entry,
+    ALL_PLANES, Frustum, ObjectMetrics, PackedMetrics, Polyline, RestThresholds, TimeWindow, Track,
+    WorldMetrics, rest_entry, segment_entry,
 };
 use mwb_proto::v1::{Encoding, IndexedPaths, Job, MotionSegment, ObjectPath};
 use std::sync::Arc;
@@ -508,8 +508,9 @@ pub struct IndexedWorld {
     /// Body names in object-index order, shared by every world of the job; empty if unknown.
     pub bodies: Arc<[String]>,
     pub objects: Vec<IndexedObject>,
-    /// Per object, the §4.4.3 ranking metrics (a slice, as rankings combine them).
-    pub metrics: Vec<ObjectMetrics>,
+    /// Per object, the §4.4.3 ranking metrics (a slice, as rankings combine them), in f32
+    /// ([`PackedMetrics`]: 36 bytes an object instead of 64).
+    pub metrics: Vec<PackedMetrics>,
     /// Per-world measurements from the world's summary (plausibility of backward worlds).
     pub world_metrics: WorldMetrics,
     /// A refined world's lineage (§4.5); `None` for sampled worlds.
@@ -521,7 +522,7 @@ impl IndexedWorld {
     pub fn heap_bytes(&self) -> usize {
         self.job_id.capacity()
             + self.objects.capacity() * std::mem::size_of::<IndexedObject>()
-            + self.metrics.capacity() * std::mem::size_of::<ObjectMetrics>()
+            + self.metrics.capacity() * std::mem::size_of::<PackedMetrics>()
             + self
                 .objects
                 .iter()
@@ -792,7 +793,7 @@ pub fn index_world(
         let exact = round_radius(e_max + object.polyline().max_deviation_from(&full));
         object.radius = object.radius.min(exact);
         objects.push(object);
-        all_metrics.push(metrics);
+        all_metrics.push(PackedMetrics::pack(&metrics));
     }
     Ok(IndexedWorld {
         world,

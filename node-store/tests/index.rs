@@ -82,10 +82,14 @@ fn index_never_misses_a_simulated_path_and_keeps_the_samplers_metrics() {
                 "{scene} {b}: {}",
                 obj.radius
             );
-            let m = &w.metrics[b];
+            let m = &w.metrics[b].unpack();
             assert_eq!(m.impacts, stored.done.impacts[b]);
-            assert_eq!(m.time_to_rest_s, stored.done.rest_time_s[b]);
-            assert!(m.time_to_rest_s <= f64::from(stored.done.frame_count) * dt + 1e-9);
+            // The sampler's own rest time, as the store keeps it (f32, `PackedMetrics`).
+            assert_eq!(
+                m.time_to_rest_s,
+                f64::from(stored.done.rest_time_s[b] as f32)
+            );
+            assert!(m.time_to_rest_s <= f64::from(stored.done.frame_count) * dt + 1e-6);
             assert!(m.angular_travel_rad >= 0.0 && m.orientation_error_rad <= std::f64::consts::PI);
             let full =
                 Polyline::uniform(0.0, dt, truth[b].clone()).unwrap_or_else(|e| panic!("{e}"));

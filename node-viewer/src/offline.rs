@@ -100,7 +100,11 @@ pub fn sample_one(template: &SceneTemplate, i: u32) -> Result<WorldData, ViewerE
         }
     })?;
     let mut world = WorldData::from_paths(&indexed.paths_message())?;
-    world.metrics = indexed.metrics;
+    world.metrics = indexed
+        .metrics
+        .iter()
+        .map(mwb_core::browse::PackedMetrics::unpack)
+        .collect();
     let motion = Motion::decode(template.instantiate(seed), &stored.message())?;
     world.motion = Some(Arc::new(motion));
     Ok(world)

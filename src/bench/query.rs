@@ -431,7 +431,7 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
     }
     let (file, text) = crate::client::load_scene(&opts.scene)?;
     let (pool, motion) = sample_pool(&file, &text, 24, opts.path_tolerance_m)?;
-    let pool_objects: Vec<(&IndexedObject, mwb_core::browse::ObjectMetrics)> = pool
+    let pool_objects: Vec<(&IndexedObject, mwb_core::browse::PackedMetrics)> = pool
         .iter()
         .flat_map(|w| w.objects.iter().zip(w.metrics.iter().copied()))
         .collect();

@@ -91,8 +91,8 @@ pub use frustum::{
 };
 pub use geom::{Quat, Vec3, quat_angle_between};
 pub use metrics::{
-    Aggregate, Metric, ObjectMetrics, Order, RankKey, Ranked, RestThresholds, Track, WorldMetric,
-    WorldMetrics, merge_top_k, score, top_k, top_k_counted,
+    Aggregate, Metric, MetricValues, ObjectMetrics, Order, PackedMetrics, RankKey, Ranked,
+    RestThresholds, Track, WorldMetric, WorldMetrics, merge_top_k, score, top_k, top_k_counted,
 };
 pub use path::{
     MAX_TREE_DEPTH, MIN_SPLIT_SEGMENTS, Obb, PathTree, Polyline, rest_entry, segment_entry,

@@ -392,3 +392,59 @@ fn time_to_rest_has_no_value_for_bodies_still_moving_and_those_sort_last() {
     });
     assert_eq!((rows[0].world, unscored), (0, 2));
 }
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 256, ..ProptestConfig::default() })]
+
+    /// Packing keeps each value to f32 rounding (half an ulp of it), the counts and the flag
+    /// exactly; unpacking and packing again changes nothing.
+    #[test]
+    fn packed_metrics_round_to_f32_and_nothing_else(
+        travel in 0.0f64..1e4,
+        rest in 0.0f64..600.0,
+        came in any::<bool>(),
+        impacts in any::<u32>(),
+        err in 0.0f64..std::f64::consts::PI,
+        q in prop::array::uniform4(-1.0f64..1.0),
+    ) {
+        let m = ObjectMetrics {
+            angular_travel_rad: travel,
+            time_to_rest_s: rest,
+            came_to_rest: came,
+            impacts,
+            orientation_error_rad: err,
+            final_rotation: q,
+        };
+        let p = PackedMetrics::pack(&m);
+        let u = p.unpack();
+        let close = |a: f64, b: f64| (a - b).abs() <= a.abs() * f64::from(f32::EPSILON) / 2.0;
+        prop_assert!(close(travel, u.angular_travel_rad));
+        prop_assert!(close(rest, u.time_to_rest_s));
+        prop_assert!(close(err, u.orientation_error_rad));
+        for (a, b) in q.iter().zip(u.final_rotation) {
+            prop_assert!(close(*a, b));
+        }
+        prop_assert_eq!(u.came_to_rest, came);
+        prop_assert_eq!(u.impacts, impacts);
+        prop_assert_eq!(PackedMetrics::pack(&u), p);
+        // A ranking reads the packed values as it would the unpacked ones.
+        for metric in [
+            Metric::AngularTravel,
+            Metric::TimeToRest,
+            Metric::Impacts,
+            Metric::OrientationError,
+        ] {
+            prop_assert_eq!(MetricValues::get(&p, metric), u.get(metric));
+            let key = RankKey::Metric { metric, objects: vec![0, 0], aggregate: Aggregate::Sum };
+            let world = WorldMetrics::default();
+            prop_assert_eq!(key.score_with(&[p], &world, 0), key.score_with(&[u], &world, 0));
+        }
+        prop_assert_eq!(MetricValues::final_rotation(&p), u.final_rotation);
+    }
+}
+
+#[test]
+fn packed_metrics_take_36_bytes() {
+    assert!(std::mem::size_of::<PackedMetrics>() <= 36);
+    assert_eq!(std::mem::size_of::<ObjectMetrics>(), 64);
+}
