@@ -66,8 +66,8 @@ fn identity() -> Quat {
 
 /// [`ObjectMetrics`] as a store keeps it: every value in f32, 36 bytes against 64 (a million
 /// 10-object worlds: 280 MB less). f32 keeps 24 bits: a rest time of 10 s to 1 µs, an angle to
-/// 1e-7 of itself, far below any difference a ranking can show an animator. Rankings unpack it
-/// ([`PackedMetrics::unpack`]) and score the f64 values as before.
+/// 1e-7 of itself, far below any difference a ranking can show an animator. Rankings read it in
+/// place through [`MetricValues`], as the unpacked f64 values ([`PackedMetrics::unpack`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PackedMetrics {
     angular_travel_rad: f32,
@@ -92,6 +92,7 @@ impl PackedMetrics {
     }
 
     /// The metrics back, in f64 (each the f32 it was rounded to).
+    #[inline]
     pub fn unpack(&self) -> ObjectMetrics {
         ObjectMetrics {
             angular_travel_rad: f64::from(self.angular_travel_rad),
@@ -123,22 +124,14 @@ impl MetricValues for ObjectMetrics {
 }
 
 impl MetricValues for PackedMetrics {
+    /// [`ObjectMetrics::get`] of the unpacked values (inlined, the conversions a metric does not
+    /// read are dropped).
+    #[inline]
     fn get(&self, metric: Metric) -> Option<f64> {
-        match metric {
-            Metric::AngularTravel => Some(f64::from(self.angular_travel_rad)),
-            Metric::TimeToRest => self.came_to_rest.then_some(f64::from(self.time_to_rest_s)),
-            Metric::Impacts => Some(f64::from(self.impacts)),
-            Metric::OrientationError => Some(f64::from(self.orientation_error_rad)),
-        }
+        self.unpack().get(metric)
     }
     fn final_rotation(&self) -> Quat {
         self.final_rotation.map(f64::from)
-    }
-}
-
-impl From<&ObjectMetrics> for PackedMetrics {
-    fn from(m: &ObjectMetrics) -> Self {
-        Self::pack(m)
     }
 }
 
