@@ -403,7 +403,7 @@ fn from_recording(path: &Path, indices: &[u32], scene_arg: Option<&str>) -> Resu
         };
         let job = table.jobs().find(|(j, _)| j.id == w.job_id).map(|(j, _)| j);
         let source = scene_source(&user, job, &lacking);
-        out.push(load_world(Some(index), &w.message(), source)?);
+        out.push(load_world(Some(index), &w.message()?, source)?);
     }
     Ok(out)
 }

@@ -23,39 +23,162 @@ use std::collections::{BTreeMap, HashMap, HashSet};
 use std::sync::Arc;
 
 /// A complete world held in memory.
+///
+/// Its summary and segments are kept as their wire encoding, back to back in one heap block
+/// (each prefixed with its length, the segments without the job and sampler ids, which are
+/// the summary's), and decoded when asked for ([`done`](Self::done),
+/// [`segments`](Self::segments), [`message`](Self::message)): a store holds a million worlds
+/// and reads one now and then. Held as decoded structs, a tumble world's motion took 1.85 kB
+/// of memory beyond its codec payloads (three 216-byte segment structs, a 368-byte summary, the
+/// ids copied into each, a heap block for every string and list); held encoded, a few hundred.
 #[derive(Debug, Clone, PartialEq)]
 pub struct StoredWorld {
     /// Global index: dense per shard, `local × shard count + shard index` (bitsets in the
     /// browsing layer are over these).
     pub index: u32,
     pub job_id: String,
-    pub done: WorldDone,
-    /// In order, `seq` 0..n.
-    pub segments: Vec<MotionSegment>,
-    /// Encoded size of the segments and the summary.
+    /// Encoded size of the segments and the summary, as received.
     pub bytes: u64,
     /// A refined world stored as a difference from its parent (§4.5; see
     /// [`StoredWorld::is_layered`]): the parent, held here for as long as this world is, so a
     /// parent of a live refined world is never dropped.
     pub parent: Option<Arc<StoredWorld>>,
+    /// The summary, then the segments in order (`seq` from `first_segment` on), each
+    /// length-delimited.
+    encoded: Box<[u8]>,
+    segment_count: u32,
+    /// Bodies the summary counts impacts for (a difference's parent must have as many).
+    bodies: u32,
+    layered: bool,
 }
 
+/// A stored world's own encoding did not decode: only a bug (or memory corruption) can cause
+/// this, since the store encoded it itself.
+#[derive(Debug, thiserror::Error, PartialEq)]
+#[error("stored world {world}: its encoding does not decode ({what})")]
+pub struct StoredDecodeError {
+    pub world: u32,
+    pub what: String,
+}
+
+/// What the allocator adds to each heap block beyond the bytes asked for (glibc: an 8-byte
+/// header and rounding to 16 bytes; 16 on average for the small blocks a world is made of).
+pub const ALLOC_OVERHEAD: u64 = 16;
+
 impl StoredWorld {
+    /// A world of `done` and its `segments` (in order), `bytes` their encoded size as
+    /// received, kept encoded.
+    pub fn new<'s>(
+        index: u32,
+        job_id: String,
+        done: &WorldDone,
+        segments: impl IntoIterator<Item = &'s MotionSegment>,
+        bytes: u64,
+        parent: Option<Arc<StoredWorld>>,
+    ) -> Self {
+        let mut encoded = Vec::with_capacity(done.encoded_len() + 10);
+        // Encoding into a Vec only fails when it runs out of room, which a Vec never does.
+        let _ = done.encode_length_delimited(&mut encoded);
+        let (mut count, mut layered) = (0u32, done.first_segment > 0);
+        for s in segments {
+            let bare = MotionSegment {
+                job_id: String::new(),
+                node_id: String::new(),
+                ..s.clone()
+            };
+            let _ = bare.encode_length_delimited(&mut encoded);
+            count += 1;
+            layered |= !s.bodies.is_empty();
+        }
+        StoredWorld {
+            index,
+            job_id,
+            bytes,
+            parent,
+            encoded: encoded.into_boxed_slice(),
+            segment_count: count,
+            bodies: done.impacts.len() as u32,
+            layered,
+        }
+    }
+
+    fn decode_error(&self, e: prost::DecodeError) -> StoredDecodeError {
+        StoredDecodeError {
+            world: self.index,
+            what: e.to_string(),
+        }
+    }
+
+    /// The world's summary.
+    pub fn done(&self) -> Result<WorldDone, StoredDecodeError> {
+        WorldDone::decode_length_delimited(&self.encoded[..]).map_err(|e| self.decode_error(e))
+    }
+
+    /// The summary and the segments, in order, with their ids as they came.
+    pub fn decode(&self) -> Result<(WorldDone, Vec<MotionSegment>), StoredDecodeError> {
+        let mut buf = &self.encoded[..];
+        let done =
+            WorldDone::decode_length_delimited(&mut buf).map_err(|e| self.decode_error(e))?;
+        let mut segments = Vec::with_capacity(self.segment_count as usize);
+        for _ in 0..self.segment_count {
+            let mut s = MotionSegment::decode_length_delimited(&mut buf)
+                .map_err(|e| self.decode_error(e))?;
+            s.job_id.clone_from(&done.job_id);
+            s.node_id.clone_from(&done.node_id);
+            segments.push(s);
+        }
+        Ok((done, segments))
+    }
+
+    /// The world's segments, in order, with their ids as they came.
+    pub fn segments(&self) -> Result<Vec<MotionSegment>, StoredDecodeError> {
+        self.decode().map(|(_, segments)| segments)
+    }
+
+    /// Segments held.
+    pub fn segment_count(&self) -> usize {
+        self.segment_count as usize
+    }
+
+    /// Bodies of the world (as its summary counts impacts).
+    pub fn body_count(&self) -> usize {
+        self.bodies as usize
+    }
+
+    /// Bytes this world holds in memory (what the store's cap counts): its struct in a shared
+    /// block, its encoding, its job id, its slot in the world table and its seed in the job's
+    /// duplicate check, each heap block with [`ALLOC_OVERHEAD`].
+    pub fn held_bytes(&self) -> u64 {
+        let block = |bytes: usize| match bytes {
+            0 => 0,
+            b => b as u64 + ALLOC_OVERHEAD,
+        };
+        std::mem::size_of::<Arc<StoredWorld>>() as u64
+            + block(2 * std::mem::size_of::<usize>() + std::mem::size_of::<StoredWorld>())
+            + block(self.encoded.len())
+            + block(self.job_id.capacity())
+            + 2 * std::mem::size_of::<u64>() as u64
+    }
+
     /// Whether this world's segments are a difference from its parent: they start past segment
     /// 0 (`WorldDone.first_segment`) or carry only some bodies (`MotionSegment.bodies`).
     pub fn is_layered(&self) -> bool {
-        is_layered(&self.done, self.segments.iter())
+        self.layered
     }
 
     /// The wire form (`q/world/<index>`), with the parent chain of a layered world.
-    pub fn message(&self) -> mwb_proto::v1::World {
-        mwb_proto::v1::World {
+    pub fn message(&self) -> Result<mwb_proto::v1::World, StoredDecodeError> {
+        let (done, segments) = self.decode()?;
+        Ok(mwb_proto::v1::World {
             index: self.index,
             job_id: self.job_id.clone(),
-            done: Some(self.done.clone()),
-            segments: self.segments.clone(),
-            parent: self.parent.as_ref().map(|p| Box::new(p.message())),
-        }
+            done: Some(done),
+            segments,
+            parent: match &self.parent {
+                Some(p) => Some(Box::new(p.message()?)),
+                None => None,
+            },
+        })
     }
 }
 
@@ -142,6 +265,7 @@ pub struct Assembler {
     jobs: BTreeMap<String, JobRecord>,
     partial: HashMap<WorldKey, Partial>,
     worlds: Vec<Arc<StoredWorld>>,
+    /// Σ [`StoredWorld::held_bytes`] of the stored worlds.
     stored_bytes: u64,
     /// The browsing index's bytes, as last reported by the node.
     index_bytes: u64,
@@ -637,21 +761,27 @@ impl Assembler {
             return self.reject(&key, Rejection::DuplicateSeed);
         }
         let world_bytes = p.bytes + done.encoded_len() as u64;
+        let mut world = StoredWorld::new(
+            0,
+            job_id.clone(),
+            done,
+            p.segments.values(),
+            world_bytes,
+            None,
+        );
+        // What the cap counts: the world as held in memory, not as encoded.
+        let held = world.held_bytes();
         // A difference needs the parent it is composed with: held here, with as many bodies
         // (a difference outside a REFINE job has none).
         let parent = match (layered, parent_index) {
             (false, _) => None,
             (true, Some(i)) => match self.world(i) {
-                Some(w) if w.done.impacts.len() == done.impacts.len() => Some(w),
+                Some(w) if w.body_count() == done.impacts.len() => Some(w),
                 _ => return self.reject(&key, Rejection::NoParent),
             },
             (true, None) => return self.reject(&key, Rejection::NoParent),
         };
-        if self.stored_bytes
-            + self.index_bytes
-            + world_bytes
-            + self.index_estimate()
-            + self.index_growth
+        if self.stored_bytes + self.index_bytes + held + self.index_estimate() + self.index_growth
             > self.cap_bytes
         {
             return self.reject(&key, Rejection::MemoryCap);
@@ -668,6 +798,7 @@ impl Assembler {
         let Some(rec) = self.jobs.get_mut(&job_id) else {
             return Outcome::Pending;
         };
+        (world.index, world.parent) = (index, parent);
         rec.seeds.insert(done.seed);
         let st = &mut rec.state;
         fit(st, self.shard);
@@ -682,15 +813,8 @@ impl Assembler {
         close_if_done(st, self.shard);
         st.revision += 1;
         let state = st.clone();
-        self.stored_bytes += world_bytes;
-        self.worlds.push(Arc::new(StoredWorld {
-            index,
-            job_id,
-            done,
-            segments: p.segments.into_values().collect(),
-            bytes: world_bytes,
-            parent,
-        }));
+        self.stored_bytes += held;
+        self.worlds.push(Arc::new(world));
         Outcome::Stored { index, state }
     }
 
@@ -987,9 +1111,11 @@ mod tests {
             assert_eq!(a.world(i).map(|w| w.index), Some(i));
         }
         assert!(a.world(0).is_none());
-        // Only kept worlds take memory, and only they count as the job's bytes.
+        // Only kept worlds take memory (as held), and only they count as the job's bytes (as
+        // encoded).
+        let held: u64 = a.stored().map(|w| w.held_bytes()).sum();
+        assert_eq!(a.memory_bytes(), held);
         let stored: u64 = a.stored().map(|w| w.bytes).sum();
-        assert_eq!(a.memory_bytes(), stored);
         assert_eq!(a.own_count("j").map(|(_, b)| b), Some(stored));
     }
 
@@ -1392,8 +1518,7 @@ mod tests {
     #[test]
     fn memory_cap_refuses_new_worlds() {
         let (s, d) = world("j", "n", 0, 1, 2);
-        let one: u64 =
-            s.iter().map(|x| x.encoded_len() as u64).sum::<u64>() + d.encoded_len() as u64;
+        let one = StoredWorld::new(0, "j".into(), &d, &s, 0, None).held_bytes();
         let mut a = Assembler::new(one * 2 + one / 2);
         a.submit_job(job("j", 10));
         for c in 0..3u64 {
@@ -1415,13 +1540,54 @@ mod tests {
         assert!(a.memory_bytes() <= a.cap_bytes());
     }
 
+    /// A stored world keeps its summary and segments encoded in one block and gives them
+    /// back exactly, ids included; the cap counts it as held: its encoding, its struct and
+    /// the blocks around them — a little more than its encoded bytes, far less than the
+    /// decoded structs.
+    #[test]
+    fn a_world_is_held_encoded_given_back_exactly_and_counted_as_held() {
+        let (s, d) = world("job-with-a-long-name", "sampler-a", 0, 1, 3);
+        let stored = StoredWorld::new(7, "job-with-a-long-name".into(), &d, &s, 0, None);
+        assert_eq!(stored.decode(), Ok((d.clone(), s.clone())));
+        assert_eq!(stored.done(), Ok(d.clone()));
+        assert_eq!(stored.segment_count(), 3);
+        assert_eq!(stored.body_count(), d.impacts.len());
+        assert!(!stored.is_layered());
+        let message = stored.message().unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(
+            (message.index, message.segments, message.done),
+            (7, s.clone(), Some(d.clone()))
+        );
+
+        let encoded =
+            s.iter().map(|x| x.encoded_len() as u64).sum::<u64>() + d.encoded_len() as u64;
+        let held = stored.held_bytes();
+        let structs = 3 * std::mem::size_of::<MotionSegment>() + std::mem::size_of::<WorldDone>();
+        let payloads: u64 = s.iter().map(|x| x.payload.len() as u64).sum();
+        assert!(held > payloads, "{held} against {payloads} of payloads");
+        assert!(
+            held < encoded + structs as u64,
+            "{held} against {encoded} encoded"
+        );
+
+        let mut a = Assembler::new(1 << 20);
+        a.submit_job(job("job-with-a-long-name", 10));
+        assert!(matches!(feed(&mut a, s, d), Outcome::Stored { .. }));
+        assert_eq!(a.memory_bytes(), held);
+        // A second world alike (another seed) counts what it holds.
+        let (s, d) = world("job-with-a-long-name", "sampler-a", 1, 2, 3);
+        let again =
+            StoredWorld::new(0, "job-with-a-long-name".into(), &d, &s, 0, None).held_bytes();
+        assert!(matches!(feed(&mut a, s, d), Outcome::Stored { .. }));
+        assert_eq!(a.memory_bytes(), held + again);
+    }
+
     /// The browsing index counts against the cap: with room for three worlds' bytes, a store
     /// whose index takes one world's worth per world holds fewer.
     #[test]
     fn index_bytes_count_against_the_cap() {
         let (s, d) = world("j", "n", 0, 1, 2);
-        let one: u64 =
-            s.iter().map(|x| x.encoded_len() as u64).sum::<u64>() + d.encoded_len() as u64;
+        let one = StoredWorld::new(0, "j".into(), &d, &s, 0, None).held_bytes();
         let mut a = Assembler::new(one * 3 + one / 2);
         a.submit_job(job("j", 10));
         let mut stored = 0u64;

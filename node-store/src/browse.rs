@@ -3,6 +3,7 @@
 //! stored and [`ShardRequest`]s from node-query, and sends back the [`ShardReply`].
 
 use crate::index::{IndexedObject, IndexedWorld};
+use crate::slots::Slots;
 use crate::spatial::{Aabb, Part, PathBvh, Piece, region_box};
 use mwb_core::browse::api::{
     ConstraintStatus, Reply, Request, SceneBodies, SessionStatus, ShardReply, ShardRequest,
@@ -13,7 +14,8 @@ use mwb_core::browse::{
     RegionCache, Scope, WorldSet, top_k_counted,
 };
 use mwb_proto::v1::PathBatch;
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
+use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 
 /// Which worlds a store keeps when several split them (DESIGN.md: world → shard by hash).
@@ -137,8 +139,10 @@ enum EditError {
 pub struct Shard {
     spec: ShardSpec,
     name: String,
-    /// By local index; `None` for a world that could not be indexed.
-    worlds: Vec<Option<IndexedWorld>>,
+    /// By local index; empty for a world that could not be indexed.
+    worlds: Slots<IndexedWorld>,
+    /// Job ids of the worlds held, one copy each, shared by the job's worlds.
+    jobs: HashSet<Arc<str>>,
     indexed: u64,
     /// Every indexed world (the complement of a negative constraint is taken in it).
     all: WorldSet,
@@ -181,7 +185,8 @@ impl Shard {
         Self {
             spec,
             name: name.into(),
-            worlds: Vec::new(),
+            worlds: Slots::default(),
+            jobs: HashSet::new(),
             indexed: 0,
             all: WorldSet::new(),
             bvh: Vec::new(),
@@ -215,7 +220,7 @@ impl Shard {
 
     pub fn world(&self, global: u32) -> Option<&IndexedWorld> {
         let local = self.spec.local(global)?;
-        self.worlds.get(local as usize)?.as_ref()
+        self.worlds.get(local as usize)
     }
 
     /// The indexed paths of local slots `seen..` (at most `max` worlds), for drawing: what a
@@ -225,7 +230,7 @@ impl Shard {
         let first = (seen as usize).min(self.worlds.len());
         let mut worlds = Vec::new();
         let mut next = first;
-        for slot in &self.worlds[first..] {
+        for slot in self.worlds.iter_from(first) {
             if worlds.len() >= max.max(1) {
                 break;
             }
@@ -247,7 +252,8 @@ impl Shard {
     /// Heap bytes of the path index and metrics, plus every session's bitsets.
     pub fn heap_bytes(&self) -> usize {
         self.world_bytes
-            + self.worlds.capacity() * std::mem::size_of::<Option<IndexedWorld>>()
+            + self.worlds.heap_bytes()
+            + self.jobs_bytes()
             + self.bvh.iter().map(PathBvh::heap_bytes).sum::<usize>()
             + self.all.heap_bytes()
             + self
@@ -265,26 +271,32 @@ impl Shard {
                 .sum::<usize>()
     }
 
+    /// Heap bytes of the interned job ids (each once, with its reference counts).
+    fn jobs_bytes(&self) -> usize {
+        self.jobs.capacity() * std::mem::size_of::<Arc<str>>()
+            + self
+                .jobs
+                .iter()
+                .map(|j| j.len() + 2 * std::mem::size_of::<usize>())
+                .sum::<usize>()
+    }
+
     /// Bytes [`heap_bytes`](Self::heap_bytes) may grow by when the next world is inserted,
     /// beyond that world's own: vectors doubling their capacity (the world table, each
     /// hierarchy's pending list) and a hierarchy block being built. Counted against the store's
     /// cap before a world is admitted ([`crate::Assembler::set_index_bytes`]).
     pub fn growth_bytes(&self) -> usize {
-        let table = if self.worlds.len() >= self.worlds.capacity() {
-            self.worlds.capacity().max(4) * std::mem::size_of::<Option<IndexedWorld>>()
-        } else {
-            0
-        };
-        table + self.bvh.iter().map(PathBvh::growth_bytes).sum::<usize>()
+        self.worlds.growth_bytes(self.worlds.len())
+            + self.bvh.iter().map(PathBvh::growth_bytes).sum::<usize>()
     }
 
     /// [`heap_bytes`](Self::heap_bytes) by structure (walks every world: for benchmarks).
     pub fn heap_bytes_by_part(&self) -> ShardBytes {
-        let worlds = self.worlds.iter().flatten();
+        let worlds = self.worlds.values();
         let paths: usize = worlds
             .clone()
             .map(|w| {
-                w.objects.capacity() * std::mem::size_of::<IndexedObject>()
+                std::mem::size_of_val::<[IndexedObject]>(&w.objects)
                     + w.objects
                         .iter()
                         .map(IndexedObject::heap_bytes)
@@ -293,12 +305,12 @@ impl Shard {
             .sum();
         let metrics: usize = worlds
             .clone()
-            .map(|w| w.metrics.capacity() * std::mem::size_of::<PackedMetrics>())
+            .map(|w| std::mem::size_of_val::<[PackedMetrics]>(&w.metrics))
             .sum();
         let total = self.heap_bytes();
         let hierarchies = self.bvh.iter().map(PathBvh::heap_bytes).sum::<usize>();
-        let records = self.world_bytes - paths - metrics
-            + self.worlds.capacity() * std::mem::size_of::<Option<IndexedWorld>>();
+        let records =
+            self.world_bytes - paths - metrics + self.worlds.heap_bytes() + self.jobs_bytes();
         ShardBytes {
             paths,
             hierarchies,
@@ -310,19 +322,22 @@ impl Shard {
 
     /// Stores an indexed world under its global index and evaluates it against every live
     /// constraint of every session (§4.4: results update as worlds stream in).
-    pub fn insert(&mut self, world: IndexedWorld) {
+    pub fn insert(&mut self, mut world: IndexedWorld) {
         let Some(local) = self.spec.local(world.world) else {
             return;
         };
         let slot = local as usize;
-        if self.worlds.len() <= slot {
-            self.worlds.resize_with(slot + 1, || None);
+        match self.jobs.get(&world.job_id) {
+            Some(job) => world.job_id = job.clone(),
+            None => {
+                self.jobs.insert(world.job_id.clone());
+            }
         }
         let global = world.world;
         for s in self.sessions.values_mut() {
             s.set.on_new_world(global, |c, _| evaluate(c, Some(&world)));
         }
-        if let Some(old) = &self.worlds[slot] {
+        if let Some(old) = self.worlds.get(slot) {
             for b in self.bvh.iter_mut().take(old.objects.len()) {
                 b.remove(global);
             }
@@ -337,7 +352,7 @@ impl Shard {
         }
         self.all.insert(global);
         self.world_bytes += world_heap_bytes(&world);
-        match self.worlds[slot].replace(world) {
+        match self.worlds.set(slot, world) {
             None => self.indexed += 1,
             Some(old) => self.world_bytes -= world_heap_bytes(&old),
         }
@@ -365,7 +380,7 @@ impl Shard {
                 };
             }
             let mut session = Session::default();
-            for w in self.worlds.iter().flatten() {
+            for w in self.worlds.values() {
                 session.set.on_new_world(w.world, |_, _| true);
             }
             self.sessions.insert(req.session.clone(), session);
@@ -411,11 +426,7 @@ impl Shard {
     fn edit(&self, set: &mut ConstraintSet, request: &Request) -> Result<(), EditError> {
         let worlds = &self.worlds;
         let spec = self.spec;
-        let lookup = |w: u32| {
-            spec.local(w)
-                .and_then(|l| worlds.get(l as usize))
-                .and_then(Option::as_ref)
-        };
+        let lookup = |w: u32| spec.local(w).and_then(|l| worlds.get(l as usize));
         match request {
             Request::Add { constraint } => {
                 constraint.validate()?;
@@ -625,7 +636,7 @@ impl Shard {
     /// world by world, segment by segment (on `threads` threads), for benchmarks and as the
     /// reference in tests.
     pub fn evaluate_each(&self, constraint: &Constraint) -> WorldSet {
-        let worlds: Vec<&IndexedWorld> = self.worlds.iter().flatten().collect();
+        let worlds: Vec<&IndexedWorld> = self.worlds.values().collect();
         let threads = self.threads.min(worlds.len() / 256).max(1);
         let chunk = worlds.len().div_ceil(threads).max(1);
         std::thread::scope(|s| {
@@ -689,7 +700,7 @@ impl Shard {
                     !*plausible_only
                         || self
                             .world(w)
-                            .is_some_and(|x| x.world_metrics.plausible == Some(true))
+                            .is_some_and(|x| x.world_metrics().plausible == Some(true))
                 };
                 let count = if *plausible_only {
                     candidates.iter().filter(|w| plausible(*w)).count()
@@ -715,7 +726,7 @@ impl Shard {
                 None => Reply::NoSuchWorld { world: *world },
                 Some(w) => Reply::Summary(Box::new(WorldSummary {
                     world: w.world,
-                    job: w.job_id.clone(),
+                    job: w.job_id.to_string(),
                     seed: w.seed,
                     frames: w.frames,
                     frame_dt: w.frame_dt,
@@ -723,7 +734,7 @@ impl Shard {
                     bodies: w.bodies.to_vec(),
                     objects: w.metrics.iter().map(PackedMetrics::unpack).collect(),
                     path_radius: w.objects.iter().map(|o| o.radius).collect(),
-                    world_metrics: w.world_metrics,
+                    world_metrics: *w.world_metrics(),
                     constraints_satisfied: set.satisfied_count(w.world),
                     in_result: set.result().contains(w.world),
                     shard: self.name.clone(),
@@ -742,7 +753,7 @@ impl Shard {
     /// One entry per distinct body list among the worlds held (worlds of one job share theirs).
     fn bodies(&self) -> Vec<SceneBodies> {
         let mut runs: Vec<(&IndexedWorld, u64)> = Vec::new();
-        for w in self.worlds.iter().flatten() {
+        for w in self.worlds.values() {
             match runs.last_mut() {
                 Some((first, n))
                     if std::sync::Arc::ptr_eq(&first.bodies, &w.bodies)
@@ -765,13 +776,13 @@ impl Shard {
     }
 }
 
-/// What one indexed world holds on the heap, its own struct included.
+/// What one indexed world holds on the heap beyond its slot in the world table.
 fn world_heap_bytes(w: &IndexedWorld) -> usize {
-    w.heap_bytes() + std::mem::size_of::<IndexedWorld>()
+    w.heap_bytes()
 }
 
 fn score(key: &RankKey, world: &IndexedWorld, satisfied: u32) -> Option<f64> {
-    key.score_with(&world.metrics, &world.world_metrics, satisfied)
+    key.score_with(&world.metrics, world.world_metrics(), satisfied)
 }
 
 /// Whether a world satisfies a constraint; a world that could not be indexed satisfies none.
@@ -843,16 +854,18 @@ mod tests {
             frame_dt: 1.0 / 120.0,
             rested: true,
             bodies: std::sync::Arc::from(vec!["box".to_owned()]),
-            objects: vec![IndexedObject::new(&path, 0.5, 0.001).unwrap_or_else(|e| panic!("{e}"))],
-            metrics: vec![PackedMetrics::pack(&ObjectMetrics {
+            objects: Box::new([
+                IndexedObject::new(&path, 0.5, 0.001).unwrap_or_else(|e| panic!("{e}"))
+            ]),
+            metrics: Box::new([PackedMetrics::pack(&ObjectMetrics {
                 angular_travel_rad: spin,
                 time_to_rest_s: 1.0,
                 came_to_rest: true,
                 impacts: 0,
                 orientation_error_rad: 0.0,
                 final_rotation: [0.0, 0.0, 0.0, 1.0],
-            })],
-            world_metrics: Default::default(),
+            })]),
+            measured: None,
             refined: None,
         }
     }
@@ -871,8 +884,11 @@ mod tests {
         .enumerate()
         {
             let mut w = world(i as u32, 0.0, 1.0);
-            w.world_metrics.plausible = plausible;
-            w.world_metrics.plausibility_excess = excess;
+            w.set_world_metrics(mwb_core::browse::WorldMetrics {
+                plausible,
+                plausibility_excess: excess,
+                ..Default::default()
+            });
             shard.insert(w);
         }
         let rank = |plausible_only| Request::Rank {
@@ -1331,7 +1347,7 @@ mod tests {
             let mut w = world(i, 0.0, 0.0);
             let store =
                 |p: &Polyline| IndexedObject::new(p, 0.1, r).unwrap_or_else(|e| panic!("{e}"));
-            w.objects = vec![store(&a), store(&b)];
+            w.objects = Box::new([store(&a), store(&b)]);
             paths.push([
                 (w.objects[0].polyline(), w.objects[0].radius),
                 (w.objects[1].polyline(), w.objects[1].radius),

@@ -10,7 +10,7 @@ use mwb_core::browse::{
     ALL_PLANES, Frustum, ObjectMetrics, PackedMetrics, Polyline, RestThresholds, TimeWindow, Track,
     WorldMetrics, rest_entry, segment_entry,
 };
-use mwb_proto::v1::{Encoding, IndexedPaths, Job, MotionSegment, ObjectPath};
+use mwb_proto::v1::{Encoding, IndexedPaths, Job, MotionSegment, ObjectPath, WorldDone};
 use std::sync::Arc;
 
 /// What indexing needs from a job's scene: its rest thresholds (for the time-to-rest metric)
@@ -496,38 +496,66 @@ fn decode_coordinate(origin: f64, step: f64, steps: u32) -> f64 {
 }
 
 /// A world as the browsing layer sees it.
+///
+/// One is held for every world a store keeps, so it is kept small (112 bytes beside its paths
+/// and metrics): the job id is shared by the job's worlds (the shard interns it), the object
+/// and metric lists are boxed slices, and the measurements only backward worlds have are
+/// boxed apart.
 #[derive(Debug, Clone)]
 pub struct IndexedWorld {
     /// Global world index (see [`crate::ShardSpec`]).
     pub world: u32,
-    pub job_id: String,
+    pub job_id: Arc<str>,
     pub seed: u64,
     pub frames: u32,
     pub frame_dt: f64,
     pub rested: bool,
     /// Body names in object-index order, shared by every world of the job; empty if unknown.
     pub bodies: Arc<[String]>,
-    pub objects: Vec<IndexedObject>,
+    pub objects: Box<[IndexedObject]>,
     /// Per object, the §4.4.3 ranking metrics (a slice, as rankings combine them), in f32
     /// ([`PackedMetrics`]: 36 bytes an object instead of 64).
-    pub metrics: Vec<PackedMetrics>,
-    /// Per-world measurements from the world's summary (plausibility of backward worlds).
-    pub world_metrics: WorldMetrics,
+    pub metrics: Box<[PackedMetrics]>,
+    /// Per-world measurements from the world's summary (plausibility of backward worlds);
+    /// `None` when the world has none of them (every forward world). Read through
+    /// [`world_metrics`](Self::world_metrics).
+    pub measured: Option<Box<WorldMetrics>>,
     /// A refined world's lineage (§4.5); `None` for sampled worlds.
     pub refined: Option<Box<Refined>>,
 }
 
 impl IndexedWorld {
-    /// Heap bytes held by the index of this world (paths, metrics, names), by capacity.
+    /// The per-world measurements (every field absent where the world has none).
+    pub fn world_metrics(&self) -> &WorldMetrics {
+        const NONE: &WorldMetrics = &WorldMetrics {
+            energy_growth: None,
+            angular_speed_growth: None,
+            plausible: None,
+            plausibility_excess: None,
+        };
+        self.measured.as_deref().unwrap_or(NONE)
+    }
+
+    /// Sets the per-world measurements, boxed only when one of them is present.
+    pub fn set_world_metrics(&mut self, m: WorldMetrics) {
+        self.measured = (m != WorldMetrics::default()).then(|| Box::new(m));
+    }
+
+    /// Heap bytes held by the index of this world beyond its own struct (paths, metrics,
+    /// measurements, lineage), by capacity. The job id and body names are shared by the job's
+    /// worlds and not counted here.
     pub fn heap_bytes(&self) -> usize {
-        self.job_id.capacity()
-            + self.objects.capacity() * std::mem::size_of::<IndexedObject>()
-            + self.metrics.capacity() * std::mem::size_of::<PackedMetrics>()
+        std::mem::size_of_val::<[IndexedObject]>(&self.objects)
+            + std::mem::size_of_val::<[PackedMetrics]>(&self.metrics)
             + self
                 .objects
                 .iter()
                 .map(IndexedObject::heap_bytes)
                 .sum::<usize>()
+            + self
+                .measured
+                .as_ref()
+                .map_or(0, |_| std::mem::size_of::<WorldMetrics>())
             + self.refined.as_ref().map_or(0, |r| {
                 std::mem::size_of::<Refined>()
                     + r.root_job.capacity()
@@ -548,7 +576,7 @@ impl IndexedWorld {
     pub fn paths_message(&self) -> IndexedPaths {
         IndexedPaths {
             world: self.world,
-            job_id: self.job_id.clone(),
+            job_id: self.job_id.to_string(),
             seed: self.seed,
             frames: self.frames,
             frame_dt: self.frame_dt,
@@ -586,6 +614,8 @@ pub enum IndexError {
     Segment { seq: u32, what: String },
     #[error("object {object}: {what}")]
     Object { object: usize, what: String },
+    #[error(transparent)]
+    Stored(#[from] crate::assembly::StoredDecodeError),
 }
 
 /// Per-segment decoded motion and the payload's own error bound.
@@ -663,8 +693,10 @@ fn round_radius(r: f64) -> f64 {
 /// same way, recursively) with its own segments laid over it.
 fn full_tracks(
     stored: &StoredWorld,
-    first: &MotionSegment,
+    done: &WorldDone,
+    segments: &[MotionSegment],
 ) -> Result<(Vec<mwb_codec::Track>, f64), IndexError> {
+    let first = segments.first().ok_or(IndexError::Empty)?;
     let bound = |seq: u32, e_max: f64| {
         if e_max.is_finite() && e_max >= 0.0 {
             Ok(e_max)
@@ -677,19 +709,21 @@ fn full_tracks(
     };
     if stored.is_layered() {
         let parent = stored.parent.as_deref().ok_or(IndexError::NoParent)?;
-        let parent_first = parent.segments.first().ok_or(IndexError::Empty)?;
+        let (parent_done, parent_segments) = parent.decode()?;
         let (tracks, mut e_max) =
-            full_tracks(parent, parent_first).map_err(|e| IndexError::Parent {
-                world: parent.index,
-                what: e.to_string(),
+            full_tracks(parent, &parent_done, &parent_segments).map_err(|e| {
+                IndexError::Parent {
+                    world: parent.index,
+                    what: e.to_string(),
+                }
             })?;
-        let frames = stored.done.frame_count as usize;
+        let frames = done.frame_count as usize;
         let mut layered =
             mwb_codec::Layered::start(tracks, frames).map_err(|e| IndexError::Segment {
                 seq: first.seq,
                 what: e.to_string(),
             })?;
-        for s in &stored.segments {
+        for s in segments {
             let decoded = decode_segment(s)?;
             e_max = e_max.max(bound(s.seq, decoded.e_max)?);
             layered
@@ -704,7 +738,7 @@ fn full_tracks(
     let bodies = first.body_count as usize;
     let mut full: Vec<mwb_codec::Track> = vec![mwb_codec::Track::default(); bodies];
     let mut e_max = 0f64;
-    for s in &stored.segments {
+    for s in segments {
         let seg_err = |what: &str| IndexError::Segment {
             seq: s.seq,
             what: what.to_owned(),
@@ -746,13 +780,12 @@ pub fn index_world(
         rest,
         bodies: names,
     } = scene.into();
-    let done = &stored.done;
-    let first = stored.segments.first().ok_or(IndexError::Empty)?;
+    let (done, segments) = stored.decode()?;
     let dt = done.frame_dt;
     if !(dt.is_finite() && dt > 0.0) {
         return Err(IndexError::FrameDt(dt));
     }
-    let (full, e_max) = full_tracks(stored, first)?;
+    let (full, e_max) = full_tracks(stored, &done, &segments)?;
     let bodies = full.len();
     let mut objects = Vec::with_capacity(bodies);
     let mut all_metrics = Vec::with_capacity(bodies);
@@ -795,9 +828,9 @@ pub fn index_world(
         objects.push(object);
         all_metrics.push(PackedMetrics::pack(&metrics));
     }
-    Ok(IndexedWorld {
+    let mut indexed = IndexedWorld {
         world,
-        job_id: stored.job_id.clone(),
+        job_id: Arc::from(stored.job_id.as_str()),
         seed: done.seed,
         frames: done.frame_count,
         frame_dt: dt,
@@ -808,16 +841,9 @@ pub fn index_world(
         } else {
             Arc::from(Vec::new())
         },
-        objects,
-        metrics: all_metrics,
-        // Reverse nodes measure a backward world's plausibility (§5.3.1); forward worlds leave
-        // the fields absent. A NaN would sort unpredictably: it counts as not measured.
-        world_metrics: WorldMetrics {
-            energy_growth: done.energy_growth.filter(|v| !v.is_nan()),
-            angular_speed_growth: done.angular_speed_growth.filter(|v| !v.is_nan()),
-            plausible: done.plausible,
-            plausibility_excess: done.plausibility_excess.filter(|v| !v.is_nan()),
-        },
+        objects: objects.into_boxed_slice(),
+        metrics: all_metrics.into_boxed_slice(),
+        measured: None,
         refined: done.lineage.as_ref().map(|l| {
             Box::new(Refined {
                 root_job: l.root_job.clone(),
@@ -839,7 +865,16 @@ pub fn index_world(
                     .collect(),
             })
         }),
-    })
+    };
+    // Reverse nodes measure a backward world's plausibility (§5.3.1); forward worlds leave the
+    // fields absent. A NaN would sort unpredictably: it counts as not measured.
+    indexed.set_world_metrics(WorldMetrics {
+        energy_growth: done.energy_growth.filter(|v| !v.is_nan()),
+        angular_speed_growth: done.angular_speed_growth.filter(|v| !v.is_nan()),
+        plausible: done.plausible,
+        plausibility_excess: done.plausibility_excess.filter(|v| !v.is_nan()),
+    });
+    Ok(indexed)
 }
 
 #[cfg(test)]

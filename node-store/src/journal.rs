@@ -329,15 +329,21 @@ impl Journal {
         self.pending.len()
     }
 
-    /// Queues a stored world: its segments, then its summary.
-    pub fn append_world(&mut self, keys: &Keys, w: &crate::StoredWorld) {
-        let d = &w.done;
-        for s in &w.segments {
+    /// Queues a stored world: its segments, then its summary (nothing if the world's own
+    /// encoding does not decode, which only a bug can cause).
+    pub fn append_world(
+        &mut self,
+        keys: &Keys,
+        w: &crate::StoredWorld,
+    ) -> Result<(), crate::assembly::StoredDecodeError> {
+        let (d, segments) = w.decode()?;
+        for s in &segments {
             let key = keys.segment(&s.job_id, &s.node_id, s.world_counter, s.seq);
             self.append(key, s.encode_to_vec());
         }
         let key = keys.done(&d.job_id, &d.node_id, d.world_counter);
         self.append(key, d.encode_to_vec());
+        Ok(())
     }
 
     /// Writes what is queued, ends the chunk and syncs the file; then, if the file has grown

@@ -8,6 +8,7 @@
 //! * [`spatial`] — pure: per object index, a bounding-volume hierarchy over every world's path
 //!   pieces (8 segments each, referring to the world's path), so a constraint visits only the
 //!   parts of paths near it.
+//! * [`slots`] — pure: the world table, in fixed-size chunks (no doubling, no copying).
 //! * [`scenes`] — pure: every scene revision of the space (`scene/<rev>`), never overwritten.
 //! * [`journal`] — the store's durable journal (MCAP files via `mwb-record`) and loading
 //!   recordings into a store.
@@ -19,6 +20,7 @@ pub mod index;
 pub mod journal;
 pub mod node;
 pub mod scenes;
+pub mod slots;
 pub mod spatial;
 
 pub use assembly::{Assembler, Outcome, Rejection, StoredWorld};

@@ -757,7 +757,9 @@ impl Applier {
         );
         if let Some(journal) = self.journal.as_mut() {
             for w in &stored {
-                journal.append_world(&self.keys, w);
+                if let Err(e) = journal.append_world(&self.keys, w) {
+                    error!(error = %e, "not journalled");
+                }
             }
             for st in &states {
                 journal.append(self.keys.job_state(&st.job_id), st.encode_to_vec());
@@ -975,8 +977,16 @@ async fn serve_worlds(shared: Arc<Shared>, queries: Queries) {
         let world = shared.lock().world(idx);
         if let Some(w) = world {
             // A refined world stored as a difference comes with its parent chain.
-            node.reply(&q, &node.keys().world(idx), w.message().encode_to_vec())
-                .await;
+            match w.message() {
+                Ok(m) => {
+                    node.reply(&q, &node.keys().world(idx), m.encode_to_vec())
+                        .await
+                }
+                Err(e) => {
+                    error!(error = %e, "world not served");
+                    node.reply_err(&q, &e.to_string()).await;
+                }
+            }
         }
     }
 }

@@ -43,14 +43,7 @@ fn sample(scene: &str, seed: u64, encoding: PayloadEncoding) -> (StoredWorld, Ve
     let done = world_done("j", "n", seed, &summary);
     let bytes = segments.iter().map(|s| s.encoded_len() as u64).sum();
     (
-        StoredWorld {
-            index: 0,
-            job_id: "j".into(),
-            done,
-            segments,
-            bytes,
-            parent: None,
-        },
+        StoredWorld::new(0, "j".into(), &done, &segments, bytes, None),
         truth,
     )
 }
@@ -72,7 +65,8 @@ fn index_never_misses_a_simulated_path_and_keeps_the_samplers_metrics() {
         let (stored, truth) = sample(scene, seed, encoding);
         let w = index_world(&stored, 0, rest, DEFAULT_PATH_TOLERANCE_M)
             .unwrap_or_else(|e| panic!("{scene}: {e}"));
-        let dt = stored.done.frame_dt;
+        let done = stored.done().unwrap_or_else(|e| panic!("{e}"));
+        let dt = done.frame_dt;
         assert_eq!(w.objects.len(), truth.len());
         for (b, obj) in w.objects.iter().enumerate() {
             // The radius is the codec's bound plus at most the simplification tolerance and the
@@ -83,17 +77,14 @@ fn index_never_misses_a_simulated_path_and_keeps_the_samplers_metrics() {
                 obj.radius
             );
             let m = &w.metrics[b].unpack();
-            assert_eq!(m.impacts, stored.done.impacts[b]);
+            assert_eq!(m.impacts, done.impacts[b]);
             // The sampler's own rest time, as the store keeps it (f32, `PackedMetrics`).
-            assert_eq!(
-                m.time_to_rest_s,
-                f64::from(stored.done.rest_time_s[b] as f32)
-            );
-            assert!(m.time_to_rest_s <= f64::from(stored.done.frame_count) * dt + 1e-6);
+            assert_eq!(m.time_to_rest_s, f64::from(done.rest_time_s[b] as f32));
+            assert!(m.time_to_rest_s <= f64::from(done.frame_count) * dt + 1e-6);
             assert!(m.angular_travel_rad >= 0.0 && m.orientation_error_rad <= std::f64::consts::PI);
             let full =
                 Polyline::uniform(0.0, dt, truth[b].clone()).unwrap_or_else(|e| panic!("{e}"));
-            let end = f64::from(stored.done.frame_count) * dt;
+            let end = f64::from(done.frame_count) * dt;
             for _ in 0..150 {
                 // A box of 2–40 cm around a point near a random frame of this object's path.
                 let k = (rng.next_f64() * truth[b].len() as f64) as usize % truth[b].len();

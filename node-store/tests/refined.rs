@@ -40,22 +40,25 @@ fn a_refined_world_is_stored_as_a_difference_and_composed_over_its_parent() {
     let Outcome::Stored { index: 1, .. } = feed(&mut a, own, done.clone()) else {
         panic!("the refined world was not stored")
     };
-    // Only the new bytes count.
+    // Only the new bytes count: held in memory, less than the parent (alone in the store
+    // before) holds; encoded, less than the parent's payload alone.
     let added = a.memory_bytes() - before;
-    assert!(
-        added < parent_bytes,
-        "{added} ≥ the parent's {parent_bytes}"
-    );
+    assert!(added < before, "{added} ≥ the parent's {before} held");
     assert!(added >= own_bytes);
-
     let stored = a.world(1).unwrap_or_else(|| panic!("world 1"));
+    assert!(
+        stored.bytes < parent_bytes,
+        "{} ≥ the parent's payload {parent_bytes}",
+        stored.bytes
+    );
+
     assert!(stored.is_layered());
     assert_eq!(stored.parent.as_ref().map(|p| p.index), Some(0));
 
     // Served with its parent chain, it decodes into the world a whole recording gives: the
     // parent's motion exactly where the child did not re-simulate, and within the codec's bound
     // of the whole recording everywhere.
-    let msg = stored.message();
+    let msg = stored.message().unwrap_or_else(|e| panic!("{e}"));
     assert_eq!(msg.parent.as_ref().map(|p| p.index), Some(0));
     let composed = mwb_export::decode_world(&msg).unwrap_or_else(|e| panic!("{e}"));
     let parent = mwb_export::decode_world(msg.parent.as_deref().unwrap_or_else(|| panic!("p")))

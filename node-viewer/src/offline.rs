@@ -81,14 +81,7 @@ pub fn sample_one(template: &SceneTemplate, i: u32) -> Result<WorldData, ViewerE
         what: e.to_string(),
     })?;
     let done = world_done(OFFLINE_JOB, "", 0, &summary);
-    let stored = StoredWorld {
-        index: i,
-        job_id: OFFLINE_JOB.into(),
-        bytes: 0,
-        done,
-        segments,
-        parent: None,
-    };
+    let stored = StoredWorld::new(i, OFFLINE_JOB.into(), &done, &segments, 0, None);
     let scene = JobScene {
         rest: RestThresholds::from(template.settings()),
         bodies: template.body_names().map(str::to_owned).collect(),
@@ -105,7 +98,14 @@ pub fn sample_one(template: &SceneTemplate, i: u32) -> Result<WorldData, ViewerE
         .iter()
         .map(mwb_core::browse::PackedMetrics::unpack)
         .collect();
-    let motion = Motion::decode(template.instantiate(seed), &stored.message())?;
+    let message = mwb_proto::v1::World {
+        index: i,
+        job_id: OFFLINE_JOB.into(),
+        done: Some(done),
+        segments,
+        parent: None,
+    };
+    let motion = Motion::decode(template.instantiate(seed), &message)?;
     world.motion = Some(Arc::new(motion));
     Ok(world)
 }

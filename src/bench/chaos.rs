@@ -1511,6 +1511,10 @@ pub struct ChaosArgs {
     /// The flood store's memory cap, MiB.
     #[arg(long, default_value_t = 16)]
     pub flood_cap_mib: u64,
+    /// Only the flood (one store and one sampler on loopback; no namespaces, so no root): what
+    /// a real store process holds per world, against what it counts.
+    #[arg(long)]
+    pub flood_only: bool,
     /// Give up on each run after this many seconds.
     #[arg(long, default_value_t = 900)]
     pub timeout_s: u64,
@@ -1545,9 +1549,47 @@ impl Summary for ChaosBench {
     }
 }
 
+/// `--flood-only`'s line: the flood, and per stored world what the store process grew by
+/// against what its own accounting counts.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct FloodBench {
+    pub flood_scene: String,
+    #[serde(flatten)]
+    pub flood: FloodReport,
+    /// (RSS at its largest − RSS before any world) ÷ worlds stored: everything a world costs
+    /// the process (motion as held, index, allocator).
+    pub rss_growth_bytes_per_world: f64,
+    /// The store's own accounting (`flood_memory_bytes`, what the cap limits) ÷ worlds stored.
+    pub accounted_bytes_per_world: f64,
+}
+
+impl Summary for FloodBench {
+    fn table(&self) -> String {
+        fields_table(self)
+    }
+}
+
 /// Runs `mwb bench chaos`.
 pub async fn run(args: ChaosArgs) -> Result<()> {
     let mwb = std::env::current_exe().context("finding the mwb binary")?;
+    if args.flood_only {
+        let flood_scene = client::load_scene(&args.flood_scene)?;
+        let f = flood(
+            &mwb,
+            &flood_scene,
+            args.flood_cap_mib,
+            Duration::from_secs(args.timeout_s),
+        )
+        .await?;
+        let per = |bytes: u64| bytes as f64 / f.worlds_stored.max(1) as f64;
+        let b = FloodBench {
+            flood_scene: args.flood_scene,
+            rss_growth_bytes_per_world: per(f.rss_max_bytes.saturating_sub(f.rss_baseline_bytes)),
+            accounted_bytes_per_world: per(f.memory_bytes),
+            flood: f,
+        };
+        return crate::output::print(&b, args.json);
+    }
     let tags = lab_tags();
     let tag_refs: Vec<&str> = tags.iter().map(String::as_str).collect();
     let lab = NetLab::new(&tag_refs).map_err(|e| {

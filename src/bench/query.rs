@@ -38,10 +38,12 @@ use mwb_core::browse::{
 };
 use mwb_core::rng::{Stream, WorldRng};
 use mwb_core::scene::SceneTemplate;
-use mwb_proto::v1::Message;
+use mwb_proto::v1::{Job, Message, MotionSegment, WorldDone};
 use mwb_sampler::{RunOptions, run_world, segment_message, world_done};
 use mwb_store::index::{DEFAULT_PATH_TOLERANCE_M, IndexedObject};
-use mwb_store::{IndexedWorld, Shard, ShardBytes, ShardSpec, StoredWorld, index_world};
+use mwb_store::{
+    Assembler, IndexedWorld, Outcome, Shard, ShardBytes, ShardSpec, StoredWorld, index_world,
+};
 use std::ops::ControlFlow;
 use std::time::Instant;
 
@@ -75,6 +77,13 @@ pub struct QueryArgs {
     /// world-by-world test.
     #[arg(long)]
     pub no_brute: bool,
+    /// Also store every world's motion as a store does (its sampled segments and summary,
+    /// given to the store's assembly under a seed of its own), each world's objects then all
+    /// taken from that one sampled world: `rss_bytes` is then what a store holding these worlds
+    /// takes. Needs as many bodies in the scene as `--objects` (`--scene tumble10`: the viewer
+    /// bench's built-in 10-body tumble) and one shard.
+    #[arg(long)]
+    pub with_motion: bool,
     /// Print the result as one JSON line.
     #[arg(long)]
     pub json: bool,
@@ -91,6 +100,7 @@ pub async fn run(args: QueryArgs) -> Result<()> {
         spread_m: args.spread_m,
         shards: args.shards,
         brute: !args.no_brute,
+        with_motion: args.with_motion,
     };
     let b = tokio::task::spawn_blocking(move || bench_query(&opts)).await??;
     crate::output::print(&b, args.json)
@@ -147,11 +157,24 @@ pub struct QueryBench {
     /// The codec payloads of a world of `objects` objects (the compressed motion; charged at the
     /// sampled worlds' mean per object).
     pub payload_bytes_per_world: f64,
-    /// A world's segments as the store's memory cap counts them (payload, 4 Hz low-res path,
-    /// header fields), charged the same way.
+    /// A world's segments as encoded (payload and header fields: `StoredWorld::bytes`),
+    /// charged the same way.
     pub motion_bytes_per_world: f64,
-    /// `motion_bytes_per_world + memory_bytes_per_world`: the store's total per world.
+    /// `motion_bytes_per_world + memory_bytes_per_world`: the store's total per world, its
+    /// motion counted as encoded.
     pub total_bytes_per_world: f64,
+    /// What a stored world costs in memory beyond its codec payloads: the structs of its
+    /// segments and summary, the ids and lists they hold and the allocator's share of every
+    /// block (`mwb_store::assembly::held_bytes` − payload, the mean over the sampled worlds:
+    /// per world, not per object).
+    pub held_overhead_bytes_per_world: f64,
+    /// `payload_bytes_per_world + held_overhead_bytes_per_world + memory_bytes_per_world`:
+    /// the store's total with its motion as held in memory, what its memory cap counts.
+    pub held_total_bytes_per_world: f64,
+    /// `--with-motion`: worlds the store's assembly holds, and what it counts for them
+    /// (`Assembler::memory_bytes` ÷ worlds: their motion as held); `null` without.
+    pub stored_worlds: Option<usize>,
+    pub stored_held_bytes_per_world: Option<f64>,
     /// Resident set of the whole bench process at the end (the shards, and unless `--no-brute`
     /// the bench's own copy of the worlds for brute force), from /proc/self/status; 0 where
     /// unavailable.
@@ -199,19 +222,29 @@ struct MotionBytes {
     encoded_per_object: f64,
     /// The codec payloads alone (the compressed motion).
     payload_per_object: f64,
+    /// Per world: held in memory − payload ([`mwb_store::assembly::held_bytes`]).
+    held_overhead_per_world: f64,
 }
 
-/// Real indexed worlds of `scene`, as the store builds them, and their motion's bytes.
+/// A sampled world's summary and segments, as a sampler sends them.
+type WorldMessages = (WorldDone, Vec<MotionSegment>);
+
+/// Real indexed worlds of `scene`, as the store builds them, their messages, and their motion's
+/// bytes.
 fn sample_pool(
     file: &str,
     text: &str,
     worlds: u32,
     tolerance: f64,
-) -> Result<(Vec<IndexedWorld>, MotionBytes)> {
+) -> Result<(Vec<IndexedWorld>, Vec<WorldMessages>, MotionBytes)> {
     let template = SceneTemplate::parse(text, file)?;
     let rest = RestThresholds::from(template.settings());
-    let mut out = Vec::new();
-    let (mut encoded, mut payload, mut objects) = (0u64, 0u64, 0u64);
+    let (mut out, mut messages) = (Vec::new(), Vec::new());
+    let (mut encoded, mut payload, mut objects, mut overhead) = (0u64, 0u64, 0u64, 0u64);
+    // For the held bytes: ids as long as a real job's and sampler's, so that their copies in
+    // every segment and summary weigh what they do in a store (the encoded bytes keep the
+    // one-letter ids, which scale with objects as the motion does).
+    let (job, node) = ("bench-query-0123456789", "sampler-0123abcd");
     for i in 0..worlds {
         let seed = mwb_core::rng::world_seed("bench-query", "local", u64::from(i));
         let mut segments = Vec::new();
@@ -222,24 +255,32 @@ fn sample_pool(
         let done = world_done("q", "n", u64::from(i), &summary);
         let bytes = segments.iter().map(|s| s.encoded_len() as u64).sum();
         encoded += bytes;
-        payload += segments.iter().map(|s| s.payload.len() as u64).sum::<u64>();
+        let world_payload: u64 = segments.iter().map(|s| s.payload.len() as u64).sum();
+        payload += world_payload;
         objects += segments.first().map_or(0, |s| u64::from(s.body_count));
-        let stored = StoredWorld {
-            index: i,
-            job_id: "q".into(),
-            done,
-            segments,
-            bytes,
-            parent: None,
+        let mut named = segments.clone();
+        for s in &mut named {
+            (s.job_id, s.node_id) = (job.into(), node.into());
+        }
+        let named_done = WorldDone {
+            job_id: job.into(),
+            node_id: node.into(),
+            ..done.clone()
         };
+        let held = StoredWorld::new(i, job.into(), &named_done, &named, 0, None).held_bytes();
+        overhead += held.saturating_sub(world_payload);
+        let stored = StoredWorld::new(i, "q".into(), &done, &segments, bytes, None);
         out.push(index_world(&stored, i, rest, tolerance)?);
+        messages.push((done, segments));
     }
     let per = |b: u64| b as f64 / objects.max(1) as f64;
     Ok((
         out,
+        messages,
         MotionBytes {
             encoded_per_object: per(encoded),
             payload_per_object: per(payload),
+            held_overhead_per_world: overhead as f64 / f64::from(worlds.max(1)),
         },
     ))
 }
@@ -401,6 +442,8 @@ pub struct QueryBenchOptions {
     pub shards: u32,
     /// Also run brute force (keeping its own copy of every world).
     pub brute: bool,
+    /// Also hold every world's motion in the store's assembly (see [`QueryArgs::with_motion`]).
+    pub with_motion: bool,
 }
 
 impl Default for QueryBenchOptions {
@@ -414,6 +457,7 @@ impl Default for QueryBenchOptions {
             spread_m: 1.0,
             shards: 1,
             brute: true,
+            with_motion: false,
         }
     }
 }
@@ -429,8 +473,35 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
     if worlds == 0 || objects == 0 || constraints == 0 || opts.shards == 0 {
         bail!("--worlds, --objects, --constraints and --shards must be positive");
     }
-    let (file, text) = crate::client::load_scene(&opts.scene)?;
-    let (pool, motion) = sample_pool(&file, &text, 24, opts.path_tolerance_m)?;
+    let (file, text) = if opts.scene == "tumble10" {
+        (
+            crate::bench::viewer::TUMBLE10_NAME.to_owned(),
+            crate::bench::viewer::TUMBLE10.to_owned(),
+        )
+    } else {
+        crate::client::load_scene(&opts.scene)?
+    };
+    let (pool, messages, motion) = sample_pool(&file, &text, 24, opts.path_tolerance_m)?;
+    if opts.with_motion {
+        if opts.shards != 1 {
+            bail!("--with-motion: one shard only (--shards 1)");
+        }
+        if let Some(w) = pool.iter().find(|w| w.objects.len() != objects as usize) {
+            bail!(
+                "--with-motion: {file} has {} bodies, --objects is {objects}: each world's \
+                 objects are its sampled world's bodies (--scene tumble10 has 10)",
+                w.objects.len()
+            );
+        }
+    }
+    // With the motion: the store's own assembly, one job of all the worlds.
+    let mut assembler = Assembler::new(u64::MAX / 4);
+    assembler.submit_job(Job {
+        id: "q".into(),
+        revision: 1,
+        target_worlds: worlds,
+        ..Default::default()
+    });
     let pool_objects: Vec<(&IndexedObject, mwb_core::browse::PackedMetrics)> = pool
         .iter()
         .flat_map(|w| w.objects.iter().zip(w.metrics.iter().copied()))
@@ -452,11 +523,42 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
     let mut vertices = 0usize;
     let mut radii = Vec::new();
     let mut ingest = Vec::with_capacity(worlds as usize);
+    let job_id: std::sync::Arc<str> = std::sync::Arc::from("synthetic");
     for i in 0..worlds {
         let mut objs = Vec::with_capacity(objects as usize);
         let mut metrics = Vec::with_capacity(objects as usize);
-        for _ in 0..objects {
-            let (obj, m) = pool_objects[rng.index(pool_objects.len())];
+        let sampled = i as usize % pool.len();
+        if opts.with_motion {
+            // The sampled world's motion under this world's own counter and seed (the
+            // payloads and their checksums as they were).
+            let (done, segments) = &messages[sampled];
+            let mut last = Outcome::Pending;
+            for s in segments {
+                let seg = MotionSegment {
+                    world_counter: u64::from(i),
+                    seed: u64::from(i),
+                    ..s.clone()
+                };
+                last = assembler.on_segment(seg, 0);
+            }
+            if last == Outcome::Pending {
+                let done = WorldDone {
+                    world_counter: u64::from(i),
+                    seed: u64::from(i),
+                    ..done.clone()
+                };
+                last = assembler.on_done(done, 0);
+            }
+            if !matches!(last, Outcome::Stored { .. }) {
+                bail!("world {i}: the store's assembly did not store it: {last:?}");
+            }
+        }
+        for k in 0..objects as usize {
+            let (obj, m) = if opts.with_motion {
+                (&pool[sampled].objects[k], pool[sampled].metrics[k])
+            } else {
+                pool_objects[rng.index(pool_objects.len())]
+            };
             let d = [
                 rng.range(-opts.spread_m, opts.spread_m),
                 0.0,
@@ -470,15 +572,15 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
         }
         let w = IndexedWorld {
             world: i,
-            job_id: "synthetic".into(),
+            job_id: job_id.clone(),
             seed: u64::from(i),
             frames: 0,
             frame_dt: pool[0].frame_dt,
             rested: true,
             bodies: std::sync::Arc::from(Vec::new()),
-            objects: objs,
-            metrics,
-            world_metrics: Default::default(),
+            objects: objs.into_boxed_slice(),
+            metrics: metrics.into_boxed_slice(),
+            measured: None,
             refined: None,
         };
         // World i is shard (i mod N)'s, as stores number their worlds.
@@ -630,6 +732,14 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
         payload_bytes_per_world: motion.payload_per_object * f64::from(objects),
         motion_bytes_per_world: motion.encoded_per_object * f64::from(objects),
         total_bytes_per_world: motion.encoded_per_object * f64::from(objects) + memory,
+        held_overhead_bytes_per_world: motion.held_overhead_per_world,
+        held_total_bytes_per_world: motion.payload_per_object * f64::from(objects)
+            + motion.held_overhead_per_world
+            + memory,
+        stored_worlds: opts.with_motion.then(|| assembler.world_count()),
+        stored_held_bytes_per_world: opts
+            .with_motion
+            .then(|| assembler.memory_bytes() as f64 / f64::from(worlds)),
         rss_bytes: rss_bytes(),
         vertices_per_object: vertices as f64 / (f64::from(worlds) * f64::from(objects)),
         path_radius_mm_p50: percentile(&mut radii, 0.5),
@@ -728,6 +838,55 @@ mod tests {
         assert!(
             b.obb_speedup.is_some_and(|x| x > 0.0 && x.is_finite()),
             "{b:?}"
+        );
+        // The held total adds to the payloads what the worlds' structs and blocks take.
+        assert!(b.held_overhead_bytes_per_world > 0.0, "{b:?}");
+        assert_eq!(
+            b.held_total_bytes_per_world,
+            b.payload_bytes_per_world + b.held_overhead_bytes_per_world + b.memory_bytes_per_world
+        );
+        assert_eq!(
+            (b.stored_worlds, b.stored_held_bytes_per_world),
+            (None, None)
+        );
+    }
+
+    /// With the motion, every world is stored by the store's own assembly, each counted as
+    /// held: more than its payloads, as the sampled worlds' held bytes say; a scene with fewer
+    /// bodies than `objects` is refused, naming both.
+    #[test]
+    fn with_motion_the_assembly_stores_every_world() {
+        let b = bench_query(&QueryBenchOptions {
+            scene: "tumble".into(),
+            worlds: 100,
+            objects: 5,
+            constraints: 4,
+            brute: false,
+            with_motion: true,
+            ..QueryBenchOptions::default()
+        })
+        .unwrap_or_else(|e| panic!("{e:#}"));
+        assert_eq!(b.stored_worlds, Some(100));
+        let held = b.stored_held_bytes_per_world.unwrap_or(0.0);
+        assert!(held > b.payload_bytes_per_world, "{b:?}");
+        // Each world is one of the 24 sampled ones: its mean is theirs, within the rounding of
+        // 100 worlds over 24 and a few bytes of seed and counter.
+        let sampled = b.payload_bytes_per_world + b.held_overhead_bytes_per_world;
+        assert!(
+            (held - sampled).abs() < 0.2 * sampled,
+            "{held} against {sampled}"
+        );
+        let refused = bench_query(&QueryBenchOptions {
+            worlds: 10,
+            objects: 10,
+            constraints: 1,
+            with_motion: true,
+            ..QueryBenchOptions::default()
+        });
+        let message = format!("{:#}", refused.err().unwrap_or_else(|| anyhow::anyhow!("")));
+        assert!(
+            message.contains("has 5 bodies, --objects is 10"),
+            "{message}"
         );
     }
 

@@ -195,7 +195,7 @@ async fn pipeline(
     let mut payload = 0u64;
     for i in 0..state.worlds_done {
         if let Some(w) = store.world(i) {
-            steps += w.done.sim_steps;
+            steps += w.done()?.sim_steps;
             // Encoded segments and summary: the bus bytes of the world.
             payload += w.bytes;
         }

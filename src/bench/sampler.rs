@@ -168,7 +168,7 @@ pub async fn bench_sampler(
     let mut steps = 0u64;
     for i in 0..state.worlds_done {
         if let Some(w) = store.world(i) {
-            steps += w.done.sim_steps;
+            steps += w.done()?.sim_steps;
         }
     }
     sampler.stop().await;
