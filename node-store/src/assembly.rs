@@ -27,7 +27,7 @@ use std::sync::Arc;
 /// Its summary and segments are kept as their wire encoding, back to back in one heap block
 /// (each prefixed with its length, the segments without the job and sampler ids, which are
 /// the summary's), and decoded when asked for ([`done`](Self::done),
-/// [`segments`](Self::segments), [`message`](Self::message)): a store holds a million worlds
+/// [`decode`](Self::decode), [`message`](Self::message)): a store holds a million worlds
 /// and reads one now and then. Held as decoded structs, a tumble world's motion took 1.85 kB
 /// of memory beyond its codec payloads (three 216-byte segment structs, a 368-byte summary, the
 /// ids copied into each, a heap block for every string and list); held encoded, a few hundred.
@@ -128,11 +128,6 @@ impl StoredWorld {
             segments.push(s);
         }
         Ok((done, segments))
-    }
-
-    /// The world's segments, in order, with their ids as they came.
-    pub fn segments(&self) -> Result<Vec<MotionSegment>, StoredDecodeError> {
-        self.decode().map(|(_, segments)| segments)
     }
 
     /// Segments held.

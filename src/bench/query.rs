@@ -163,10 +163,10 @@ pub struct QueryBench {
     /// `motion_bytes_per_world + memory_bytes_per_world`: the store's total per world, its
     /// motion counted as encoded.
     pub total_bytes_per_world: f64,
-    /// What a stored world costs in memory beyond its codec payloads: the structs of its
-    /// segments and summary, the ids and lists they hold and the allocator's share of every
-    /// block (`mwb_store::assembly::held_bytes` − payload, the mean over the sampled worlds:
-    /// per world, not per object).
+    /// What a stored world costs in memory beyond its codec payloads: its encoded summary and
+    /// segment headers, its struct, its job id and the allocator's share of each block
+    /// (`StoredWorld::held_bytes` − payload, the mean over the sampled worlds: per world, not
+    /// per object).
     pub held_overhead_bytes_per_world: f64,
     /// `payload_bytes_per_world + held_overhead_bytes_per_world + memory_bytes_per_world`:
     /// the store's total with its motion as held in memory, what its memory cap counts.
@@ -222,7 +222,7 @@ struct MotionBytes {
     encoded_per_object: f64,
     /// The codec payloads alone (the compressed motion).
     payload_per_object: f64,
-    /// Per world: held in memory − payload ([`mwb_store::assembly::held_bytes`]).
+    /// Per world: held in memory − payload ([`StoredWorld::held_bytes`]).
     held_overhead_per_world: f64,
 }
 
