@@ -152,3 +152,47 @@ async fn a_full_store_pauses_the_samplers_and_keeps_answering() {
         .unwrap_or_else(|_| panic!("close timed out"))
         .unwrap_or_else(|e| panic!("{e}"));
 }
+
+/// `mwb bench ingest` end to end: a store process of its own filled over TCP loopback by the
+/// bench's feeder; every world stored, indexed and counted (the job closes), none refused, and
+/// the store's own accounting and resident set reported.
+#[test]
+fn the_ingest_bench_fills_a_store_process() {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_mwb"))
+        .args([
+            "bench",
+            "ingest",
+            "--worlds",
+            "40",
+            "--scene",
+            "tumble",
+            "--memory-cap-mib",
+            "256",
+            "--timeout-s",
+            "120",
+            "--json",
+        ])
+        .env("RUST_LOG", "warn")
+        .output()
+        .unwrap_or_else(|e| panic!("running mwb bench ingest: {e}"));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "mwb bench ingest failed: {stderr}");
+    let line: serde_json::Value = serde_json::from_slice(&out.stdout)
+        .unwrap_or_else(|e| panic!("{e}: {}", String::from_utf8_lossy(&out.stdout)));
+    let num = |k: &str| {
+        line[k]
+            .as_f64()
+            .unwrap_or_else(|| panic!("{k} missing: {line}"))
+    };
+    assert_eq!(num("worlds"), 40.0);
+    assert_eq!(num("stored_worlds"), 40.0);
+    assert_eq!(num("bodies"), 5.0);
+    assert_eq!(num("index_failures"), 0.0);
+    assert_eq!(num("refused_memory"), 0.0);
+    assert!(num("ingest_worlds_per_s") > 0.0);
+    assert!(num("publish_worlds_per_s") >= num("ingest_worlds_per_s"));
+    // Its index is counted (a tumble world's is a few kB), and the process grew.
+    assert!(num("index_bytes_per_world") > 500.0, "{line}");
+    assert!(num("memory_bytes_per_world") > num("index_bytes_per_world"));
+    assert!(num("rss_bytes") > num("rss_baseline_bytes"));
+}

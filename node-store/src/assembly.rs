@@ -264,6 +264,8 @@ pub struct Assembler {
     stored_bytes: u64,
     /// The browsing index's bytes, as last reported by the node.
     index_bytes: u64,
+    /// How many stored worlds `index_bytes` covers (indexed, or failed to index).
+    index_worlds: u64,
     /// What the index may grow by on the next world ([`Assembler::set_index_growth`]).
     index_growth: u64,
     partial_bytes: u64,
@@ -341,6 +343,7 @@ impl Assembler {
             worlds: Vec::new(),
             stored_bytes: 0,
             index_bytes: 0,
+            index_worlds: 0,
             index_growth: 0,
             partial_bytes: 0,
             cap_bytes,
@@ -383,19 +386,23 @@ impl Assembler {
         self.worlds.iter()
     }
     /// Bytes held: stored worlds, partial worlds in flight, and the browsing index (as last
-    /// reported with [`set_index_bytes`](Self::set_index_bytes)) — what the cap limits.
+    /// reported with [`set_index_bytes`](Self::set_index_bytes), stored worlds it has not taken
+    /// in yet at the mean so far) — what the cap limits.
     pub fn memory_bytes(&self) -> u64 {
-        self.stored_bytes + self.partial_bytes + self.index_bytes
+        self.stored_bytes + self.partial_bytes + self.index_bytes + self.index_pending()
     }
 
     /// Tells the assembler how many bytes the browsing index of its worlds takes (the index
-    /// lives beside it, in the browse shard). Counted against the memory cap: a world is
-    /// refused when its bytes, the stored ones, the index and the index the world itself will
-    /// need (estimated as the mean so far) would exceed the cap. On a 10-object scene the
-    /// index is several times the compressed world, so leaving it out would let a store grow
-    /// far past its cap.
-    pub fn set_index_bytes(&mut self, bytes: u64) {
+    /// lives beside it, in the browse shard) and how many of the stored worlds it has taken in
+    /// (indexed, or failed to index). Counted against the memory cap: a world is refused when
+    /// its bytes, the stored ones, the index and the index the world itself will need
+    /// (estimated as the mean so far) would exceed the cap. On a 10-object scene the index is
+    /// about the size of the compressed world, so leaving it out would let a store grow far
+    /// past its cap. A store indexes the worlds of a batch together, after storing them: until
+    /// it reports them, each counts at the mean.
+    pub fn set_index_bytes(&mut self, bytes: u64, worlds: u64) {
         self.index_bytes = bytes;
+        self.index_worlds = worlds;
     }
 
     /// Tells the assembler how much the index may grow beyond a world's own bytes when the
@@ -405,12 +412,17 @@ impl Assembler {
         self.index_growth = bytes;
     }
 
-    /// The index bytes a new world is expected to add: the mean over the stored worlds.
+    /// The index bytes a new world is expected to add: the mean over the worlds indexed.
     fn index_estimate(&self) -> u64 {
-        match self.worlds.len() as u64 {
+        match self.index_worlds {
             0 => 0,
             n => self.index_bytes / n,
         }
+    }
+
+    /// The index the stored worlds not indexed yet will add, at the mean.
+    fn index_pending(&self) -> u64 {
+        (self.worlds.len() as u64).saturating_sub(self.index_worlds) * self.index_estimate()
     }
     pub fn cap_bytes(&self) -> u64 {
         self.cap_bytes
@@ -776,7 +788,12 @@ impl Assembler {
             },
             (true, None) => return self.reject(&key, Rejection::NoParent),
         };
-        if self.stored_bytes + self.index_bytes + held + self.index_estimate() + self.index_growth
+        if self.stored_bytes
+            + self.index_bytes
+            + self.index_pending()
+            + held
+            + self.index_estimate()
+            + self.index_growth
             > self.cap_bytes
         {
             return self.reject(&key, Rejection::MemoryCap);
@@ -1591,7 +1608,7 @@ mod tests {
             if matches!(feed(&mut a, s, d), Outcome::Stored { .. }) {
                 stored += 1;
                 // The node reports the index after indexing each stored world.
-                a.set_index_bytes(stored * one);
+                a.set_index_bytes(stored * one, stored);
             }
         }
         // World 0 (0 + 1 + est 0 ≤ 3.5), world 1 (1 + 1 + 1 + est 1 = 4 > 3.5): refused, …
@@ -1599,6 +1616,37 @@ mod tests {
         assert_eq!(a.counters.refused_memory, 3);
         assert_eq!(a.memory_bytes(), 2 * one);
         assert!(a.memory_bytes() <= a.cap_bytes());
+    }
+
+    /// Worlds stored but not yet indexed (a batch, indexed together after it is stored) count
+    /// at the mean index of the worlds indexed so far, in `memory_bytes` and against the cap.
+    #[test]
+    fn worlds_not_yet_indexed_count_at_the_mean_index() {
+        let x = 1_000u64; // index bytes per indexed world
+        let mut a = Assembler::new(u64::MAX);
+        a.submit_job(job("j", 10));
+        let mut c = 0u64;
+        let mut store = |a: &mut Assembler| {
+            let (s, d) = world("j", "n", c, 100 + c, 2);
+            c += 1;
+            matches!(feed(a, s, d), Outcome::Stored { .. })
+        };
+        assert!(store(&mut a) && store(&mut a));
+        a.set_index_bytes(2 * x, 2);
+        assert_eq!(a.memory_bytes(), a.stored_bytes + 2 * x);
+        // One more stored, not indexed yet: counted at the mean, x.
+        assert!(store(&mut a));
+        let stored3 = a.stored_bytes;
+        assert_eq!(a.memory_bytes(), stored3 + 3 * x);
+        // Room for the next world and its index only if the pending one is left out: refused.
+        let next = stored3 / 3;
+        a.cap_bytes = stored3 + next + 2 * x + x + x / 2;
+        assert!(!store(&mut a));
+        assert_eq!(a.counters.refused_memory, 1);
+        // Once reported, the pending world counts at its real size.
+        a.set_index_bytes(2 * x + x / 2, 3);
+        assert_eq!(a.memory_bytes(), stored3 + 2 * x + x / 2);
+        assert!(store(&mut a), "room again");
     }
 
     #[test]

@@ -14,7 +14,7 @@
 
 use crate::assembly::{Assembler, Outcome};
 use crate::browse::{Shard, ShardSpec};
-use crate::index::{JobScene, index_world};
+use crate::index::{JobScene, index_worlds};
 use crate::journal::{
     Journal, JournalCounters, JournalError, MAX_BATCH, StartReport, StoreInput, checkpoint,
     read_store_input,
@@ -499,7 +499,17 @@ struct Applier {
     counts_due: BTreeSet<String>,
     /// When the counts the authority lacks were last sent again.
     last_resend: Instant,
+    /// Threads a batch of worlds is indexed on (every core).
+    index_threads: usize,
+    /// Worlds read from the journal or a recording at start, not indexed yet (indexed
+    /// [`LOAD_INDEX_BATCH`] at a time, on every core).
+    unindexed: Vec<Arc<crate::StoredWorld>>,
+    /// Stored worlds the index has taken in (indexed, or failed to index).
+    index_taken: u64,
 }
+
+/// Worlds loaded at start are indexed this many at a time.
+const LOAD_INDEX_BATCH: usize = 256;
 
 impl Applier {
     fn new(shared: Arc<Shared>, cfg: &StoreConfig, keys: Keys) -> Self {
@@ -514,7 +524,16 @@ impl Applier {
             journal: None,
             counts_due: BTreeSet::new(),
             last_resend: Instant::now(),
+            index_threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
+            unindexed: Vec::new(),
+            index_taken: 0,
         }
+    }
+
+    /// Indexes the worlds loaded so far.
+    fn index_loaded(&mut self) {
+        let worlds = std::mem::take(&mut self.unindexed);
+        self.index(&worlds);
     }
 
     /// Reads the journal (if any), opens it for writing, then loads the recordings (their
@@ -535,6 +554,7 @@ impl Applier {
                 log_file("journal", &fr);
                 report.journal.push(fr);
             }
+            self.index_loaded();
             report.worlds_from_journal = worlds(self);
             self.journal = Some(journal);
             // This run's file starts now, with a checkpoint of the jobs as the journal left
@@ -548,6 +568,7 @@ impl Applier {
             log_file("recording", &fr);
             report.recordings.push(fr);
         }
+        self.index_loaded();
         report.worlds_from_recordings = worlds(self) - report.worlds_from_journal;
         report.worlds_refused = refused(self) - refused0;
         // What is still partial now can only be a world cut by damage, or held for a job no
@@ -581,8 +602,9 @@ impl Applier {
             StoreInput::Scene(scene) => Incoming::Scene(scene),
         };
         let (_, worlds) = self.take(msg);
-        for w in &worlds {
-            self.index(w);
+        self.unindexed.extend(worlds);
+        if self.unindexed.len() >= LOAD_INDEX_BATCH {
+            self.index_loaded();
         }
         if self
             .journal
@@ -799,25 +821,37 @@ impl Applier {
         }
     }
 
-    /// Indexes a stored world for browsing; a world that cannot be indexed stays stored (and
-    /// fetchable) and is counted.
-    fn index(&self, w: &crate::StoredWorld) {
-        let thresholds = self.rest.get(&w.job_id).cloned().unwrap_or_default();
-        match index_world(w, w.index, thresholds, self.path_tolerance_m) {
-            Ok(indexed) => {
-                let (index_bytes, growth) = {
-                    let mut b = self.shared.browse();
-                    b.insert(indexed);
-                    (b.heap_bytes() as u64, b.growth_bytes() as u64)
-                };
-                let mut t = self.shared.lock();
-                t.set_index_bytes(index_bytes);
-                t.set_index_growth(growth);
-            }
-            Err(e) => {
-                self.shared.index_failures.fetch_add(1, Ordering::Relaxed);
-                warn!(world = w.index, error = %e, "world stored but not browsable");
-            }
+    /// Indexes stored worlds for browsing, on every core ([`index_worlds`]), and inserts them
+    /// in the order given; a world that cannot be indexed stays stored (and fetchable) and is
+    /// counted.
+    fn index(&mut self, worlds: &[Arc<crate::StoredWorld>]) {
+        if worlds.is_empty() {
+            return;
+        }
+        let jobs: Vec<_> = worlds
+            .iter()
+            .map(|w| {
+                let scene = self.rest.get(&w.job_id).cloned().unwrap_or_default();
+                (&**w, w.index, scene)
+            })
+            .collect();
+        let results = index_worlds(&jobs, self.path_tolerance_m, self.index_threads);
+        for (w, r) in worlds.iter().zip(results) {
+            self.index_taken += 1;
+            let (index_bytes, growth) = {
+                let mut b = self.shared.browse();
+                match r {
+                    Ok(indexed) => b.insert(indexed),
+                    Err(e) => {
+                        self.shared.index_failures.fetch_add(1, Ordering::Relaxed);
+                        warn!(world = w.index, error = %e, "world stored but not browsable");
+                    }
+                }
+                (b.heap_bytes() as u64, b.growth_bytes() as u64)
+            };
+            let mut t = self.shared.lock();
+            t.set_index_bytes(index_bytes, self.index_taken);
+            t.set_index_growth(growth);
         }
     }
 }
@@ -829,11 +863,10 @@ async fn apply(mut a: Applier, mut rx: mpsc::Receiver<Incoming>) {
         let mut states = Vec::new();
         let mut next = Some(first);
         let mut n = 0;
+        let mut stored = Vec::new();
         while let Some(msg) = next {
             let (st, worlds) = a.take(msg);
-            for w in &worlds {
-                a.index(w);
-            }
+            stored.extend(worlds);
             states.extend(st);
             n += 1;
             next = if n < MAX_BATCH {
@@ -842,6 +875,8 @@ async fn apply(mut a: Applier, mut rx: mpsc::Receiver<Incoming>) {
                 None
             };
         }
+        // The batch's worlds are browsable before its job states and counts go out.
+        a.index(&stored);
         a.commit().await;
         if a.authority {
             let node = &a.shared.node;

@@ -9,7 +9,7 @@ use mwb_core::scene::SceneTemplate;
 use mwb_proto::v1::Message;
 use mwb_sampler::{PayloadEncoding, RunOptions, run_world_observed, segment_message, world_done};
 use mwb_store::index::{DEFAULT_PATH_TOLERANCE_M, PATH_GRID_M, PATH_RADIUS_STEP_M};
-use mwb_store::{StoredWorld, index_world};
+use mwb_store::{StoredWorld, index_world, index_worlds};
 use std::ops::ControlFlow;
 
 /// Samples one world and returns it as the store holds it, plus the simulated full-rate
@@ -125,4 +125,52 @@ fn index_never_misses_a_simulated_path_and_keeps_the_samplers_metrics() {
     }
     // The random boxes hit often enough for the property to mean something.
     assert!(hits * 5 > checks, "{hits} hits of {checks}");
+}
+
+/// A store indexes the worlds that reach it together on every core: the same worlds, the same
+/// paths, radii and metrics as one at a time, in the order given, whatever the thread count;
+/// a world that cannot be indexed fails alone, in its place.
+#[test]
+fn indexing_on_many_threads_gives_what_one_at_a_time_gives() {
+    let rest = RestThresholds {
+        linear: 0.02,
+        angular: 0.05,
+    };
+    let mut worlds: Vec<StoredWorld> = (0..5)
+        .map(|seed| sample("tumble", 10 + seed, PayloadEncoding::Spline).0)
+        .collect();
+    // No segments: `IndexError::Empty`.
+    let done = worlds[0].done().unwrap_or_else(|e| panic!("{e}"));
+    worlds.insert(2, StoredWorld::new(0, "j".into(), &done, &[], 0, None));
+    let jobs: Vec<_> = worlds
+        .iter()
+        .enumerate()
+        .map(|(i, w)| (w, 100 + i as u32, mwb_store::index::JobScene::from(rest)))
+        .collect();
+    let one_by_one: Vec<_> = worlds
+        .iter()
+        .enumerate()
+        .map(|(i, w)| index_world(w, 100 + i as u32, rest, DEFAULT_PATH_TOLERANCE_M))
+        .collect();
+    assert!(one_by_one[2].is_err());
+    assert_eq!(one_by_one.iter().filter(|r| r.is_ok()).count(), 5);
+    for threads in [1, 2, 3, 8] {
+        let together = index_worlds(&jobs, DEFAULT_PATH_TOLERANCE_M, threads);
+        assert_eq!(together.len(), one_by_one.len(), "{threads} threads");
+        for (i, (a, b)) in together.iter().zip(&one_by_one).enumerate() {
+            match (a, b) {
+                (Ok(a), Ok(b)) => {
+                    assert_eq!(a.world, 100 + i as u32);
+                    assert_eq!(
+                        a.paths_message(),
+                        b.paths_message(),
+                        "{threads} threads, {i}"
+                    );
+                    assert_eq!(a.metrics, b.metrics, "{threads} threads, {i}");
+                }
+                (Err(a), Err(b)) => assert_eq!(a, b),
+                _ => panic!("{threads} threads, world {i}: {a:?} against {b:?}"),
+            }
+        }
+    }
 }

@@ -467,7 +467,7 @@ fn free_subnet(pid: u32) -> Option<u8> {
 
 /// An `mwb` child process, in a namespace or not, that can be killed and started again with the
 /// same arguments; killed on drop. Its stderr goes to a log file, for diagnostics.
-struct Proc {
+pub(super) struct Proc {
     name: String,
     netns: Option<String>,
     args: Vec<String>,
@@ -476,7 +476,7 @@ struct Proc {
 }
 
 impl Proc {
-    fn new(name: &str, netns: Option<&str>, args: Vec<String>, dir: &Path) -> Self {
+    pub(super) fn new(name: &str, netns: Option<&str>, args: Vec<String>, dir: &Path) -> Self {
         Self {
             name: name.to_owned(),
             netns: netns.map(str::to_owned),
@@ -486,7 +486,7 @@ impl Proc {
         }
     }
 
-    fn start(&mut self, mwb: &Path) -> Result<()> {
+    pub(super) fn start(&mut self, mwb: &Path) -> Result<()> {
         let log = std::fs::OpenOptions::new()
             .create(true)
             .append(true)
@@ -513,12 +513,12 @@ impl Proc {
         Ok(())
     }
 
-    fn pid(&self) -> Option<u32> {
+    pub(super) fn pid(&self) -> Option<u32> {
         self.child.as_ref().map(Child::id)
     }
 
     /// Whether the process is running (false once it exited, or was never started).
-    fn running(&mut self) -> bool {
+    pub(super) fn running(&mut self) -> bool {
         self.child
             .as_mut()
             .is_some_and(|c| matches!(c.try_wait(), Ok(None)))
@@ -533,7 +533,7 @@ impl Proc {
     }
 
     /// The last lines of the log, for an error message.
-    fn log_tail(&self) -> String {
+    pub(super) fn log_tail(&self) -> String {
         let text = std::fs::read_to_string(&self.log).unwrap_or_default();
         let lines: Vec<&str> = text.lines().collect();
         let tail = lines[lines.len().saturating_sub(5)..].join("\n    ");
@@ -548,10 +548,10 @@ impl Drop for Proc {
 }
 
 /// A directory removed on drop (journals and logs of one run).
-struct TempDir(PathBuf);
+pub(super) struct TempDir(pub(super) PathBuf);
 
 impl TempDir {
-    fn new(name: &str) -> Result<Self> {
+    pub(super) fn new(name: &str) -> Result<Self> {
         let p = std::env::temp_dir().join(format!("mwb-{name}-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&p);
         std::fs::create_dir_all(&p).with_context(|| format!("creating {}", p.display()))?;
@@ -727,7 +727,7 @@ async fn watch(
 }
 
 /// Every store's statistics on request, one reply per live shard.
-async fn store_stats(session: &zenoh::Session, keys: &Keys) -> Vec<NodeStats> {
+pub(super) async fn store_stats(session: &zenoh::Session, keys: &Keys) -> Vec<NodeStats> {
     // Every shard answers on the same key: zenoh's default consolidation would keep one.
     let Ok(replies) = session
         .get(keys.store_stats())
@@ -765,7 +765,7 @@ async fn samplers_alive(session: &zenoh::Session, keys: &Keys) -> usize {
     n
 }
 
-async fn until<F, Fut>(what: &str, limit: Duration, mut f: F) -> Result<()>
+pub(super) async fn until<F, Fut>(what: &str, limit: Duration, mut f: F) -> Result<()>
 where
     F: FnMut() -> Fut,
     Fut: std::future::Future<Output = bool>,
@@ -786,7 +786,7 @@ where
 }
 
 /// Whether something listens on `addr:port` (from the caller's namespace).
-async fn listening(addr: Ipv4Addr, port: u16) -> bool {
+pub(super) async fn listening(addr: Ipv4Addr, port: u16) -> bool {
     matches!(
         tokio::time::timeout(
             Duration::from_secs(1),

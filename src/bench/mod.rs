@@ -7,6 +7,7 @@ use clap::Subcommand;
 pub mod chaos;
 pub mod codec;
 pub mod fidelity;
+pub mod ingest;
 pub mod query;
 pub mod record;
 pub mod refine;
@@ -27,6 +28,9 @@ pub enum BenchCommand {
     Sampler(sampler::SamplerArgs),
     /// Browsing over one store shard: add/remove a constraint, OBB tree vs brute force, rank.
     Query(query::QueryArgs),
+    /// One store process on the bus filled with worlds as fast as it takes them in: worlds/s
+    /// from first put to every world stored, indexed and counted; the store's RSS.
+    Ingest(ingest::IngestArgs),
     /// The motion codec on sampled worlds: one line per (scene, preset).
     Codec(codec::CodecArgs),
     /// Recording, replay and the store's journal: writer MB/s, recorder overhead, replay
@@ -56,6 +60,7 @@ pub async fn run(command: BenchCommand) -> Result<()> {
         BenchCommand::Reverse(args) => reverse::run(args).await,
         BenchCommand::Sampler(args) => sampler::run(args).await,
         BenchCommand::Query(args) => query::run(args).await,
+        BenchCommand::Ingest(args) => ingest::run(args).await,
         BenchCommand::Codec(args) => codec::run(args),
         BenchCommand::Record(args) => record::run(args).await,
         BenchCommand::Refine(args) => refine::run(args).await,

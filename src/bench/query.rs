@@ -23,6 +23,9 @@
 //! * rank: top 10 by angular travel summed over all objects, over every world;
 //! * ingest: `Shard::insert` of each world as the shard is filled (no live constraint), mean
 //!   and slowest — the slowest builds a block of the hierarchies;
+//! * `--with-motion`: every world's sampled messages go through the store's assembly and the
+//!   world is indexed from its stored motion as a store indexes it (on every core, 256 worlds
+//!   at a time): `store_ingest_worlds_per_s` is what one store process can take in;
 //! * `--shards N`: world i is shard (i mod N)'s, as stores number them; each shard uses every
 //!   core, as its own process would, and every request goes to all of them at once (answers
 //!   merged) — N store processes on one machine, without the bus;
@@ -43,6 +46,7 @@ use mwb_sampler::{RunOptions, run_world, segment_message, world_done};
 use mwb_store::index::{DEFAULT_PATH_TOLERANCE_M, IndexedObject};
 use mwb_store::{
     Assembler, IndexedWorld, Outcome, Shard, ShardBytes, ShardSpec, StoredWorld, index_world,
+    index_worlds,
 };
 use std::ops::ControlFlow;
 use std::time::Instant;
@@ -175,6 +179,11 @@ pub struct QueryBench {
     /// (`Assembler::memory_bytes` ÷ worlds: their motion as held); `null` without.
     pub stored_worlds: Option<usize>,
     pub stored_held_bytes_per_world: Option<f64>,
+    /// `--with-motion`: worlds per second of the store's own work on them — assembly,
+    /// indexing from the stored motion (decode, polylines, metrics) on every core, `threads`
+    /// of them, in batches of 256 as they reach a busy store, and insert — what one store
+    /// process can take in; `null` without. `ingest_worlds_per_s` is the insert alone.
+    pub store_ingest_worlds_per_s: Option<f64>,
     /// Resident set of the whole bench process at the end (the shards, and unless `--no-brute`
     /// the bench's own copy of the worlds for brute force), from /proc/self/status; 0 where
     /// unavailable.
@@ -216,7 +225,7 @@ fn percentile(v: &mut [f64], p: f64) -> f64 {
 /// What the sampled worlds' motion costs the store, per object (the synthetic worlds hold no
 /// motion of their own: each of their objects is charged the pool's mean).
 #[derive(Debug, Clone, Copy, Default)]
-struct MotionBytes {
+pub(super) struct MotionBytes {
     /// Segment messages as the store's assembly counts them against its memory cap
     /// (`StoredWorld::bytes`: payload, low-res path, header fields).
     encoded_per_object: f64,
@@ -227,16 +236,21 @@ struct MotionBytes {
 }
 
 /// A sampled world's summary and segments, as a sampler sends them.
-type WorldMessages = (WorldDone, Vec<MotionSegment>);
+pub(super) type WorldMessages = (WorldDone, Vec<MotionSegment>);
 
 /// Real indexed worlds of `scene`, as the store builds them, their messages, and their motion's
 /// bytes.
-fn sample_pool(
+pub(super) fn sample_pool(
     file: &str,
     text: &str,
     worlds: u32,
     tolerance: f64,
-) -> Result<(Vec<IndexedWorld>, Vec<WorldMessages>, MotionBytes)> {
+) -> Result<(
+    Vec<IndexedWorld>,
+    Vec<WorldMessages>,
+    MotionBytes,
+    RestThresholds,
+)> {
     let template = SceneTemplate::parse(text, file)?;
     let rest = RestThresholds::from(template.settings());
     let (mut out, mut messages) = (Vec::new(), Vec::new());
@@ -282,7 +296,43 @@ fn sample_pool(
             payload_per_object: per(payload),
             held_overhead_per_world: overhead as f64 / f64::from(worlds.max(1)),
         },
+        rest,
     ))
+}
+
+/// Worlds a `--with-motion` bench gives the store's assembly and indexes at a time.
+const INGEST_BATCH: u32 = 256;
+
+/// A sampled world's messages through the store's assembly as world `i` (its own counter and
+/// seed; the payloads and their checksums as they were): the world as the store holds it.
+fn store_world(
+    assembler: &mut Assembler,
+    (done, segments): &WorldMessages,
+    i: u32,
+) -> Result<std::sync::Arc<StoredWorld>> {
+    let mut last = Outcome::Pending;
+    for s in segments {
+        let seg = MotionSegment {
+            world_counter: u64::from(i),
+            seed: u64::from(i),
+            ..s.clone()
+        };
+        last = assembler.on_segment(seg, 0);
+    }
+    if last == Outcome::Pending {
+        let done = WorldDone {
+            world_counter: u64::from(i),
+            seed: u64::from(i),
+            ..done.clone()
+        };
+        last = assembler.on_done(done, 0);
+    }
+    match last {
+        Outcome::Stored { index, .. } => assembler
+            .world(index)
+            .ok_or_else(|| anyhow::anyhow!("world {i}: stored as {index} but not found")),
+        other => bail!("world {i}: the store's assembly did not store it: {other:?}"),
+    }
 }
 
 /// `obj` moved by `d` (rounded to the path's grid, so the move adds no rounding and the radius
@@ -481,7 +531,7 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
     } else {
         crate::client::load_scene(&opts.scene)?
     };
-    let (pool, messages, motion) = sample_pool(&file, &text, 24, opts.path_tolerance_m)?;
+    let (pool, messages, motion, rest) = sample_pool(&file, &text, 24, opts.path_tolerance_m)?;
     if opts.with_motion {
         if opts.shards != 1 {
             bail!("--with-motion: one shard only (--shards 1)");
@@ -524,70 +574,74 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
     let mut radii = Vec::new();
     let mut ingest = Vec::with_capacity(worlds as usize);
     let job_id: std::sync::Arc<str> = std::sync::Arc::from("synthetic");
-    for i in 0..worlds {
-        let mut objs = Vec::with_capacity(objects as usize);
-        let mut metrics = Vec::with_capacity(objects as usize);
-        let sampled = i as usize % pool.len();
-        if opts.with_motion {
-            // The sampled world's motion under this world's own counter and seed (the
-            // payloads and their checksums as they were).
-            let (done, segments) = &messages[sampled];
-            let mut last = Outcome::Pending;
-            for s in segments {
-                let seg = MotionSegment {
-                    world_counter: u64::from(i),
-                    seed: u64::from(i),
-                    ..s.clone()
-                };
-                last = assembler.on_segment(seg, 0);
-            }
-            if last == Outcome::Pending {
-                let done = WorldDone {
-                    world_counter: u64::from(i),
-                    seed: u64::from(i),
-                    ..done.clone()
-                };
-                last = assembler.on_done(done, 0);
-            }
-            if !matches!(last, Outcome::Stored { .. }) {
-                bail!("world {i}: the store's assembly did not store it: {last:?}");
-            }
-        }
-        for k in 0..objects as usize {
-            let (obj, m) = if opts.with_motion {
-                (&pool[sampled].objects[k], pool[sampled].metrics[k])
-            } else {
-                pool_objects[rng.index(pool_objects.len())]
-            };
-            let d = [
-                rng.range(-opts.spread_m, opts.spread_m),
-                0.0,
-                rng.range(-opts.spread_m, opts.spread_m),
-            ];
-            let o = shifted(obj, pool[0].frame_dt, d)?;
-            vertices += o.len();
-            radii.push(o.radius * 1000.0);
-            objs.push(o);
-            metrics.push(m);
-        }
-        let w = IndexedWorld {
-            world: i,
-            job_id: job_id.clone(),
-            seed: u64::from(i),
-            frames: 0,
-            frame_dt: pool[0].frame_dt,
-            rested: true,
-            bodies: std::sync::Arc::from(Vec::new()),
-            objects: objs.into_boxed_slice(),
-            metrics: metrics.into_boxed_slice(),
-            measured: None,
-            refined: None,
+    // With the motion, the store's own work on each world, timed apart from the bench's:
+    // assembly, indexing from the stored motion (every core, as a store indexes the worlds that
+    // reach it together), insert.
+    let mut store_s = 0.0;
+    let scene = mwb_store::index::JobScene::from(rest);
+    let mut batch_start = 0u32;
+    while batch_start < worlds {
+        let batch_end = worlds.min(batch_start.saturating_add(INGEST_BATCH));
+        let from_store = if opts.with_motion {
+            let t = Instant::now();
+            let stored = (batch_start..batch_end)
+                .map(|i| store_world(&mut assembler, &messages[i as usize % pool.len()], i))
+                .collect::<Result<Vec<_>>>()?;
+            let jobs: Vec<_> = stored
+                .iter()
+                .zip(batch_start..)
+                .map(|(w, i)| (&**w, i, scene.clone()))
+                .collect();
+            let indexed = index_worlds(&jobs, opts.path_tolerance_m, threads)
+                .into_iter()
+                .zip(batch_start..)
+                .map(|(r, i)| r.map_err(|e| anyhow::anyhow!("world {i}: {e}")))
+                .collect::<Result<Vec<IndexedWorld>>>()?;
+            store_s += t.elapsed().as_secs_f64();
+            indexed
+        } else {
+            Vec::new()
         };
-        // World i is shard (i mod N)'s, as stores number their worlds.
-        let shard = &mut shards[(i % count) as usize];
-        let t = Instant::now();
-        shard.insert(w);
-        ingest.push(t.elapsed().as_secs_f64() * 1e3);
+        for i in batch_start..batch_end {
+            let mut objs = Vec::with_capacity(objects as usize);
+            let mut metrics = Vec::with_capacity(objects as usize);
+            let own = from_store.get((i - batch_start) as usize);
+            for k in 0..objects as usize {
+                let (obj, m) = match own {
+                    Some(w) => (&w.objects[k], w.metrics[k]),
+                    None => pool_objects[rng.index(pool_objects.len())],
+                };
+                let d = [
+                    rng.range(-opts.spread_m, opts.spread_m),
+                    0.0,
+                    rng.range(-opts.spread_m, opts.spread_m),
+                ];
+                let o = shifted(obj, pool[0].frame_dt, d)?;
+                vertices += o.len();
+                radii.push(o.radius * 1000.0);
+                objs.push(o);
+                metrics.push(m);
+            }
+            let w = IndexedWorld {
+                world: i,
+                job_id: job_id.clone(),
+                seed: u64::from(i),
+                frames: 0,
+                frame_dt: pool[0].frame_dt,
+                rested: true,
+                bodies: std::sync::Arc::from(Vec::new()),
+                objects: objs.into_boxed_slice(),
+                metrics: metrics.into_boxed_slice(),
+                measured: None,
+                refined: None,
+            };
+            // World i is shard (i mod N)'s, as stores number their worlds.
+            let shard = &mut shards[(i % count) as usize];
+            let t = Instant::now();
+            shard.insert(w);
+            ingest.push(t.elapsed().as_secs_f64() * 1e3);
+        }
+        batch_start = batch_end;
     }
     let ingest_s = ingest.iter().sum::<f64>() / 1e3;
     let ingest_mean_us = ingest_s * 1e6 / ingest.len().max(1) as f64;
@@ -737,6 +791,9 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
             + motion.held_overhead_per_world
             + memory,
         stored_worlds: opts.with_motion.then(|| assembler.world_count()),
+        store_ingest_worlds_per_s: opts
+            .with_motion
+            .then(|| f64::from(worlds) / (store_s + ingest_s).max(1e-9)),
         stored_held_bytes_per_world: opts
             .with_motion
             .then(|| assembler.memory_bytes() as f64 / f64::from(worlds)),
