@@ -1319,25 +1319,28 @@ pub struct FloodReport {
     pub flood_s: f64,
 }
 
-/// Floods a store of `cap_mib` MiB (its own process, loopback) with a sampler's worlds until it
-/// has been full for 3 s (or `limit`), sampling the store's RSS every 100 ms.
-pub async fn flood(
-    mwb: &Path,
-    scene: &(String, String),
-    cap_mib: u64,
-    limit: Duration,
-) -> Result<FloodReport> {
-    let dir = TempDir::new("chaos-flood")?;
-    let port = super::free_port()?;
-    let endpoint = format!("tcp/127.0.0.1:{port}");
-    let space = format!("flood{}", std::process::id());
-    let keys = Keys::new(&space)?;
-    let args = |v: &[&str]| v.iter().map(|s| (*s).to_owned()).collect::<Vec<String>>();
-    let cap = cap_mib.to_string();
-    let mut store = Proc::new(
-        "flood-store",
-        None,
-        args(&[
+/// A `mwb store` process of its own on TCP loopback (no query node, a memory cap of `cap_mib`
+/// MiB), killed on drop, and a client session to it.
+pub(super) struct LoopbackStore {
+    /// Its log and working directory, removed on drop.
+    pub dir: TempDir,
+    pub proc: Proc,
+    pub pid: u32,
+    pub endpoint: String,
+    pub keys: Keys,
+    pub session: zenoh::Session,
+}
+
+impl LoopbackStore {
+    /// Starts the store (`name`: its log's and directory's name) and connects once it listens.
+    pub(super) async fn start(mwb: &Path, name: &str, cap_mib: u64) -> Result<Self> {
+        let dir = TempDir::new(name)?;
+        let port = super::free_port()?;
+        let endpoint = format!("tcp/127.0.0.1:{port}");
+        let space = format!("{name}{}", std::process::id());
+        let keys = Keys::new(&space)?;
+        let cap = cap_mib.to_string();
+        let args = [
             "store",
             "--listen",
             &endpoint,
@@ -1346,42 +1349,71 @@ pub async fn flood(
             "--memory-cap-mib",
             &cap,
             "--no-query",
-        ]),
-        &dir.0,
-    );
-    store.start(mwb)?;
-    until("the flood store to listen", Duration::from_secs(60), || {
-        listening(Ipv4Addr::LOCALHOST, port)
-    })
-    .await?;
-    let pid = store
-        .pid()
-        .ok_or_else(|| anyhow!("the flood store has no pid"))?;
-    let bus = BusArgs {
-        connect: vec![endpoint.clone()],
-        listen: vec![],
-        config: None,
-        mode: Some(Mode::Client),
-        space: space.clone(),
-        multicast: false,
-    };
-    let session = tokio::time::timeout(Duration::from_secs(30), bus.open(Mode::Client))
-        .await
-        .map_err(|_| anyhow!("opening the client session timed out"))??;
+        ];
+        let mut proc = Proc::new(
+            name,
+            None,
+            args.iter().map(|s| (*s).to_owned()).collect(),
+            &dir.0,
+        );
+        proc.start(mwb)?;
+        until(
+            &format!("{name} to listen"),
+            Duration::from_secs(60),
+            || listening(Ipv4Addr::LOCALHOST, port),
+        )
+        .await?;
+        let pid = proc.pid().ok_or_else(|| anyhow!("{name} has no pid"))?;
+        let bus = BusArgs {
+            connect: vec![endpoint.clone()],
+            listen: vec![],
+            config: None,
+            mode: Some(Mode::Client),
+            space,
+            multicast: false,
+        };
+        let session = tokio::time::timeout(Duration::from_secs(30), bus.open(Mode::Client))
+            .await
+            .map_err(|_| anyhow!("opening the client session timed out"))??;
+        Ok(Self {
+            dir,
+            proc,
+            pid,
+            endpoint,
+            keys,
+            session,
+        })
+    }
+
+    /// Closes the client session (the process is killed when `self` drops).
+    pub(super) async fn close(self) {
+        crate::bus::close(self.session).await;
+    }
+}
+
+/// Floods a store of `cap_mib` MiB (its own process, loopback) with a sampler's worlds until it
+/// has been full for 3 s (or `limit`), sampling the store's RSS every 100 ms.
+pub async fn flood(
+    mwb: &Path,
+    scene: &(String, String),
+    cap_mib: u64,
+    limit: Duration,
+) -> Result<FloodReport> {
+    let mut s = LoopbackStore::start(mwb, "flood-store", cap_mib).await?;
     let r = flood_with(
         mwb,
         scene,
-        &dir,
-        &mut store,
-        pid,
-        &session,
-        &keys,
-        &endpoint,
+        &s.dir,
+        &mut s.proc,
+        s.pid,
+        &s.session,
+        &s.keys,
+        &s.endpoint,
         cap_mib << 20,
         limit,
     )
     .await;
-    crate::bus::close(session).await;
+    s.close().await;
     r
 }
 

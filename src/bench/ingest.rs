@@ -17,16 +17,14 @@
 //! * `memory_bytes_per_world`, `index_bytes_per_world`: the store's own accounting
 //!   (`NodeStats`): what its memory cap counts, and the browsing index's part of it.
 
-use super::chaos::{Proc, TempDir, listening, rss_bytes, store_stats, until};
+use super::chaos::{LoopbackStore, Proc, rss_bytes, store_stats, until};
 use super::query::{WorldMessages, sample_pool};
-use crate::bus::{BusArgs, Mode};
 use crate::client;
 use crate::output::{Summary, fields_table};
 use anyhow::{Context, Result, anyhow, bail};
 use mwb_core::keys::Keys;
 use mwb_proto::v1::{Message, MotionSegment, NodeStats, WorldDone};
 use mwb_store::index::DEFAULT_PATH_TOLERANCE_M;
-use std::net::Ipv4Addr;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
@@ -111,47 +109,7 @@ pub async fn run(args: IngestArgs) -> Result<()> {
         .first()
         .and_then(|(_, segments)| segments.first())
         .map_or(0, |s| s.body_count as usize);
-    let dir = TempDir::new("ingest")?;
-    let port = super::free_port()?;
-    let endpoint = format!("tcp/127.0.0.1:{port}");
-    let space = format!("ingest{}", std::process::id());
-    let keys = Keys::new(&space)?;
-    let cap = args.memory_cap_mib.to_string();
-    let mut store = Proc::new(
-        "ingest-store",
-        None,
-        [
-            "store",
-            "--listen",
-            &endpoint,
-            "--space",
-            &space,
-            "--memory-cap-mib",
-            &cap,
-            "--no-query",
-        ]
-        .iter()
-        .map(|s| (*s).to_owned())
-        .collect(),
-        &dir.0,
-    );
-    store.start(&mwb)?;
-    until("the store to listen", Duration::from_secs(60), || {
-        listening(Ipv4Addr::LOCALHOST, port)
-    })
-    .await?;
-    let pid = store.pid().ok_or_else(|| anyhow!("the store has no pid"))?;
-    let bus = BusArgs {
-        connect: vec![endpoint],
-        listen: vec![],
-        config: None,
-        mode: Some(Mode::Client),
-        space,
-        multicast: false,
-    };
-    let session = tokio::time::timeout(Duration::from_secs(30), bus.open(Mode::Client))
-        .await
-        .map_err(|_| anyhow!("opening the client session timed out"))??;
+    let mut store = LoopbackStore::start(&mwb, "ingest-store", args.memory_cap_mib).await?;
     let feed = Feed {
         file: &file,
         text: &text,
@@ -159,8 +117,10 @@ pub async fn run(args: IngestArgs) -> Result<()> {
         worlds: args.worlds,
         timeout: Duration::from_secs(args.timeout_s),
     };
-    let r = feed.run(&session, &keys, &mut store, pid).await;
-    crate::bus::close(session).await;
+    let r = feed
+        .run(&store.session, &store.keys, &mut store.proc, store.pid)
+        .await;
+    store.close().await;
     let mut b = r?;
     b.scene = file;
     b.bodies = bodies;
