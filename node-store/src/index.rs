@@ -790,22 +790,18 @@ pub fn index_worlds(
             done.push((i, index_world(w, *index, scene.clone(), tolerance)));
         }
     };
-    let mut out: Vec<Option<Result<IndexedWorld, IndexError>>> =
-        std::iter::repeat_with(|| None).take(worlds.len()).collect();
-    std::thread::scope(|s| {
+    let mut out: Vec<(usize, Result<IndexedWorld, IndexError>)> = std::thread::scope(|s| {
         let handles: Vec<_> = (1..threads).map(|_| s.spawn(run)).collect();
         let mine = run();
-        for (i, r) in handles
+        handles
             .into_iter()
             .flat_map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
             .chain(mine)
-        {
-            out[i] = Some(r);
-        }
+            .collect()
     });
-    // Every index below `worlds.len()` was taken by exactly one thread.
-    debug_assert!(out.iter().all(Option::is_some));
-    out.into_iter().flatten().collect()
+    // Each index below `worlds.len()` was taken by exactly one thread.
+    out.sort_unstable_by_key(|&(i, _)| i);
+    out.into_iter().map(|(_, r)| r).collect()
 }
 
 /// Indexes a complete (assembled, CRC-verified) world under global index `world`, with its
