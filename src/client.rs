@@ -397,6 +397,10 @@ pub struct NodeStatus {
     pub malformed: u64,
     pub refused_memory: u64,
     pub discarded_partial: u64,
+    /// Stores: worlds stored but not browsable (their motion could not be indexed), and
+    /// indexes sent by samplers that differed from the store's own indexing of the same world.
+    pub index_failures: u64,
+    pub index_mismatches: u64,
     /// The node's zenoh session id (empty until its statistics arrive).
     pub zid: String,
     /// Its links to other zenoh sessions: who is connected, under which certificate.
@@ -528,6 +532,8 @@ pub async fn status(session: &Session, keys: &Keys, listen: Duration) -> Result<
                 malformed: st.malformed,
                 refused_memory: st.refused_memory,
                 discarded_partial: st.discarded_partial,
+                index_failures: st.index_failures,
+                index_mismatches: st.index_mismatches,
             }
         })
         .collect();

@@ -43,6 +43,21 @@ impl Summary for Status {
                 n.worlds_per_s,
                 n.memory_bytes as f64 / f64::from(1u32 << 20)
             );
+            if n.index_failures > 0 {
+                let _ = writeln!(
+                    t,
+                    "  {} stored worlds not browsable (their motion could not be indexed)",
+                    n.index_failures
+                );
+            }
+            if n.index_mismatches > 0 {
+                let _ = writeln!(
+                    t,
+                    "  {} indexes sent by samplers differed from this store's own (its own kept; \
+                     samplers and store of different builds?)",
+                    n.index_mismatches
+                );
+            }
         }
         let links = links_table(self);
         if !links.is_empty() {
@@ -219,5 +234,27 @@ mod tests {
             compact("a/1234567890 + b/abcdefghij"),
             "a/12345678 + b/abcdefgh"
         );
+    }
+
+    /// A store's index trouble shows under its row; none, no line.
+    #[test]
+    fn index_trouble_is_shown_under_the_store() {
+        let mut st = Status {
+            nodes: vec![NodeStatus {
+                role: "store".into(),
+                node: "149f81b3".into(),
+                ..Default::default()
+            }],
+            jobs: vec![],
+        };
+        assert!(!st.table().contains("index"), "{}", st.table());
+        st.nodes[0].index_mismatches = 3;
+        st.nodes[0].index_failures = 2;
+        let table = st.table();
+        assert!(
+            table.contains("  3 indexes sent by samplers differed"),
+            "{table}"
+        );
+        assert!(table.contains("  2 stored worlds not browsable"), "{table}");
     }
 }

@@ -29,6 +29,12 @@ pub struct StoreArgs {
     /// file); repeatable. A damaged recording is loaded up to the damage.
     #[arg(long, value_name = "FILE")]
     pub load: Vec<std::path::PathBuf>,
+    /// Samplers send each world's browsing index with it; the store takes it after checking
+    /// its form, and indexes one world in this many itself too and compares (a difference is
+    /// counted in `mwb status` and logged, and the store's own index kept). 1: every world,
+    /// 0: none.
+    #[arg(long, default_value_t = mwb_store::DEFAULT_VERIFY_INDEX_EVERY, value_name = "N")]
+    pub verify_index_every: u32,
 }
 
 /// Runs the store (and node-query) until Ctrl-C.
@@ -40,6 +46,7 @@ pub async fn run(args: StoreArgs) -> Result<()> {
         no_query,
         journal,
         load,
+        verify_index_every,
     } = args;
     let shard = mwb_store::ShardSpec::parse(&shard)?;
     for f in &load {
@@ -55,6 +62,7 @@ pub async fn run(args: StoreArgs) -> Result<()> {
             shard,
             journal,
             load,
+            verify_index_every,
             ..Default::default()
         },
     )

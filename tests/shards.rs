@@ -61,6 +61,8 @@ async fn store(session: &zenoh::Session, space: &str, shard: ShardSpec, id: &str
                 space: space.to_owned(),
                 node_id: Some(id.to_owned()),
                 shard,
+                // Every index the samplers send is checked against the store's own.
+                verify_index_every: 1,
                 ..Default::default()
             },
         ),
@@ -323,7 +325,20 @@ async fn two_shards_answer_like_one_and_a_late_shard_catches_up() {
         n0 > 0 && n1 > 0,
         "hash split left a shard empty: {n0} / {n1}"
     );
-    assert_eq!(store_one.stats().index_failures, 0);
+    let st = store_one.stats();
+    assert_eq!(st.index_failures, 0);
+    // Every world came with its sampler's index, each checked and found the same.
+    assert_eq!(
+        (
+            st.indexes_sent,
+            st.indexes_checked,
+            st.index_mismatches,
+            st.indexes_refused
+        ),
+        (u64::from(WORLDS), u64::from(WORLDS), 0, 0),
+        "{st:?}"
+    );
+    assert_eq!(st.browsable_worlds, u64::from(WORLDS));
 
     let seeds_one = seeds(&q_one).await;
     let seeds_two = seeds(&q_two).await;

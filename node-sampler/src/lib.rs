@@ -31,7 +31,8 @@ pub mod request;
 pub mod world;
 
 pub use node::{
-    Forward, SamplerConfig, SamplerError, SamplerHandle, run_sampler, segment_message, world_done,
+    Forward, SamplerConfig, SamplerError, SamplerHandle, attach_index, run_sampler,
+    segment_message, world_done,
 };
 pub use world::{
     PayloadEncoding, RunOptions, Segment, SimWorld, WorldSummary, motion_model, provenance,

@@ -249,17 +249,30 @@ impl WorkerKind for Forward {
             },
             ..RunOptions::default()
         };
-        let mut emit =
-            |seg: Segment| emit(segment_message(&w.job.id, w.node, w.counter, w.seed, seg));
+        // A world sent whole goes with its index (built from the segments as sent); a refined
+        // difference does not (its store composes it with the parent first).
+        let whole = prepared.refine.is_none();
+        let mut sent = Vec::new();
+        let mut emit = |seg: Segment| {
+            let msg = segment_message(&w.job.id, w.node, w.counter, w.seed, seg);
+            if whole {
+                sent.push(msg.clone());
+            }
+            emit(msg)
+        };
         if let Some(e) = &prepared.edit {
             // Recorded whole, as a world of the edited scene.
             let child =
                 crate::edit::edit_child(&e.parent, &e.scene, &e.diff, w.seed, opts, &mut emit)?;
-            return Ok(edited_done(&w.job.id, w.node, w.counter, e, &child));
+            let mut done = edited_done(&w.job.id, w.node, w.counter, e, &child);
+            attach_index(&mut done, &sent, &prepared.template);
+            return Ok(done);
         }
         let Some(r) = &prepared.refine else {
             let summary = run_world(&prepared.template, w.seed, opts, &mut emit)?;
-            return Ok(world_done(&w.job.id, w.node, w.counter, &summary));
+            let mut done = world_done(&w.job.id, w.node, w.counter, &summary);
+            attach_index(&mut done, &sent, &prepared.template);
+            return Ok(done);
         };
         // Only what is new: the segments from the one holding the branch frame, each with the
         // bodies re-simulated by then. The store composes the rest from the parent it holds.
@@ -292,6 +305,21 @@ pub async fn run_sampler(
     cfg: SamplerConfig,
 ) -> Result<SamplerHandle, SamplerError> {
     mwb_node::run_workers(session, cfg, Forward).await
+}
+
+/// Attaches to `done` the browsing index of the whole world it sums up (`segments`: every one
+/// sent, in order), built exactly as a store would build it from them
+/// ([`mwb_index::index_motion`], the store's path tolerance and `template`'s rest thresholds),
+/// so that the store only checks and inserts it. Indexing costs the sampler about what one
+/// decode of the world costs; a store could otherwise index only ~1 400 tumble worlds a second
+/// on two cores. A world that cannot be indexed goes without (its store will say why).
+pub fn attach_index(done: &mut WorldDone, segments: &[MotionSegment], template: &SceneTemplate) {
+    let tolerance = mwb_index::DEFAULT_PATH_TOLERANCE_M;
+    let rest = mwb_core::browse::RestThresholds::from(template.settings());
+    match mwb_index::index_motion(done, segments, 0, std::sync::Arc::from(""), rest, tolerance) {
+        Ok(indexed) => done.index = Some(indexed.to_wire(tolerance)),
+        Err(e) => tracing::debug!(error = %e, "world sent without its index"),
+    }
 }
 
 /// The wire summary of world `(job, node, counter)` (CPU time, provenance and scene hash are

@@ -18,7 +18,7 @@
 //! shards each refuse their own world as late because each had counted the other's.)
 
 use crate::browse::ShardSpec;
-use mwb_proto::v1::{Job, JobKind, JobState, Message, MotionSegment, WorldDone};
+use mwb_proto::v1::{Job, JobKind, JobState, Message, MotionSegment, WorldDone, WorldIndex};
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::sync::Arc;
 
@@ -202,8 +202,14 @@ pub enum Rejection {
 pub enum Outcome {
     /// Waiting for more of this world.
     Pending,
-    /// A world was stored; the job's new state.
-    Stored { index: u32, state: JobState },
+    /// A world was stored; the job's new state, and the index its sampler sent
+    /// (`WorldDone.index`, taken off the summary before it was held: the store keeps it as its
+    /// browsing index, not twice).
+    Stored {
+        index: u32,
+        state: JobState,
+        sent_index: Option<Box<WorldIndex>>,
+    },
     /// A complete, verified world that belongs to another shard: neither kept nor counted
     /// here (its owner counts it once it is durable, and tells the authority).
     Elsewhere,
@@ -233,6 +239,8 @@ type WorldKey = (String, String, u64);
 struct Partial {
     segments: BTreeMap<u32, MotionSegment>,
     done: Option<WorldDone>,
+    /// The index the summary carried, taken off it.
+    sent_index: Option<Box<WorldIndex>>,
     crc_bad: bool,
     bytes: u64,
     last_ms: u64,
@@ -651,7 +659,11 @@ impl Assembler {
         self.try_complete(key, now_ms)
     }
 
-    pub fn on_done(&mut self, done: WorldDone, now_ms: u64) -> Outcome {
+    /// Takes a world's summary. An index it carries (`WorldDone.index`) is taken off it and
+    /// comes back with the world when it is stored ([`Outcome::Stored`]); neither the held
+    /// summary nor the world's byte count includes it.
+    pub fn on_done(&mut self, mut done: WorldDone, now_ms: u64) -> Outcome {
+        let sent_index = done.index.take().map(Box::new);
         let key = (
             done.job_id.clone(),
             done.node_id.clone(),
@@ -660,6 +672,7 @@ impl Assembler {
         let p = self.partial.entry(key.clone()).or_default();
         p.last_ms = now_ms;
         p.done = Some(done);
+        p.sent_index = sent_index;
         self.try_complete(key, now_ms)
     }
 
@@ -807,6 +820,7 @@ impl Assembler {
         let Some(done) = p.done else {
             return Outcome::Pending;
         };
+        let sent_index = p.sent_index;
         let Some(rec) = self.jobs.get_mut(&job_id) else {
             return Outcome::Pending;
         };
@@ -827,7 +841,11 @@ impl Assembler {
         let state = st.clone();
         self.stored_bytes += held;
         self.worlds.push(Arc::new(world));
-        Outcome::Stored { index, state }
+        Outcome::Stored {
+            index,
+            state,
+            sent_index,
+        }
     }
 
     /// Whether `segments` are exactly the world `done` announces: `own` of them, `seq`
@@ -1033,7 +1051,10 @@ mod tests {
         for seg in s.into_iter().rev() {
             out = a.on_segment(seg, 4);
         }
-        let Outcome::Stored { index: 1, state } = out else {
+        let Outcome::Stored {
+            index: 1, state, ..
+        } = out
+        else {
             panic!("{out:?}")
         };
         assert!(state.closed && state.worlds_done == 2);
@@ -1092,7 +1113,7 @@ mod tests {
         for seed in 0..6u64 {
             let (s, d) = world("j", "n", seed, 100 + seed, 2);
             match feed(&mut a, s, d) {
-                Outcome::Stored { index, state } => {
+                Outcome::Stored { index, state, .. } => {
                     assert!(spec.owns("j", 100 + seed));
                     assert_eq!(index % 2, 1, "shard 1 numbers odd");
                     kept.push(index);
@@ -1685,7 +1706,7 @@ mod tests {
         a.submit_job(job("j", 5));
         let out = a.release_held("j", 3);
         assert!(
-            matches!(out.as_slice(), [Outcome::Stored { index: 0, state }] if state.worlds_done == 1),
+            matches!(out.as_slice(), [Outcome::Stored { index: 0, state, .. }] if state.worlds_done == 1),
             "{out:?}"
         );
         assert_eq!(a.held_count(), 1, "the other job's world is still held");

@@ -27,5 +27,8 @@ pub use assembly::{Assembler, Outcome, Rejection, StoredWorld};
 pub use browse::{Shard, ShardBytes, ShardSpec};
 pub use index::{IndexError, IndexedWorld, index_world, index_worlds};
 pub use journal::{FileReport, Journal, JournalCounters, JournalError, StartReport};
-pub use node::{DEFAULT_MEMORY_CAP_MIB, StoreConfig, StoreError, StoreHandle, run_store};
+pub use node::{
+    DEFAULT_MEMORY_CAP_MIB, DEFAULT_VERIFY_INDEX_EVERY, StoreConfig, StoreError, StoreHandle,
+    run_store,
+};
 pub use scenes::{Offered, SceneRefusal, SceneRevisions};

@@ -14,7 +14,7 @@
 
 use crate::assembly::{Assembler, Outcome};
 use crate::browse::{Shard, ShardSpec};
-use crate::index::{JobScene, index_worlds};
+use crate::index::{JobScene, SentChecks, SentIndex, index_stored};
 use crate::journal::{
     Journal, JournalCounters, JournalError, MAX_BATCH, StartReport, StoreInput, checkpoint,
     read_store_input,
@@ -26,6 +26,7 @@ use mwb_node::bus::{self, Queries, Subscription};
 use mwb_node::{Node, NodeError};
 use mwb_proto::v1::{
     Job, JobState, Message, MotionSegment, NodeStats, PathsRequest, Scene, ShardCount, WorldDone,
+    WorldIndex,
 };
 use std::collections::{BTreeSet, HashMap};
 use std::path::PathBuf;
@@ -78,7 +79,18 @@ pub struct StoreConfig {
     /// Recordings whose worlds are loaded at start, in order, after the journal (and written
     /// to it).
     pub load: Vec<PathBuf>,
+    /// Of the worlds that come with the index their sampler built (`WorldDone.index`), this
+    /// store indexes one in this many itself too and compares (a mismatch is counted and
+    /// warned, and the store's own index kept); 1 checks every one, 0 none. Default
+    /// [`DEFAULT_VERIFY_INDEX_EVERY`].
+    pub verify_index_every: u32,
 }
+
+/// A store checks one sent index in this many by indexing the world itself: enough to catch
+/// samplers of another build within seconds of full-rate ingest, at ~3 % of the store's work a
+/// world (each check costs what indexing a world without a sent index does; measured with
+/// `mwb bench ingest`: one in 32 took a tumble10 store from ~10 800 to ~8 600 worlds/s).
+pub const DEFAULT_VERIFY_INDEX_EVERY: u32 = 256;
 
 impl Default for StoreConfig {
     fn default() -> Self {
@@ -92,6 +104,7 @@ impl Default for StoreConfig {
             path_tolerance_m: crate::index::DEFAULT_PATH_TOLERANCE_M,
             journal: None,
             load: Vec::new(),
+            verify_index_every: DEFAULT_VERIFY_INDEX_EVERY,
         }
     }
 }
@@ -120,6 +133,11 @@ struct Shared {
     /// world must not stall ingest of segments).
     browse: Mutex<Shard>,
     index_failures: AtomicU64,
+    /// Sent indexes taken, refused, checked and found different (`NodeStats`).
+    indexes_sent: AtomicU64,
+    indexes_refused: AtomicU64,
+    indexes_checked: AtomicU64,
+    index_mismatches: AtomicU64,
     /// The journal's counts after its last commit (`None`: no journal).
     journal: Mutex<Option<JournalCounters>>,
     /// Every scene revision (the authority's; empty on the other shards).
@@ -172,9 +190,9 @@ impl Shared {
 
     /// A statistics snapshot (`worlds_per_s` is the publisher's to measure).
     fn stats(&self) -> NodeStats {
-        let (index_bytes, spec) = {
+        let (index_bytes, spec, browsable) = {
             let b = self.browse();
-            (b.heap_bytes() as u64, b.spec())
+            (b.heap_bytes() as u64, b.spec(), b.world_count())
         };
         let t = self.lock();
         let c = t.counters;
@@ -190,6 +208,11 @@ impl Shared {
             duplicates: c.duplicates,
             index_bytes,
             index_failures: self.index_failures.load(Ordering::Relaxed),
+            indexes_sent: self.indexes_sent.load(Ordering::Relaxed),
+            indexes_refused: self.indexes_refused.load(Ordering::Relaxed),
+            indexes_checked: self.indexes_checked.load(Ordering::Relaxed),
+            index_mismatches: self.index_mismatches.load(Ordering::Relaxed),
+            browsable_worlds: browsable,
             shard_index: spec.index,
             shard_count: spec.count,
             ..self.node.stats()
@@ -302,6 +325,10 @@ pub async fn run_store(session: Session, cfg: StoreConfig) -> Result<StoreHandle
         table: Mutex::new(Assembler::sharded(cfg.memory_cap_bytes, cfg.shard)),
         browse: Mutex::new(Shard::new(cfg.shard, node.id())),
         index_failures: AtomicU64::new(0),
+        indexes_sent: AtomicU64::new(0),
+        indexes_refused: AtomicU64::new(0),
+        indexes_checked: AtomicU64::new(0),
+        index_mismatches: AtomicU64::new(0),
         journal: Mutex::new(None),
         scenes: Mutex::new(SceneRevisions::default()),
     });
@@ -503,10 +530,15 @@ struct Applier {
     index_threads: usize,
     /// Worlds read from the journal or a recording at start, not indexed yet (indexed
     /// [`LOAD_INDEX_BATCH`] at a time, on every core).
-    unindexed: Vec<Arc<crate::StoredWorld>>,
+    unindexed: Vec<StoredSent>,
     /// Stored worlds the index has taken in (indexed, or failed to index).
     index_taken: u64,
+    /// Which sent indexes are checked ([`StoreConfig::verify_index_every`]).
+    checks: SentChecks,
 }
+
+/// A stored world and the index its sampler sent with it, if any.
+type StoredSent = (Arc<crate::StoredWorld>, Option<Box<WorldIndex>>);
 
 /// Worlds loaded at start are indexed this many at a time.
 const LOAD_INDEX_BATCH: usize = 256;
@@ -527,13 +559,14 @@ impl Applier {
             index_threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
             unindexed: Vec::new(),
             index_taken: 0,
+            checks: SentChecks::every(cfg.verify_index_every),
         }
     }
 
     /// Indexes the worlds loaded so far.
     fn index_loaded(&mut self) {
         let worlds = std::mem::take(&mut self.unindexed);
-        self.index(&worlds);
+        self.index(worlds);
     }
 
     /// Reads the journal (if any), opens it for writing, then loads the recordings (their
@@ -675,7 +708,7 @@ impl Applier {
 
     /// Applies one message to the table: the job states to publish (in order) and the worlds
     /// it stored; both are appended to the journal, if there is one, after the job.
-    fn take(&mut self, msg: Incoming) -> (Vec<JobState>, Vec<Arc<crate::StoredWorld>>) {
+    fn take(&mut self, msg: Incoming) -> (Vec<JobState>, Vec<StoredSent>) {
         let now = now_ms();
         let mut t = self.shared.lock();
         let mut outcomes = Vec::new();
@@ -770,15 +803,12 @@ impl Applier {
         for o in outcomes {
             let mut index = None;
             states.extend(outcome_state(o, &mut index));
-            stored.extend(index.and_then(|i| t.world(i)));
+            stored.extend(index.and_then(|(i, sent)| Some((t.world(i)?, sent))));
         }
-        self.counts_due.extend(
-            stored
-                .iter()
-                .map(|w: &Arc<crate::StoredWorld>| w.job_id.clone()),
-        );
+        self.counts_due
+            .extend(stored.iter().map(|(w, _): &StoredSent| w.job_id.clone()));
         if let Some(journal) = self.journal.as_mut() {
-            for w in &stored {
+            for (w, _) in &stored {
                 if let Err(e) = journal.append_world(&self.keys, w) {
                     error!(error = %e, "not journalled");
                 }
@@ -821,23 +851,56 @@ impl Applier {
         }
     }
 
-    /// Indexes stored worlds for browsing, on every core ([`index_worlds`]), and inserts them
-    /// in the order given; a world that cannot be indexed stays stored (and fetchable) and is
-    /// counted.
-    fn index(&mut self, worlds: &[Arc<crate::StoredWorld>]) {
+    /// Indexes stored worlds for browsing and inserts them in the order given; a world that
+    /// cannot be indexed stays stored (and fetchable) and is counted.
+    ///
+    /// A world whose sampler sent its index is inserted with it once it checks out; one in
+    /// [`StoreConfig::verify_index_every`] of those is also indexed here and compared (a
+    /// difference is counted and warned, and this store's own index kept). Every other world —
+    /// refined differences, reverse nodes' worlds, a refused sent index — is indexed here, all
+    /// of them together on every core ([`index_stored`]).
+    fn index(&mut self, mut worlds: Vec<StoredSent>) {
         if worlds.is_empty() {
             return;
         }
+        let rest = &self.rest;
         let jobs: Vec<_> = worlds
-            .iter()
-            .map(|w| {
-                let scene = self.rest.get(&w.job_id).cloned().unwrap_or_default();
-                (&**w, w.index, scene)
+            .iter_mut()
+            .map(|(w, sent)| {
+                let scene = rest.get(&w.job_id).cloned().unwrap_or_default();
+                (&**w, sent.take(), scene)
             })
             .collect();
-        let results = index_worlds(&jobs, self.path_tolerance_m, self.index_threads);
-        for (w, r) in worlds.iter().zip(results) {
+        let results = index_stored(
+            jobs,
+            self.path_tolerance_m,
+            self.index_threads,
+            &mut self.checks,
+        );
+        for ((w, _), (r, sent)) in worlds.iter().zip(results) {
             self.index_taken += 1;
+            let counter = |c: &AtomicU64| {
+                c.fetch_add(1, Ordering::Relaxed);
+            };
+            match &sent {
+                SentIndex::None => {}
+                SentIndex::Taken => counter(&self.shared.indexes_sent),
+                SentIndex::Refused(why) => {
+                    counter(&self.shared.indexes_refused);
+                    debug!(world = w.index, why, "sent index refused: indexed here");
+                }
+                SentIndex::Checked { same } => {
+                    counter(&self.shared.indexes_sent);
+                    counter(&self.shared.indexes_checked);
+                    if !same {
+                        counter(&self.shared.index_mismatches);
+                        warn!(
+                            world = w.index, job = %w.job_id,
+                            "the index a sampler sent differs from this store's: keeping this store's"
+                        );
+                    }
+                }
+            }
             let (index_bytes, growth) = {
                 let mut b = self.shared.browse();
                 match r {
@@ -876,7 +939,7 @@ async fn apply(mut a: Applier, mut rx: mpsc::Receiver<Incoming>) {
             };
         }
         // The batch's worlds are browsable before its job states and counts go out.
-        a.index(&stored);
+        a.index(stored);
         a.commit().await;
         if a.authority {
             let node = &a.shared.node;
@@ -1088,11 +1151,18 @@ async fn serve_stats(shared: Arc<Shared>, queries: Queries) {
 }
 
 /// The job state to publish after an outcome; `stored` receives the index of a stored world.
-fn outcome_state(o: Outcome, stored: &mut Option<u32>) -> Option<JobState> {
+fn outcome_state(
+    o: Outcome,
+    stored: &mut Option<(u32, Option<Box<WorldIndex>>)>,
+) -> Option<JobState> {
     match o {
         Outcome::Pending => None,
-        Outcome::Stored { state, index } => {
-            *stored = Some(index);
+        Outcome::Stored {
+            state,
+            index,
+            sent_index,
+        } => {
+            *stored = Some((index, sent_index));
             Some(state)
         }
         Outcome::Elsewhere => None,

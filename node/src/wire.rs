@@ -131,6 +131,8 @@ pub fn world_digest(segments: &[MotionSegment], done: &WorldDone) -> u32 {
         plausible,
         plausibility_excess,
         sim: _,
+        // Derived from the segments (and built by the sampler or the store alike).
+        index: _,
     } = done;
     // Nothing for a sampled world (no lineage, no active_from), so their digests stay.
     if let Some(l) = lineage {

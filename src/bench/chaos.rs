@@ -1332,8 +1332,14 @@ pub(super) struct LoopbackStore {
 }
 
 impl LoopbackStore {
-    /// Starts the store (`name`: its log's and directory's name) and connects once it listens.
-    pub(super) async fn start(mwb: &Path, name: &str, cap_mib: u64) -> Result<Self> {
+    /// Starts the store (`name`: its log's and directory's name; `extra`: more arguments of
+    /// `mwb store`) and connects once it listens.
+    pub(super) async fn start(
+        mwb: &Path,
+        name: &str,
+        cap_mib: u64,
+        extra: &[String],
+    ) -> Result<Self> {
         let dir = TempDir::new(name)?;
         let port = super::free_port()?;
         let endpoint = format!("tcp/127.0.0.1:{port}");
@@ -1353,7 +1359,10 @@ impl LoopbackStore {
         let mut proc = Proc::new(
             name,
             None,
-            args.iter().map(|s| (*s).to_owned()).collect(),
+            args.iter()
+                .map(|s| (*s).to_owned())
+                .chain(extra.iter().cloned())
+                .collect(),
             &dir.0,
         );
         proc.start(mwb)?;
@@ -1399,7 +1408,7 @@ pub async fn flood(
     cap_mib: u64,
     limit: Duration,
 ) -> Result<FloodReport> {
-    let mut s = LoopbackStore::start(mwb, "flood-store", cap_mib).await?;
+    let mut s = LoopbackStore::start(mwb, "flood-store", cap_mib, &[]).await?;
     let r = flood_with(
         mwb,
         scene,

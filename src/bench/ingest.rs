@@ -4,8 +4,9 @@
 //! The store runs as its own process (`mwb store`, TCP loopback, multicast off, no query node,
 //! a memory cap above what the worlds need). This process samples 24 real worlds of the scene
 //! once, then publishes `--worlds` worlds made of them as a sampler does: each sampled world's
-//! segments and summary under a world counter and seed of its own, its payloads and checksums
-//! as sampled, with blocking congestion control, so that the bus holds the feeder back when the
+//! segments and summary (with the index its sampler built, unless `--no-sent-index`) under a
+//! world counter and seed of its own, its payloads and checksums as sampled, with blocking
+//! congestion control, so that the bus holds the feeder back when the
 //! store falls behind. The job's state says when the store has every world stored, indexed and
 //! counted (a store publishes a batch's counts after indexing its worlds).
 //!
@@ -15,7 +16,9 @@
 //! * `rss_bytes`: the store process's resident set at the end; `rss_max_bytes` the largest seen
 //!   (read every 100 ms); `rss_growth_bytes_per_world` = (end − before the first world) ÷ worlds;
 //! * `memory_bytes_per_world`, `index_bytes_per_world`: the store's own accounting
-//!   (`NodeStats`): what its memory cap counts, and the browsing index's part of it.
+//!   (`NodeStats`): what its memory cap counts, and the browsing index's part of it;
+//! * `indexes_sent`, `indexes_checked`, `index_mismatches`, `indexes_refused`: what the store
+//!   did with the indexes sent (`--store-arg=--verify-index-every=N` sets how many it checks).
 
 use super::chaos::{LoopbackStore, Proc, rss_bytes, store_stats, until};
 use super::query::{WorldMessages, sample_pool};
@@ -46,6 +49,14 @@ pub struct IngestArgs {
     /// under the same feeder).
     #[arg(long, value_name = "PATH")]
     pub store_bin: Option<std::path::PathBuf>,
+    /// One more argument of the store's `mwb store` command line (repeatable), e.g.
+    /// `--store-arg=--verify-index-every=1`.
+    #[arg(long, value_name = "ARG", allow_hyphen_values = true)]
+    pub store_arg: Vec<String>,
+    /// Send each world's summary without the index its sampler built, so that the store
+    /// indexes every world from its motion (as stores did before samplers sent the index).
+    #[arg(long)]
+    pub no_sent_index: bool,
     /// Give up after this many seconds.
     #[arg(long, default_value_t = 7_200)]
     pub timeout_s: u64,
@@ -74,6 +85,12 @@ pub struct IngestBench {
     pub index_bytes_per_world: f64,
     pub index_failures: u64,
     pub refused_memory: u64,
+    /// Worlds inserted with the index their sampler sent (`NodeStats.indexes_sent`), of those
+    /// checked by the store's own indexing, found different, and sent indexes refused.
+    pub indexes_sent: u64,
+    pub indexes_checked: u64,
+    pub index_mismatches: u64,
+    pub indexes_refused: u64,
 }
 
 impl Summary for IngestBench {
@@ -101,15 +118,21 @@ pub async fn run(args: IngestArgs) -> Result<()> {
     };
     let pool_file = file.clone();
     let pool_text = text.clone();
-    let (_, messages, _, _) = tokio::task::spawn_blocking(move || {
+    let (_, mut messages, _, _) = tokio::task::spawn_blocking(move || {
         sample_pool(&pool_file, &pool_text, 24, DEFAULT_PATH_TOLERANCE_M)
     })
     .await??;
+    if args.no_sent_index {
+        for (done, _) in &mut messages {
+            done.index = None;
+        }
+    }
     let bodies = messages
         .first()
         .and_then(|(_, segments)| segments.first())
         .map_or(0, |s| s.body_count as usize);
-    let mut store = LoopbackStore::start(&mwb, "ingest-store", args.memory_cap_mib).await?;
+    let mut store =
+        LoopbackStore::start(&mwb, "ingest-store", args.memory_cap_mib, &args.store_arg).await?;
     let feed = Feed {
         file: &file,
         text: &text,
@@ -203,6 +226,10 @@ impl Feed<'_> {
             memory_bytes_per_world: st.memory_bytes as f64 / n,
             index_bytes_per_world: st.index_bytes as f64 / n,
             index_failures: st.index_failures,
+            indexes_sent: st.indexes_sent,
+            indexes_checked: st.indexes_checked,
+            index_mismatches: st.index_mismatches,
+            indexes_refused: st.indexes_refused,
             refused_memory: st.refused_memory,
         })
     }
@@ -264,8 +291,14 @@ impl Feed<'_> {
             .ok()
             .and_then(Result::ok)
             .flatten();
+            // Closed: every world stored and counted; then browsable (a store's job state can
+            // be a batch ahead of its index; a build older than `browsable_worlds` says 0).
             if let Some(st) = &st
                 && st.closed
+                && store_stats(session, keys).await.first().is_some_and(|s| {
+                    s.browsable_worlds == 0
+                        || s.browsable_worlds + s.index_failures >= u64::from(self.worlds)
+                })
             {
                 return Ok((publish_s, t0.elapsed().as_secs_f64()));
             }

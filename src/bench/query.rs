@@ -23,9 +23,10 @@
 //! * rank: top 10 by angular travel summed over all objects, over every world;
 //! * ingest: `Shard::insert` of each world as the shard is filled (no live constraint), mean
 //!   and slowest — the slowest builds a block of the hierarchies;
-//! * `--with-motion`: every world's sampled messages go through the store's assembly and the
-//!   world is indexed from its stored motion as a store indexes it (on every core, 256 worlds
-//!   at a time): `store_ingest_worlds_per_s` is what one store process can take in;
+//! * `--with-motion`: every world's sampled messages (its summary with the index its sampler
+//!   built) go through the store's assembly and the world is indexed as a store indexes it
+//!   ([`index_stored`], 256 worlds at a time: the sent index taken, one in 256 also indexed from
+//!   the stored motion and compared): `store_ingest_worlds_per_s` is the store's own work;
 //! * `--shards N`: world i is shard (i mod N)'s, as stores number them; each shard uses every
 //!   core, as its own process would, and every request goes to all of them at once (answers
 //!   merged) — N store processes on one machine, without the bus;
@@ -41,12 +42,13 @@ use mwb_core::browse::{
 };
 use mwb_core::rng::{Stream, WorldRng};
 use mwb_core::scene::SceneTemplate;
-use mwb_proto::v1::{Job, Message, MotionSegment, WorldDone};
+use mwb_proto::v1::{Job, Message, MotionSegment, WorldDone, WorldIndex};
 use mwb_sampler::{RunOptions, run_world, segment_message, world_done};
-use mwb_store::index::{DEFAULT_PATH_TOLERANCE_M, IndexedObject};
+use mwb_store::index::{
+    DEFAULT_PATH_TOLERANCE_M, IndexedObject, SentChecks, SentIndex, index_stored,
+};
 use mwb_store::{
     Assembler, IndexedWorld, Outcome, Shard, ShardBytes, ShardSpec, StoredWorld, index_world,
-    index_worlds,
 };
 use std::ops::ControlFlow;
 use std::time::Instant;
@@ -285,6 +287,9 @@ pub(super) fn sample_pool(
         overhead += held.saturating_sub(world_payload);
         let stored = StoredWorld::new(i, "q".into(), &done, &segments, bytes, None);
         out.push(index_world(&stored, i, rest, tolerance)?);
+        // As a sampler sends it: with the index it built (the store's, by construction).
+        let mut done = done;
+        mwb_sampler::attach_index(&mut done, &segments, &template);
         messages.push((done, segments));
     }
     let per = |b: u64| b as f64 / objects.max(1) as f64;
@@ -304,12 +309,13 @@ pub(super) fn sample_pool(
 const INGEST_BATCH: u32 = 256;
 
 /// A sampled world's messages through the store's assembly as world `i` (its own counter and
-/// seed; the payloads and their checksums as they were): the world as the store holds it.
+/// seed; the payloads and their checksums as they were): the world as the store holds it, and
+/// the index its sampler sent.
 fn store_world(
     assembler: &mut Assembler,
     (done, segments): &WorldMessages,
     i: u32,
-) -> Result<std::sync::Arc<StoredWorld>> {
+) -> Result<(std::sync::Arc<StoredWorld>, Option<Box<WorldIndex>>)> {
     let mut last = Outcome::Pending;
     for s in segments {
         let seg = MotionSegment {
@@ -328,9 +334,14 @@ fn store_world(
         last = assembler.on_done(done, 0);
     }
     match last {
-        Outcome::Stored { index, .. } => assembler
-            .world(index)
-            .ok_or_else(|| anyhow::anyhow!("world {i}: stored as {index} but not found")),
+        Outcome::Stored {
+            index, sent_index, ..
+        } => Ok((
+            assembler
+                .world(index)
+                .ok_or_else(|| anyhow::anyhow!("world {i}: stored as {index} but not found"))?,
+            sent_index,
+        )),
         other => bail!("world {i}: the store's assembly did not store it: {other:?}"),
     }
 }
@@ -579,24 +590,36 @@ pub fn bench_query(opts: &QueryBenchOptions) -> Result<QueryBench> {
     // reach it together), insert.
     let mut store_s = 0.0;
     let scene = mwb_store::index::JobScene::from(rest);
+    let mut checks = SentChecks::every(mwb_store::DEFAULT_VERIFY_INDEX_EVERY);
     let mut batch_start = 0u32;
     while batch_start < worlds {
         let batch_end = worlds.min(batch_start.saturating_add(INGEST_BATCH));
         let from_store = if opts.with_motion {
             let t = Instant::now();
-            let stored = (batch_start..batch_end)
+            let mut stored = (batch_start..batch_end)
                 .map(|i| store_world(&mut assembler, &messages[i as usize % pool.len()], i))
                 .collect::<Result<Vec<_>>>()?;
-            let jobs: Vec<_> = stored
-                .iter()
-                .zip(batch_start..)
-                .map(|(w, i)| (&**w, i, scene.clone()))
-                .collect();
-            let indexed = index_worlds(&jobs, opts.path_tolerance_m, threads)
-                .into_iter()
-                .zip(batch_start..)
-                .map(|(r, i)| r.map_err(|e| anyhow::anyhow!("world {i}: {e}")))
-                .collect::<Result<Vec<IndexedWorld>>>()?;
+            let indexed = index_stored(
+                stored
+                    .iter_mut()
+                    .map(|(w, sent)| (&**w, sent.take(), scene.clone()))
+                    .collect(),
+                opts.path_tolerance_m,
+                threads,
+                &mut checks,
+            )
+            .into_iter()
+            .zip(batch_start..)
+            .map(|((r, sent), i)| {
+                if let SentIndex::Refused(why) = &sent {
+                    bail!("world {i}: its sent index was refused: {why}");
+                }
+                if sent == (SentIndex::Checked { same: false }) {
+                    bail!("world {i}: its sent index differs from the store's own");
+                }
+                r.map_err(|e| anyhow::anyhow!("world {i}: {e}"))
+            })
+            .collect::<Result<Vec<IndexedWorld>>>()?;
             store_s += t.elapsed().as_secs_f64();
             indexed
         } else {
