@@ -814,10 +814,6 @@ pub fn index_motion(
     scene: impl Into<JobScene>,
     tolerance: f64,
 ) -> Result<IndexedWorld, IndexError> {
-    let dt = done.frame_dt;
-    if !(dt.is_finite() && dt > 0.0) {
-        return Err(IndexError::FrameDt(dt));
-    }
     let (full, e_max) = decode_tracks(segments)?;
     index_tracks(done, &full, e_max, world, job_id, scene, tolerance)
 }

@@ -136,8 +136,8 @@ pub enum SentIndex {
     Checked { same: bool },
 }
 
-/// Which sent indexes a store checks by indexing their worlds itself: one in `every` (1: all,
-/// 0: none), counted over every sent index taken.
+/// Which sent indexes a store checks by indexing their worlds itself: the first it takes and
+/// then one in `every` (1: all, 0: none), so that samplers of another build are caught at once.
 #[derive(Debug, Clone, Copy)]
 pub struct SentChecks {
     pub every: u32,
@@ -151,7 +151,7 @@ impl SentChecks {
 
     fn next(&mut self) -> bool {
         self.taken += 1;
-        self.every > 0 && self.taken.is_multiple_of(u64::from(self.every))
+        self.every > 0 && (self.taken - 1).is_multiple_of(u64::from(self.every))
     }
 }
 

@@ -86,10 +86,10 @@ pub struct StoreConfig {
     pub verify_index_every: u32,
 }
 
-/// A store checks one sent index in this many by indexing the world itself: enough to catch
-/// samplers of another build within seconds of full-rate ingest, at ~3 % of the store's work a
-/// world (each check costs what indexing a world without a sent index does; measured with
-/// `mwb bench ingest`: one in 32 took a tumble10 store from ~10 800 to ~8 600 worlds/s).
+/// A store checks the first sent index and then one in this many by indexing the world itself:
+/// samplers of another build are caught at once, at ~3 % of the store's work a world (a check
+/// costs what indexing a world without a sent index does; measured with `mwb bench ingest`: one
+/// in 32 took a tumble10 store from ~10 800 to ~8 600 worlds/s).
 pub const DEFAULT_VERIFY_INDEX_EVERY: u32 = 256;
 
 impl Default for StoreConfig {

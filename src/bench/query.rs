@@ -25,7 +25,7 @@
 //!   and slowest — the slowest builds a block of the hierarchies;
 //! * `--with-motion`: every world's sampled messages (its summary with the index its sampler
 //!   built) go through the store's assembly and the world is indexed as a store indexes it
-//!   ([`index_stored`], 256 worlds at a time: the sent index taken, one in 256 also indexed from
+//!   ([`index_stored`], 256 worlds at a time: the sent index taken, the first and one in 256 also indexed from
 //!   the stored motion and compared): `store_ingest_worlds_per_s` is the store's own work;
 //! * `--shards N`: world i is shard (i mod N)'s, as stores number them; each shard uses every
 //!   core, as its own process would, and every request goes to all of them at once (answers
