@@ -199,6 +199,66 @@ pub struct LoremBench {
     pub implausible_balls: usize,
     /// Energy growth (m).
     pub energy_growth: f64,
+    /// Played forward, its bounces ([`bounces`]).
+    pub bounces: Bounces,
+}
+
+/// Incoming speed (m/s) from which [`bounces`] counts a bounce: a fall of 5 cm, twice a lorem
+/// bin's wall.
+pub const BOUNCE_MIN_SPEED: f64 = 1.0;
+/// A bounce that keeps at least this fraction of its incoming vertical speed counts as elastic:
+/// far above every shipped material pair's restitution (0.6 at most), which the backward run
+/// uses only where it must ([`crate::run::Heuristics::energy_budget`]'s cap).
+pub const ELASTIC_KEEP: f64 = 0.9;
+
+/// The bounces of a world played forward.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Bounces {
+    /// Reversals of a body's vertical motion from falling at [`BOUNCE_MIN_SPEED`] or faster.
+    pub bounces: usize,
+    /// Those that rise again with at least [`ELASTIC_KEEP`] of the incoming speed: a ball that
+    /// bounces like a superball although its material keeps half.
+    pub elastic: usize,
+    /// Bodies with at least one elastic bounce.
+    pub elastic_bodies: usize,
+}
+
+/// Counts the bounces of `frames` (played forward, in time order) along `up`. A body's vertical
+/// speed over each frame interval is its displacement over the interval's length; a bounce is
+/// an interval falling at [`BOUNCE_MIN_SPEED`] or more followed by one rising. The stepper's
+/// flight is symplectic Euler, so each interval's speed is one step's velocity: the ratio of the
+/// two is the bounce's restitution, up to the `g Δt` that gravity adds within one step.
+pub fn bounces(frames: &[Frame], up: &nalgebra::Vector3<f64>) -> Bounces {
+    let bodies = frames.first().map_or(0, |f| f.poses.len());
+    let mut out = Bounces::default();
+    for b in 0..bodies {
+        let mut falling: Option<f64> = None;
+        let mut elastic = false;
+        for w in frames.windows(2) {
+            let (Some(p0), Some(p1)) = (w[0].poses.get(b), w[1].poses.get(b)) else {
+                break;
+            };
+            let dt = w[1].time - w[0].time;
+            if dt.is_nan() || dt <= 0.0 {
+                continue;
+            }
+            let v = up.dot(&(p1.position - p0.position)) / dt;
+            if let Some(incoming) = falling.take()
+                && v > 0.0
+            {
+                out.bounces += 1;
+                if v >= ELASTIC_KEEP * incoming {
+                    out.elastic += 1;
+                    elastic = true;
+                }
+            }
+            if v <= -BOUNCE_MIN_SPEED {
+                falling = Some(-v);
+            }
+        }
+        out.elastic_bodies += usize::from(elastic);
+    }
+    out
 }
 
 fn percentile(mut v: Vec<f64>, q: f64) -> f64 {
@@ -351,6 +411,7 @@ pub fn lorem_bench(text: &str, seed: u64) -> Result<LoremBench, BenchError> {
         left_bins: ratio(left.iter().filter(|l| **l).count()),
         implausible_balls: p.implausible_bodies,
         energy_growth: run.report.energy_growth,
+        bounces: bounces(&run.frames, &up),
     })
 }
 
@@ -489,4 +550,48 @@ pub fn bench(opts: &BenchOptions) -> Result<ReverseBench, BenchError> {
         balls_learn_seconds,
         balls_energy_growth,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::run::Pose;
+    use nalgebra::{UnitQuaternion, Vector3};
+
+    /// Frames of one body at heights `ys`, 0.1 s apart.
+    fn frames(ys: &[f64]) -> Vec<Frame> {
+        ys.iter()
+            .enumerate()
+            .map(|(k, &y)| Frame {
+                time: k as f64 * 0.1,
+                poses: vec![Pose {
+                    position: Vector3::new(0.0, y, 0.0),
+                    orientation: UnitQuaternion::identity(),
+                }],
+            })
+            .collect()
+    }
+
+    #[test]
+    fn bounces_count_reversals_from_speed_and_the_elastic_ones() {
+        let up = Vector3::y();
+        // 2 m/s down, 1.9 up: elastic. 2 down, 1 up: a bounce. 0.5 down, 0.4 up: too slow.
+        let b = bounces(&frames(&[0.4, 0.2, 0.39, 0.19, 0.29, 0.24, 0.28]), &up);
+        assert_eq!(
+            b,
+            Bounces {
+                bounces: 2,
+                elastic: 1,
+                elastic_bodies: 1
+            }
+        );
+        // Falling then resting is no bounce; neither is a fall slowed by a contact.
+        let b = bounces(&frames(&[0.5, 0.3, 0.1, 0.1, 0.05, 0.05]), &up);
+        assert_eq!(b, Bounces::default());
+        // A body missing from later frames ends its count; no frames, nothing.
+        let mut f = frames(&[0.4, 0.2, 0.39]);
+        f[2].poses.clear();
+        assert_eq!(bounces(&f, &up).bounces, 0);
+        assert_eq!(bounces(&[], &up), Bounces::default());
+    }
 }

@@ -1,9 +1,10 @@
 //! Backward runs (§5.3–5.4): determinism, mixed runs, the learned contact chain, the energy
 //! metric, the broad phase and the shipped scenes.
 
+use mwb_reverse::bench::bounces;
 use mwb_reverse::broad_phase::{all_pairs, sweep_and_prune};
 use mwb_reverse::chain::MAX_STATE;
-use mwb_reverse::run::shadow_energy;
+use mwb_reverse::run::{ladder_seconds, shadow_energy};
 use mwb_reverse::scene::{builtin, world_from_toml};
 use mwb_reverse::{
     BackwardChoices, Body, ChainLearning, ContactChain, Heuristics, HintMotion, Material, Partner,
@@ -633,5 +634,42 @@ fn balls_leave_their_bins_plausibly() {
             .filter(|q| q.position.y > 0.06)
             .count();
         assert!(out * 10 >= world.bodies.len() * 8, "seed {seed}: {out} out");
+        // Played forward they bounce like their material: a ball that left too early climbed
+        // to the energy cap going back, which took its bounces elastic (before lift-offs were
+        // timed by their ladder: 64–66 such bounces in each world, every ball had one).
+        let b = bounces(&run.frames, &Vector3::y());
+        assert!(b.bounces >= world.bodies.len(), "seed {seed}: {b:?}");
+        assert_eq!(b.elastic, 0, "seed {seed}: {b:?}");
     }
+}
+
+/// The ladder a bouncing ball climbs going back, checked by hand: g = 10, Δt = 0.1, α = ½, no
+/// rattling. Lift-off at 0 lands at 1 m/s after a step (0.1 s) and leaves at 2; flights of
+/// 0.4 s (→ 4 m/s) and 0.8 s (→ 8 m/s). A cap of 7 m/s (2.45 m) is passed at 1.3 s, one of
+/// 9 m/s only at 1.3 + 1.6 s.
+#[test]
+fn a_bounce_ladder_reaches_the_cap_when_its_speeds_say() {
+    let t = |v0, alpha, blend, headroom| ladder_seconds(v0, alpha, 10.0, 0.1, blend, headroom);
+    assert!((t(0.0, 0.5, None, 2.45) - 1.3).abs() < 1e-9);
+    assert!((t(0.0, 0.5, None, 4.05) - 2.9).abs() < 1e-9);
+    // Past the cap at the first landing.
+    assert!((t(0.0, 0.5, None, 0.1) - 0.1).abs() < 1e-9);
+    // Lorem's numbers: 1.9–2.3 s over its lift-off speeds (measured: 1.76–2.47 s).
+    let lorem = |v0, blend| ladder_seconds(v0, 0.55, 9.81, 1.0 / 120.0, blend, 1.6);
+    // More headroom, a later cap: the same rungs, stopped later.
+    let mut last = 0.0;
+    for headroom in [0.0, 0.1, 0.4, 0.8, 1.6, 3.2] {
+        let s = ladder_seconds(0.05, 0.55, 9.81, 1.0 / 120.0, Some(0.2), headroom);
+        assert!(s >= last, "{headroom}: {s} < {last}");
+        last = s;
+    }
+    for v0 in [0.03, 0.05, 0.07, 0.095] {
+        let s = lorem(v0, Some(0.2));
+        assert!((1.85..2.4).contains(&s), "{v0}: {s}");
+    }
+    // Bounces that never grow never reach it; bad input reads as never.
+    for alpha in [0.0, 1.0, f64::NAN] {
+        assert_eq!(t(0.05, alpha, None, 1.6), f64::INFINITY);
+    }
+    assert_eq!(t(f64::NAN, 0.5, None, 1.6), f64::INFINITY);
 }

@@ -93,7 +93,12 @@ pub struct ReverseLine {
     pub energy_growth_p95_by_scene: BTreeMap<String, f64>,
     pub forward_step_us: f64,
     pub lorem_balls: Option<usize>,
+    /// Played forward, bounces from 1 m/s or faster, and those that keep ≥ 90 % of the speed
+    /// (elastic, with balls of restitution 0.6 on a 0.5 floor), and the balls with one.
+    pub lorem_bounces: Option<usize>,
     pub lorem_cells_correct: Option<f64>,
+    pub lorem_elastic_balls: Option<usize>,
+    pub lorem_elastic_bounces: Option<usize>,
     pub lorem_energy_growth: Option<f64>,
     pub lorem_excess_m: Option<f64>,
     pub lorem_implausible_balls: Option<usize>,
@@ -140,6 +145,9 @@ impl From<ReverseBench> for ReverseLine {
             energy_growth_p95_by_scene: by_scene(|s| s.energy_growth_p95),
             forward_step_us: b.forward_step_us,
             lorem_balls: lorem.map(|l| l.balls),
+            lorem_bounces: lorem.map(|l| l.bounces.bounces),
+            lorem_elastic_bounces: lorem.map(|l| l.bounces.elastic),
+            lorem_elastic_balls: lorem.map(|l| l.bounces.elastic_bodies),
             lorem_cells_correct: lorem.map(|l| l.cells_correct),
             lorem_energy_growth: lorem.map(|l| l.energy_growth),
             lorem_excess_m: lorem.map(|l| l.excess_m),
