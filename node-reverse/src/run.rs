@@ -367,40 +367,18 @@ pub fn shadow_energy(world: &World, dt: f64) -> f64 {
         .sum()
 }
 
+/// Per body, its active contacts (those that carry an impulse; every touching contact when
+/// `impulses` is `None`): how many (`η` of the contact-count chain), and the largest restitution
+/// among them (0 without one; what [`ladder_seconds`] climbs with).
 fn body_contacts(
     set: &ContactSet,
     impulses: Option<&[crate::ContactImpulse]>,
     n: usize,
-) -> Vec<usize> {
-    let mut eta = vec![0usize; n];
+) -> (Vec<usize>, Vec<f64>) {
+    let (mut eta, mut alpha) = (vec![0usize; n], vec![0.0f64; n]);
     for (k, c) in set.contacts.iter().enumerate() {
         let active = impulses.is_none_or(|i| i.get(k).is_some_and(|i| i.normal > ACTIVE_IMPULSE));
         if !active {
-            continue;
-        }
-        if let Some(e) = eta.get_mut(c.body) {
-            *e += 1;
-        }
-        if let Partner::Body(p) = c.partner
-            && let Some(e) = eta.get_mut(p)
-        {
-            *e += 1;
-        }
-    }
-    eta
-}
-
-/// Per body, the largest restitution among its contacts that carry an impulse (all touching
-/// contacts when `impulses` is `None`); 0 for a body without one.
-fn contact_restitution(
-    set: &ContactSet,
-    impulses: Option<&[crate::ContactImpulse]>,
-    n: usize,
-) -> Vec<f64> {
-    let mut alpha = vec![0.0f64; n];
-    for (k, c) in set.contacts.iter().enumerate() {
-        let active = impulses.is_none_or(|i| i.get(k).is_some_and(|i| i.normal > ACTIVE_IMPULSE));
-        if !active || !c.restitution.is_finite() {
             continue;
         }
         let partner = match c.partner {
@@ -408,12 +386,15 @@ fn contact_restitution(
             Partner::Static(_) => None,
         };
         for b in [Some(c.body), partner].into_iter().flatten() {
-            if let Some(a) = alpha.get_mut(b) {
-                *a = a.max(c.restitution);
+            if let (Some(e), Some(a)) = (eta.get_mut(b), alpha.get_mut(b)) {
+                *e += 1;
+                if c.restitution.is_finite() {
+                    *a = a.max(c.restitution);
+                }
             }
         }
     }
-    alpha
+    (eta, alpha)
 }
 
 /// Seconds (backward) from a round body's lift-off at `v0` (m/s) off a floor of restitution
@@ -614,8 +595,7 @@ fn run_backward_metered(
 
     // Contacts at the final frame: every touching contact counts as active.
     let (initial, _) = world.detect_contacts();
-    let mut eta = body_contacts(&initial, None, n);
-    let mut alpha = contact_restitution(&initial, None, n);
+    let (mut eta, mut alpha) = body_contacts(&initial, None, n);
     let mut free = free_to_bounce(&initial, n);
     // Slide speeds drawn once per body, so the stream does not depend on when it slides.
     let slide_speed: Vec<f64> = (0..n)
@@ -890,8 +870,7 @@ fn run_backward_metered(
             .count();
         report.approaching_contacts += step.approaching_contacts;
         report.disabled_bodies += step.disabled.len();
-        eta = body_contacts(&step.contacts, Some(&step.impulses), n);
-        alpha = contact_restitution(&step.contacts, Some(&step.impulses), n);
+        (eta, alpha) = body_contacts(&step.contacts, Some(&step.impulses), n);
         free = free_to_bounce(&step.contacts, n);
 
         frames.push(Frame::of(world, end_time - (k + 1) as f64 * dt));
