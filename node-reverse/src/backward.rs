@@ -144,12 +144,51 @@ pub struct BackwardChoices {
     /// energy-budget heuristic sets 0 for a body whose speed a fall can no longer explain, since
     /// reversed friction is what speeds it up.
     pub body_friction_scale: BTreeMap<usize, f64>,
+    /// Per body, the last rung of a backward bounce ladder ([`ApexFinish`]): a bounce off static
+    /// ground may send the body up at the speed that brings it to its apex exactly at the run's
+    /// first frame.
+    pub apex_finish: BTreeMap<usize, ApexFinish>,
     /// The stacking heuristic of §5.3.3: a resting contact between two bodies that are not
     /// free to bounce (or between such a body and static geometry) is held, allowing the
     /// normal impulse to pull, so a stack does not fly apart when stepped backward. `None`:
     /// off. The value caps the pulling impulse (and the friction impulse) of a held contact in
     /// units of the body's weight times `Δt`.
     pub stacking_glue: Option<f64>,
+}
+
+/// The last rung of a round body's backward bounce ladder (ours). Going back, each bounce off
+/// the floor divides the body's vertical speed by the restitution, so its flights grow, but
+/// rung by rung: the run's first frame can find it low, between two bounces (lorem: 8 % of its
+/// balls still in their bins). A bounce off static geometry whose normal is within 45° of the
+/// vertical, elastic in the backward decision, that would bring the body back down before the
+/// first frame (it leaves at `v_n / α < g · seconds`) leaves instead at `g · seconds`, so that
+/// it reaches its apex at the first frame — provided the bounce, played forward (`v_n` over
+/// that speed), keeps at least `min_ratio` of the material's restitution. Played forward, the
+/// body starts at rest in mid-air, falls, and its first bounce is deader than its material's
+/// (lorem: the 5 % deadest keep 0.42 of their speed against the material's 0.55); the rest
+/// are its material's.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ApexFinish {
+    /// Time (s) from the end of this backward step to the run's first frame.
+    pub seconds: f64,
+    /// Smallest fraction of the material's restitution the bounce may keep, in `(0, 1]`.
+    pub min_ratio: f64,
+}
+
+impl ApexFinish {
+    /// The elastic goal (incoming normal speed, m/s) of a bounce at separating speed `v_n`
+    /// with the decision's restitution `alpha` and the material's `material` under gravity `g`
+    /// (m/s²): `v_n / alpha`, or the apex-finishing speed `g · seconds` where that is faster
+    /// and `v_n` is at least `min_ratio · material` of it.
+    pub fn goal(&self, v_n: f64, alpha: f64, material: f64, g: f64) -> f64 {
+        let natural = v_n / alpha;
+        let finish = g * self.seconds;
+        if finish.is_finite() && finish > natural && v_n >= self.min_ratio * material * finish {
+            finish
+        } else {
+            natural
+        }
+    }
 }
 
 /// The free-to-bounce test of §5.3.3 for every body: true when every pair of its contact
@@ -345,6 +384,7 @@ impl World {
         };
         let lifted = self.lifted_contacts(&set, choices);
         let up = (-self.gravity).try_normalize(1e-12);
+        let g_abs = self.gravity.norm();
 
         // Figure 5.5, per contact.
         let mut decisions = Vec::with_capacity(set.contacts.len());
@@ -416,9 +456,15 @@ impl World {
             if v_n < -delta {
                 approaching += 1;
             }
+            let finish = match (c.partner, side, choices.apex_finish.get(&c.body)) {
+                (Partner::Static(_), false, Some(f)) => Some(f),
+                _ => None,
+            };
             let (normal, normal_goal) = if v_n >= delta {
                 if alpha > 0.0 && v_n > elastic_floor {
-                    (NormalCase::Elastic, v_n / alpha)
+                    let goal =
+                        finish.map_or(v_n / alpha, |f| f.goal(v_n, alpha, c.restitution, g_abs));
+                    (NormalCase::Elastic, goal)
                 } else {
                     (NormalCase::Separating, 0.0)
                 }
@@ -1037,5 +1083,42 @@ impl IslandOutcome {
                 Var::Joint(k) => joint_impulses[k] = x[j],
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::ApexFinish;
+
+    #[test]
+    fn the_last_rung_reaches_its_apex_when_the_bounce_may_keep_that_little() {
+        // g = 10, 0.5 s left: the apex-finishing speed is 5 m/s.
+        let f = ApexFinish {
+            seconds: 0.5,
+            min_ratio: 0.5,
+        };
+        // Leaving at 3 m/s with α = 0.5: naturally 6 m/s, faster than finishing: unchanged (it
+        // flies past the first frame).
+        assert_eq!(f.goal(3.0, 0.5, 0.5, 10.0), 6.0);
+        // 1 m/s: naturally 2 m/s (back down after 0.4 s); finishing keeps 1/5 = 0.2 of its
+        // speed, under half the material's 0.5: unchanged.
+        assert_eq!(f.goal(1.0, 0.5, 0.5, 10.0), 2.0);
+        // 1.4 m/s with the material at 0.5 but the rattling blend's α = 0.8: naturally 1.75 m/s;
+        // finishing keeps 1.4/5 = 0.28 ≥ 0.25: it leaves at 5 m/s.
+        assert_eq!(f.goal(1.4, 0.8, 0.5, 10.0), 5.0);
+        // Exactly at the bound, and just under it.
+        assert_eq!(f.goal(1.25, 0.5, 0.5, 10.0), 5.0);
+        assert_eq!(f.goal(1.24, 0.5, 0.5, 10.0), 1.24 / 0.5);
+        // No time left, or none that is finite: natural.
+        let none = ApexFinish {
+            seconds: 0.0,
+            min_ratio: 0.5,
+        };
+        assert_eq!(none.goal(1.0, 0.5, 0.5, 10.0), 2.0);
+        let inf = ApexFinish {
+            seconds: f64::INFINITY,
+            min_ratio: 0.5,
+        };
+        assert_eq!(inf.goal(1.0, 0.5, 0.5, 10.0), 2.0);
     }
 }

@@ -201,6 +201,9 @@ pub struct LoremBench {
     pub energy_growth: f64,
     /// Played forward, its bounces ([`bounces`]).
     pub bounces: Bounces,
+    /// 5th percentile and median of what the balls' first bounces keep of their speed
+    /// ([`first_bounce_keeps`]; the material pair keeps 0.55).
+    pub first_bounce_keep: (f64, f64),
 }
 
 /// Incoming speed (m/s) from which [`bounces`] counts a bounce: a fall of 5 cm, twice a lorem
@@ -257,6 +260,38 @@ pub fn bounces(frames: &[Frame], up: &nalgebra::Vector3<f64>) -> Bounces {
             }
         }
         out.elastic_bodies += usize::from(elastic);
+    }
+    out
+}
+
+/// Per body of `frames` (played forward, in time order) whose first fall reaches
+/// [`BOUNCE_MIN_SPEED`], the fraction of that fall's vertical speed its first bounce keeps (as
+/// [`bounces`] measures it). A backward run's last rung ([`crate::ApexFinish`]) makes a ball's
+/// first bounce deader than its material's; this is what it costs.
+pub fn first_bounce_keeps(frames: &[Frame], up: &nalgebra::Vector3<f64>) -> Vec<f64> {
+    let bodies = frames.first().map_or(0, |f| f.poses.len());
+    let mut out = Vec::with_capacity(bodies);
+    for b in 0..bodies {
+        let mut falling: Option<f64> = None;
+        for w in frames.windows(2) {
+            let (Some(p0), Some(p1)) = (w[0].poses.get(b), w[1].poses.get(b)) else {
+                break;
+            };
+            let dt = w[1].time - w[0].time;
+            if dt.is_nan() || dt <= 0.0 {
+                continue;
+            }
+            let v = up.dot(&(p1.position - p0.position)) / dt;
+            if let Some(incoming) = falling.take()
+                && v > 0.0
+            {
+                out.push(v / incoming);
+                break;
+            }
+            if v <= -BOUNCE_MIN_SPEED {
+                falling = Some(-v);
+            }
+        }
     }
     out
 }
@@ -412,6 +447,10 @@ pub fn lorem_bench(text: &str, seed: u64) -> Result<LoremBench, BenchError> {
         implausible_balls: p.implausible_bodies,
         energy_growth: run.report.energy_growth,
         bounces: bounces(&run.frames, &up),
+        first_bounce_keep: {
+            let keeps = first_bounce_keeps(&run.frames, &up);
+            (percentile(keeps.clone(), 0.05), percentile(keeps, 0.5))
+        },
     })
 }
 
@@ -593,5 +632,17 @@ mod tests {
         f[2].poses.clear();
         assert_eq!(bounces(&f, &up).bounces, 0);
         assert_eq!(bounces(&[], &up), Bounces::default());
+    }
+
+    #[test]
+    fn first_bounce_keeps_only_each_bodys_first_counted_bounce() {
+        let up = Vector3::y();
+        // 0.5 down, 0.4 up (too slow to count), then 2 down, 1 up (kept), then 2 down, 1.9 up.
+        let keeps = first_bounce_keeps(&frames(&[0.45, 0.4, 0.44, 0.24, 0.34, 0.14, 0.33]), &up);
+        assert_eq!(keeps.len(), 1);
+        assert!((keeps[0] - 0.5).abs() < 1e-9, "{keeps:?}");
+        // No counted bounce, no entry.
+        assert!(first_bounce_keeps(&frames(&[0.5, 0.3, 0.1, 0.1]), &up).is_empty());
+        assert!(first_bounce_keeps(&[], &up).is_empty());
     }
 }

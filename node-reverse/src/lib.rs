@@ -195,8 +195,8 @@ pub mod validate;
 pub mod world;
 
 pub use backward::{
-    BackwardChoices, BackwardReport, BodyHint, ContactChoice, FrictionCase, LiftPlan, NormalCase,
-    free_to_bounce,
+    ApexFinish, BackwardChoices, BackwardReport, BodyHint, ContactChoice, FrictionCase, LiftPlan,
+    NormalCase, free_to_bounce,
 };
 pub use bench::{BenchError, BenchOptions, LoremBench, ReverseBench, ScenePlausibility, bench};
 pub use body::{Body, Material, StaticBody};

@@ -14,7 +14,9 @@ use std::collections::{BTreeMap, BTreeSet};
 use mwb_core::rng::{Stream, WorldRng};
 use nalgebra::{UnitQuaternion, Vector3};
 
-use crate::backward::{BackwardChoices, BodyHint, LiftPlan, NormalCase, free_to_bounce};
+use crate::backward::{
+    ApexFinish, BackwardChoices, BodyHint, LiftPlan, NormalCase, free_to_bounce,
+};
 use crate::chain::{ACTIVE_IMPULSE, ContactChain, MAX_STATE};
 use crate::contact::{ContactSet, Partner};
 use crate::plausible::{Plausibility, PlausibilityMeter};
@@ -106,13 +108,21 @@ pub const DEFAULT_ENERGY_BUDGET: f64 = 0.0;
 /// See [`Heuristics::energy_budget`].
 pub const ENERGY_CAP_FRACTION: f64 = 0.8;
 /// A round body lifts off everything only when the run has at most this fraction of its
-/// [`ladder_seconds`] left. The ladder is a model: lorem's balls reached the cap up to 20 %
-/// sooner than it says. Measured on lorem, seeds 1–3 (balls with an elastic bounce played
-/// forward; balls out of their bins in the first frame): 1.0 → 527 (seed 1), 95.6 %;
-/// 0.9 → 159, 94.9 %; 0.85 → 39–45, 92.9–93.5 %; 0.8 → 6–9, 91.2–92.5 %. With no timing:
-/// 3 030 balls, 98.2 %. An elastic bounce is what an animator sees; a ball that is still
-/// bouncing low in its bin in the first frame falls in like the others.
+/// [`ladder_seconds`] left, and, whatever the contact-count chain draws, once the run has at
+/// most this fraction of its fastest lift-off's ladder left. The ladder is a model: lorem's
+/// balls reached the cap up to 20 % sooner than it says. Measured on lorem, seeds 1–3 (balls
+/// with an elastic bounce played forward; balls out of their bins in the first frame), before
+/// the forced lift-off and the last rung ([`ApexFinish`]): 1.0 → 527 (seed 1), 95.6 %;
+/// 0.9 → 159, 94.9 %; 0.85 → 39–45, 92.9–93.5 %; 0.8 → 6–9, 91.2–92.5 %; no timing: 3 030
+/// balls, 98.2 %. With both, seed 1: forced at 0.7 → 6, 99.7 %; 0.8 → 6, 99.9 %; 1.0 → 177,
+/// 96.9 %. An elastic bounce is what an animator sees.
 pub const LADDER_MARGIN: f64 = 0.8;
+/// [`ApexFinish::min_ratio`] of a round body's last rung. Lorem, seed 1, without the forced
+/// lift-off ([`LADDER_MARGIN`]): 0.5 → 96.0 % of the balls out of their bins in the first
+/// frame, 0.45 → 99.0 %, 0.35 → 99.6 % (first bounces keeping under 0.3 of their speed: 160,
+/// 366, 745; the material pair keeps 0.55). With it, 0.45 and 0.5 run alike (99.9 %, none
+/// under 0.3): the balls climb high enough that no last rung needs more.
+pub const APEX_MIN_RATIO: f64 = 0.5;
 /// Debt (m) a backward step may add before the energy budget takes it again conservatively.
 const BUDGET_SLACK: f64 = 1e-4;
 /// Debt (m) a backward step may add, even with conservative contacts, before the energy budget
@@ -657,7 +667,22 @@ fn run_backward_metered(
                         continue;
                     };
                     let from = eta[b].min(MAX_STATE);
-                    let to = chain.sample(from, rng.next_f64());
+                    let mut to = chain.sample(from, rng.next_f64());
+                    let round = world.bodies[b].rolling_resistance > 0.0;
+                    // A round body still resting when the run has `LADDER_MARGIN` of its
+                    // fastest lift-off's ladder left lifts off everything now, whatever the
+                    // chain drew: later, its ladder would be too short to carry it to its last
+                    // rung ([`ApexFinish`]), and played forward it would start in its bin.
+                    if to >= from && round && h.energy_budget.is_some() {
+                        let remaining = (steps - k) as f64 * dt;
+                        let headroom = cap_headroom(world, &meter, b, dt);
+                        let fastest = eps * s.lift_speed.1;
+                        let climb =
+                            ladder_seconds(fastest, alpha[b], g_abs, dt, h.rattle_blend, headroom);
+                        if remaining <= LADDER_MARGIN * climb {
+                            to = 0;
+                        }
+                    }
                     if to >= from {
                         continue;
                     }
@@ -669,7 +694,6 @@ fn run_backward_metered(
                     // cap until the run's first frame ([`ladder_seconds`], [`LADDER_MARGIN`]).
                     // Earlier, the cap took its bounces elastic: played forward, lorem's balls
                     // bounced like superballs, 7 459 elastic bounces among 16 548.
-                    let round = world.bodies[b].rolling_resistance > 0.0;
                     if round && count >= eta[b] && h.energy_budget.is_some() {
                         let remaining = (steps - k) as f64 * dt;
                         let headroom = cap_headroom(world, &meter, b, dt);
@@ -749,6 +773,27 @@ fn run_backward_metered(
                     .is_some_and(|u| matches!(u.motion, HintMotion::Slide(_)))
             })
             .collect();
+        // The last rung of a round body's bounce ladder: once the run has little enough time
+        // left that a flight to its first frame stays under the energy cap, a bounce may send
+        // the body to its apex exactly there ([`ApexFinish`]).
+        if h.energy_budget.is_some() {
+            let seconds = (steps - k - 1) as f64 * dt;
+            for (b, body) in world.bodies.iter().enumerate() {
+                if body.rolling_resistance > 0.0
+                    && body.enabled
+                    && grants[b] > 0.0
+                    && 0.5 * g * seconds * seconds <= cap_headroom(world, &meter, b, dt)
+                {
+                    choices.apex_finish.insert(
+                        b,
+                        ApexFinish {
+                            seconds,
+                            min_ratio: APEX_MIN_RATIO,
+                        },
+                    );
+                }
+            }
+        }
         if let Some(fraction) = h.energy_budget.filter(|f| f.is_finite()) {
             let debt = debts(world, &meter, dt, fraction, &grants);
             for (b, d) in debt.into_iter().enumerate() {

@@ -100,6 +100,11 @@ pub struct ReverseLine {
     pub lorem_elastic_balls: Option<usize>,
     pub lorem_elastic_bounces: Option<usize>,
     pub lorem_energy_growth: Option<f64>,
+    /// 5th percentile and median of the fraction of its falling speed a ball's first bounce
+    /// keeps, played forward (the material pair keeps 0.55; the last rung of a backward ladder
+    /// keeps less).
+    pub lorem_first_bounce_keep_p5: Option<f64>,
+    pub lorem_first_bounce_keep_p50: Option<f64>,
     pub lorem_excess_m: Option<f64>,
     pub lorem_implausible_balls: Option<usize>,
     pub lorem_left_bins: Option<f64>,
@@ -150,6 +155,8 @@ impl From<ReverseBench> for ReverseLine {
             lorem_elastic_balls: lorem.map(|l| l.bounces.elastic_bodies),
             lorem_cells_correct: lorem.map(|l| l.cells_correct),
             lorem_energy_growth: lorem.map(|l| l.energy_growth),
+            lorem_first_bounce_keep_p5: lorem.map(|l| l.first_bounce_keep.0),
+            lorem_first_bounce_keep_p50: lorem.map(|l| l.first_bounce_keep.1),
             lorem_excess_m: lorem.map(|l| l.excess_m),
             lorem_implausible_balls: lorem.map(|l| l.implausible_balls),
             lorem_left_bins: lorem.map(|l| l.left_bins),
