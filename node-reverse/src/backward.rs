@@ -148,6 +148,11 @@ pub struct BackwardChoices {
     /// ground may send the body up at the speed that brings it to its apex exactly at the run's
     /// first frame.
     pub apex_finish: BTreeMap<usize, ApexFinish>,
+    /// Skip [`BackwardReport::forward_residual`] (it is then NaN): a diagnostic that builds
+    /// every island's forward LCP again, 6 % of a step on the word scene. A run that measures
+    /// no departures ([`crate::run::ReverseSettings::measure_departure`] off, as `mwb reverse`
+    /// samples) skips it.
+    pub skip_forward_residual: bool,
     /// The stacking heuristic of §5.3.3: a resting contact between two bodies that are not
     /// free to bounce (or between such a body and static geometry) is held, allowing the
     /// normal impulse to pull, so a stack does not fly apart when stepped backward. `None`:
@@ -273,6 +278,7 @@ pub struct BackwardReport {
     pub islands: Vec<IslandSolve>,
     /// Forward-LCP residual of `impulses` and `joint_impulses` at the new state
     /// ([`World::forward_residual_with_joints`]): about zero when the step is forward-valid.
+    /// NaN when [`BackwardChoices::skip_forward_residual`] asked not to measure it.
     pub forward_residual: f64,
     /// Contacts whose normal velocity at `t` approaches faster than `δ`. No forward step ends
     /// like that (it stops every approach in its contact set), so such a state has no exact
@@ -613,8 +619,11 @@ impl World {
         let islands = solutions.iter().map(|o| o.solve).collect();
         store_velocities(&mut self.bodies, &vel);
         let disabled = disable_non_finite(&mut self.bodies, &before);
-        let forward_residual =
-            self.forward_residual_with_joints(&set, &impulses, &joint_impulses, dt);
+        let forward_residual = if choices.skip_forward_residual {
+            f64::NAN
+        } else {
+            self.forward_residual_with_joints(&set, &impulses, &joint_impulses, dt)
+        };
         // The replay's joint goals: what the forward step from here must end with, J v_t at
         // these poses (see the module docs).
         for jr in &mut set.joints {
@@ -1088,7 +1097,32 @@ impl IslandOutcome {
 
 #[cfg(test)]
 mod tests {
-    use super::ApexFinish;
+    use super::{ApexFinish, BackwardChoices};
+    use crate::scene::{builtin, world_from_toml};
+
+    #[test]
+    fn skipping_the_forward_residual_changes_nothing_else() {
+        let Ok(world) = world_from_toml(builtin::WORD, "word") else {
+            panic!("word scene");
+        };
+        let (mut measured, mut skipped) = (world.clone(), world);
+        let skip = BackwardChoices {
+            skip_forward_residual: true,
+            ..Default::default()
+        };
+        for _ in 0..30 {
+            let a = measured.step_backward(1.0 / 120.0, &BackwardChoices::default());
+            let b = skipped.step_backward(1.0 / 120.0, &skip);
+            assert!(a.forward_residual.is_finite());
+            assert!(b.forward_residual.is_nan());
+            assert_eq!(a.impulses, b.impulses);
+        }
+        for (a, b) in measured.bodies.iter().zip(&skipped.bodies) {
+            assert_eq!(a.position, b.position);
+            assert_eq!(a.linvel, b.linvel);
+            assert_eq!(a.angvel, b.angvel);
+        }
+    }
 
     #[test]
     fn the_last_rung_reaches_its_apex_when_the_bounce_may_keep_that_little() {

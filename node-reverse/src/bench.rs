@@ -112,8 +112,9 @@ pub struct ReverseBench {
     /// Mean forward step (µs) over `timing_steps` steps from the scene's resting state; the
     /// fastest of a few rounds alternating with the backward ones.
     pub forward_step_us: f64,
-    /// Mean backward step (µs) from the same state, forward-residual check included; the
-    /// fastest of the same rounds.
+    /// Mean backward step (µs) from the same state, as `mwb reverse` takes it (without the
+    /// forward-residual diagnostic, [`BackwardChoices::skip_forward_residual`]); the fastest of
+    /// the same rounds.
     pub backward_step_us: f64,
     /// `backward_step_us / forward_step_us` (target ≤ 1.2).
     pub ratio: f64,
@@ -475,8 +476,12 @@ pub fn bench(opts: &BenchOptions) -> Result<ReverseBench, BenchError> {
     let steps = opts.timing_steps.max(1);
 
     // Forward and backward runs alternate and each keeps its fastest round, so that a busy
-    // machine slowing one of them down does not show up as a ratio.
-    let choices = BackwardChoices::default();
+    // machine slowing one of them down does not show up as a ratio. The backward step as
+    // `mwb reverse` takes it: without the forward-residual diagnostic.
+    let choices = BackwardChoices {
+        skip_forward_residual: true,
+        ..Default::default()
+    };
     let (mut forward_step_us, mut backward_step_us) = (f64::INFINITY, f64::INFINITY);
     for _ in 0..TIMING_ROUNDS {
         let mut fwd = world.clone();

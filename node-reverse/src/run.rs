@@ -219,7 +219,8 @@ pub struct ReverseSettings {
     /// User hints by body index.
     pub hints: BTreeMap<usize, UserHint>,
     /// Replay every step forward with its contact set and measure how far it departs from a
-    /// forward-valid step (costs one forward step per step).
+    /// forward-valid step (costs one forward step per step), and each step's forward-LCP
+    /// residual ([`BackwardRunReport::max_forward_residual`]; the forward LCP built again).
     pub measure_departure: bool,
 }
 
@@ -298,9 +299,10 @@ pub struct BackwardRunReport {
     /// Per body, its largest angular speed (rad/s).
     pub body_angular_speed_peak: Vec<f64>,
     /// Largest forward-LCP residual of a step's impulses (0: every step's impulses are a valid
-    /// forward solution with the materials' restitution).
+    /// forward solution with the materials' restitution). NaN when not measured: measured with
+    /// the departures ([`ReverseSettings::measure_departure`]).
     pub max_forward_residual: f64,
-    /// Mean of the per-step forward residuals.
+    /// Mean of the per-step forward residuals (NaN when not measured).
     pub mean_forward_residual: f64,
     /// Largest relative velocity error of a step replayed forward with its own contact set
     /// (NaN when not measured): how far the heuristics bend a step away from forward-valid.
@@ -621,6 +623,7 @@ fn run_backward_metered(
         let elapsed = k as f64 * dt;
         let mut choices = BackwardChoices {
             stacking_glue: h.stacking_glue,
+            skip_forward_residual: !settings.measure_departure,
             ..Default::default()
         };
         for b in 0..n {
@@ -945,13 +948,13 @@ fn run_backward_metered(
     report.angular_speed_growth = report.angular_speed_peak - report.angular_speed_final;
     report.body_angular_speed_peak = ang_peak;
     report.energy = energy;
-    report.max_forward_residual = max_residual;
-    report.mean_forward_residual = if steps > 0 {
-        residual_sum / steps as f64
-    } else {
-        0.0
-    };
     if settings.measure_departure {
+        report.max_forward_residual = max_residual;
+        report.mean_forward_residual = if steps > 0 {
+            residual_sum / steps as f64
+        } else {
+            0.0
+        };
         report.max_departure = max_departure;
         report.mean_departure = if steps > 0 {
             departure_sum / steps as f64
@@ -959,6 +962,8 @@ fn run_backward_metered(
             0.0
         };
     } else {
+        report.max_forward_residual = f64::NAN;
+        report.mean_forward_residual = f64::NAN;
         report.max_departure = f64::NAN;
         report.mean_departure = f64::NAN;
     }
