@@ -242,7 +242,11 @@ struct Partial {
     /// The index the summary carried, taken off it.
     sent_index: Option<Box<WorldIndex>>,
     crc_bad: bool,
+    /// Encoded bytes of the segments held.
     bytes: u64,
+    /// Encoded bytes of the summary and the index it carried: held too until the world is
+    /// stored or dropped (a summary whose segments never come holds them until it expires).
+    summary_bytes: u64,
     last_ms: u64,
     /// Set when the sampler's liveliness token went away.
     orphaned_ms: Option<u64>,
@@ -647,7 +651,7 @@ impl Assembler {
             p.segments.insert(seg.seq, seg);
         }
         // A single partial world larger than the whole cap can never be stored.
-        if p.bytes > self.cap_bytes {
+        if p.bytes + p.summary_bytes > self.cap_bytes {
             self.drop_partial(&key);
             self.counters.refused_memory += 1;
             let state = self.count_rejection(&key.0);
@@ -660,10 +664,13 @@ impl Assembler {
     }
 
     /// Takes a world's summary. An index it carries (`WorldDone.index`) is taken off it and
-    /// comes back with the world when it is stored ([`Outcome::Stored`]); neither the held
-    /// summary nor the world's byte count includes it.
+    /// comes back with the world when it is stored ([`Outcome::Stored`]); the world's byte
+    /// count does not include it. Until the world is stored, the summary and its index count
+    /// against the cap as partial bytes.
     pub fn on_done(&mut self, mut done: WorldDone, now_ms: u64) -> Outcome {
         let sent_index = done.index.take().map(Box::new);
+        let summary =
+            done.encoded_len() as u64 + sent_index.as_ref().map_or(0, |i| i.encoded_len() as u64);
         let key = (
             done.job_id.clone(),
             done.node_id.clone(),
@@ -673,14 +680,30 @@ impl Assembler {
         p.last_ms = now_ms;
         p.done = Some(done);
         p.sent_index = sent_index;
+        // A repeated summary replaces the one held.
+        self.partial_bytes = self.partial_bytes - p.summary_bytes + summary;
+        if p.held_ms.is_some() {
+            self.held_bytes = self.held_bytes - p.summary_bytes + summary;
+        }
+        p.summary_bytes = summary;
+        if p.bytes + p.summary_bytes > self.cap_bytes {
+            self.drop_partial(&key);
+            self.counters.refused_memory += 1;
+            let state = self.count_rejection(&key.0);
+            return Outcome::Rejected {
+                reason: Rejection::MemoryCap,
+                state,
+            };
+        }
         self.try_complete(key, now_ms)
     }
 
     fn drop_partial(&mut self, key: &WorldKey) -> Option<Partial> {
         let p = self.partial.remove(key)?;
-        self.partial_bytes -= p.bytes;
+        let total = p.bytes + p.summary_bytes;
+        self.partial_bytes -= total;
         if p.held_ms.is_some() {
-            self.held_bytes -= p.bytes;
+            self.held_bytes -= total;
         }
         Some(p)
     }
@@ -925,11 +948,12 @@ impl Assembler {
         if p.held_ms.is_some() {
             return Outcome::Pending;
         }
-        if self.held_bytes + p.bytes > self.cap_bytes / 8 {
+        let total = p.bytes + p.summary_bytes;
+        if self.held_bytes + total > self.cap_bytes / 8 {
             return self.reject(&key, Rejection::UnknownJob);
         }
         p.held_ms = Some(now_ms);
-        self.held_bytes += p.bytes;
+        self.held_bytes += total;
         Outcome::Pending
     }
 
@@ -1687,6 +1711,87 @@ mod tests {
         assert_eq!(a.counters.discarded_partial, 1);
         assert_eq!(a.expire(100_000, 1000, 60_000), 1, "idle partial expires");
         assert_eq!(a.memory_bytes(), 0);
+    }
+
+    /// A summary (and the index it carries) counts against the cap while its world is
+    /// partial: a sampler that sent summaries whose segments never came held memory nobody
+    /// counted. Stored, the world counts as held; a summary larger than the cap is refused.
+    #[test]
+    fn a_summary_and_its_index_count_while_the_world_is_partial() {
+        use mwb_proto::v1::ObjectIndex;
+        let mut a = Assembler::new(1 << 20);
+        a.submit_job(job("j", 5));
+        let (segs, mut d) = world("j", "n", 0, 1, 2);
+        let index = WorldIndex {
+            objects: vec![
+                ObjectIndex {
+                    path: vec![7; 3000],
+                    ..Default::default()
+                };
+                2
+            ],
+            ..Default::default()
+        };
+        let index_len = index.encoded_len() as u64;
+        d.index = Some(index);
+        let summary_len = {
+            let mut bare = d.clone();
+            bare.index = None;
+            bare.encoded_len() as u64
+        };
+        assert_eq!(a.on_done(d.clone(), 1), Outcome::Pending);
+        assert_eq!(a.memory_bytes(), summary_len + index_len);
+        // The same summary again replaces it.
+        assert_eq!(a.on_done(d.clone(), 1), Outcome::Pending);
+        assert_eq!(a.memory_bytes(), summary_len + index_len);
+        let mut seg_len = 0;
+        let mut out = Outcome::Pending;
+        for s in segs {
+            seg_len += s.encoded_len() as u64;
+            out = a.on_segment(s, 2);
+        }
+        assert!(
+            matches!(
+                &out,
+                Outcome::Stored {
+                    sent_index: Some(_),
+                    ..
+                }
+            ),
+            "{out:?}"
+        );
+        let held: u64 = a.stored().map(|w| w.held_bytes()).sum();
+        assert_eq!(
+            a.memory_bytes(),
+            held,
+            "{seg_len} B of segments now held as the world"
+        );
+        // A summary whose segments never come expires with what it held.
+        let (_, mut orphan) = world("j", "gone", 0, 2, 2);
+        orphan.index = Some(WorldIndex::default());
+        assert_eq!(a.on_done(orphan, 3), Outcome::Pending);
+        assert!(a.memory_bytes() > held);
+        assert_eq!(a.expire(100_000, 1000, 60_000), 1);
+        assert_eq!(a.memory_bytes(), held);
+        // Larger than the whole cap: refused at once.
+        let mut small = Assembler::new(1000);
+        small.submit_job(job("j", 5));
+        let (_, mut big) = world("j", "n", 0, 1, 2);
+        big.index = Some(WorldIndex {
+            objects: vec![ObjectIndex {
+                path: vec![1; 2000],
+                ..Default::default()
+            }],
+            ..Default::default()
+        });
+        assert!(matches!(
+            small.on_done(big, 1),
+            Outcome::Rejected {
+                reason: Rejection::MemoryCap,
+                ..
+            }
+        ));
+        assert_eq!(small.memory_bytes(), 0);
     }
 
     /// A world that completes before its job arrives is stored when the job comes.
