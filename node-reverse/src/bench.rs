@@ -227,37 +227,51 @@ pub struct Bounces {
     pub elastic_bodies: usize,
 }
 
-/// Counts the bounces of `frames` (played forward, in time order) along `up`. A body's vertical
-/// speed over each frame interval is its displacement over the interval's length; a bounce is
-/// an interval falling at [`BOUNCE_MIN_SPEED`] or more followed by one rising. The stepper's
-/// flight is symplectic Euler, so each interval's speed is one step's velocity: the ratio of the
-/// two is the bounce's restitution, up to the `g Δt` that gravity adds within one step.
+/// Body `b`'s bounces in `frames` (played forward, in time order) along `up`, as
+/// `(incoming, outgoing)` vertical speeds. A body's vertical speed over each frame interval is
+/// its displacement over the interval's length; a bounce is an interval falling at
+/// [`BOUNCE_MIN_SPEED`] or more followed by one rising. The stepper's flight is symplectic
+/// Euler, so each interval's speed is one step's velocity: the ratio of the two is the
+/// bounce's restitution, up to the `g Δt` that gravity adds within one step. A body missing
+/// from a later frame ends there.
+fn body_bounces<'a>(
+    frames: &'a [Frame],
+    b: usize,
+    up: &'a nalgebra::Vector3<f64>,
+) -> impl Iterator<Item = (f64, f64)> + 'a {
+    let mut falling: Option<f64> = None;
+    frames
+        .windows(2)
+        .map_while(move |w| {
+            let (p0, p1) = (w[0].poses.get(b)?, w[1].poses.get(b)?);
+            Some((w[1].time - w[0].time, up.dot(&(p1.position - p0.position))))
+        })
+        .filter(|(dt, _)| !dt.is_nan() && *dt > 0.0)
+        .filter_map(move |(dt, dy)| {
+            let v = dy / dt;
+            let bounce = falling
+                .take()
+                .filter(|_| v > 0.0)
+                .map(|incoming| (incoming, v));
+            if v <= -BOUNCE_MIN_SPEED {
+                falling = Some(-v);
+            }
+            bounce
+        })
+}
+
+/// Counts the bounces of `frames` (played forward, in time order) along `up` (see
+/// [`body_bounces`]), and those that keep at least [`ELASTIC_KEEP`] of their speed.
 pub fn bounces(frames: &[Frame], up: &nalgebra::Vector3<f64>) -> Bounces {
     let bodies = frames.first().map_or(0, |f| f.poses.len());
     let mut out = Bounces::default();
     for b in 0..bodies {
-        let mut falling: Option<f64> = None;
         let mut elastic = false;
-        for w in frames.windows(2) {
-            let (Some(p0), Some(p1)) = (w[0].poses.get(b), w[1].poses.get(b)) else {
-                break;
-            };
-            let dt = w[1].time - w[0].time;
-            if dt.is_nan() || dt <= 0.0 {
-                continue;
-            }
-            let v = up.dot(&(p1.position - p0.position)) / dt;
-            if let Some(incoming) = falling.take()
-                && v > 0.0
-            {
-                out.bounces += 1;
-                if v >= ELASTIC_KEEP * incoming {
-                    out.elastic += 1;
-                    elastic = true;
-                }
-            }
-            if v <= -BOUNCE_MIN_SPEED {
-                falling = Some(-v);
+        for (incoming, outgoing) in body_bounces(frames, b, up) {
+            out.bounces += 1;
+            if outgoing >= ELASTIC_KEEP * incoming {
+                out.elastic += 1;
+                elastic = true;
             }
         }
         out.elastic_bodies += usize::from(elastic);
@@ -265,36 +279,16 @@ pub fn bounces(frames: &[Frame], up: &nalgebra::Vector3<f64>) -> Bounces {
     out
 }
 
-/// Per body of `frames` (played forward, in time order) whose first fall reaches
-/// [`BOUNCE_MIN_SPEED`], the fraction of that fall's vertical speed its first bounce keeps (as
-/// [`bounces`] measures it). A backward run's last rung ([`crate::ApexFinish`]) makes a ball's
-/// first bounce deader than its material's; this is what it costs.
+/// Per body of `frames` (played forward, in time order) with a bounce ([`body_bounces`]), the
+/// fraction of its vertical speed its first bounce keeps. A backward run's last rung
+/// ([`crate::ApexFinish`]) makes a ball's first bounce deader than its material's; this is what
+/// it costs.
 pub fn first_bounce_keeps(frames: &[Frame], up: &nalgebra::Vector3<f64>) -> Vec<f64> {
     let bodies = frames.first().map_or(0, |f| f.poses.len());
-    let mut out = Vec::with_capacity(bodies);
-    for b in 0..bodies {
-        let mut falling: Option<f64> = None;
-        for w in frames.windows(2) {
-            let (Some(p0), Some(p1)) = (w[0].poses.get(b), w[1].poses.get(b)) else {
-                break;
-            };
-            let dt = w[1].time - w[0].time;
-            if dt.is_nan() || dt <= 0.0 {
-                continue;
-            }
-            let v = up.dot(&(p1.position - p0.position)) / dt;
-            if let Some(incoming) = falling.take()
-                && v > 0.0
-            {
-                out.push(v / incoming);
-                break;
-            }
-            if v <= -BOUNCE_MIN_SPEED {
-                falling = Some(-v);
-            }
-        }
-    }
-    out
+    (0..bodies)
+        .filter_map(|b| body_bounces(frames, b, up).next())
+        .map(|(incoming, outgoing)| outgoing / incoming)
+        .collect()
 }
 
 fn percentile(mut v: Vec<f64>, q: f64) -> f64 {

@@ -650,17 +650,29 @@ impl Assembler {
             }
             p.segments.insert(seg.seq, seg);
         }
-        // A single partial world larger than the whole cap can never be stored.
-        if p.bytes + p.summary_bytes > self.cap_bytes {
-            self.drop_partial(&key);
-            self.counters.refused_memory += 1;
-            let state = self.count_rejection(&key.0);
-            return Outcome::Rejected {
-                reason: Rejection::MemoryCap,
-                state,
-            };
+        if let Some(refused) = self.refuse_oversized(&key) {
+            return refused;
         }
         self.try_complete(key, now_ms)
+    }
+
+    /// A single partial world larger than the whole cap can never be stored: refused and
+    /// dropped. `None`: it fits.
+    fn refuse_oversized(&mut self, key: &WorldKey) -> Option<Outcome> {
+        let fits = self
+            .partial
+            .get(key)
+            .is_none_or(|p| p.bytes + p.summary_bytes <= self.cap_bytes);
+        if fits {
+            return None;
+        }
+        self.drop_partial(key);
+        self.counters.refused_memory += 1;
+        let state = self.count_rejection(&key.0);
+        Some(Outcome::Rejected {
+            reason: Rejection::MemoryCap,
+            state,
+        })
     }
 
     /// Takes a world's summary. An index it carries (`WorldDone.index`) is taken off it and
@@ -686,14 +698,8 @@ impl Assembler {
             self.held_bytes = self.held_bytes - p.summary_bytes + summary;
         }
         p.summary_bytes = summary;
-        if p.bytes + p.summary_bytes > self.cap_bytes {
-            self.drop_partial(&key);
-            self.counters.refused_memory += 1;
-            let state = self.count_rejection(&key.0);
-            return Outcome::Rejected {
-                reason: Rejection::MemoryCap,
-                state,
-            };
+        if let Some(refused) = self.refuse_oversized(&key) {
+            return refused;
         }
         self.try_complete(key, now_ms)
     }
