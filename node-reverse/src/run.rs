@@ -779,8 +779,9 @@ fn run_backward_metered(
         // The last rung of a round body's bounce ladder: once the run has little enough time
         // left that a flight to its first frame stays under the energy cap, a bounce may send
         // the body to its apex exactly there ([`ApexFinish`]).
-        if h.energy_budget.is_some() {
-            let seconds = (steps - k - 1) as f64 * dt;
+        let seconds = (steps - k - 1) as f64 * dt;
+        let cap = ENERGY_CAP_FRACTION * crate::plausible::MAX_ENERGY_GROWTH_M;
+        if h.energy_budget.is_some() && 0.5 * g * seconds * seconds <= cap {
             for (b, body) in world.bodies.iter().enumerate() {
                 if body.rolling_resistance > 0.0
                     && body.enabled
