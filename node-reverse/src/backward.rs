@@ -170,7 +170,7 @@ pub struct BackwardChoices {
 /// it reaches its apex at the first frame — provided the bounce, played forward (`v_n` over
 /// that speed), keeps at least `min_ratio` of the material's restitution. Played forward, the
 /// body starts at rest in mid-air, falls, and its first bounce is deader than its material's
-/// (lorem: the 5 % deadest keep 0.42 of their speed against the material's 0.55); the rest
+/// (lorem: the 5 % deadest keep 0.43 of their speed against the material's 0.55); the rest
 /// are its material's.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ApexFinish {

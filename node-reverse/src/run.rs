@@ -529,14 +529,17 @@ fn over_cap(world: &World, meter: &PlausibilityMeter, dt: f64) -> Vec<usize> {
 
 /// How much energy height (m) body `b` may still gain before [`over_cap`] takes it: the cap
 /// minus what it has already gained over the last frame's energy height (0 when past it).
-fn cap_headroom(world: &World, meter: &PlausibilityMeter, b: usize, dt: f64) -> f64 {
-    let g = world.gravity.norm();
-    let up = (-world.gravity)
-        .try_normalize(1e-12)
-        .unwrap_or(Vector3::z());
+/// `up` and `g`: the world's, as the run computed them once.
+fn cap_headroom(
+    world: &World,
+    meter: &PlausibilityMeter,
+    b: usize,
+    (up, g): (&Vector3<f64>, f64),
+    dt: f64,
+) -> f64 {
     let cap = ENERGY_CAP_FRACTION * crate::plausible::MAX_ENERGY_GROWTH_M;
     match (world.bodies.get(b), meter.bodies.get(b)) {
-        (Some(body), Some(peaks)) => crate::plausible::energy_height(body, &up, g, dt)
+        (Some(body), Some(peaks)) => crate::plausible::energy_height(body, up, g, dt)
             .map(|e| cap - (e - peaks.last_energy_height))
             .filter(|x| x.is_finite())
             .map_or(0.0, |x| x.max(0.0)),
@@ -678,7 +681,7 @@ fn run_backward_metered(
                     // rung ([`ApexFinish`]), and played forward it would start in its bin.
                     if to >= from && round && h.energy_budget.is_some() {
                         let remaining = (steps - k) as f64 * dt;
-                        let headroom = cap_headroom(world, &meter, b, dt);
+                        let headroom = cap_headroom(world, &meter, b, (&up, g_abs), dt);
                         let fastest = eps * s.lift_speed.1;
                         let climb =
                             ladder_seconds(fastest, alpha[b], g_abs, dt, h.rattle_blend, headroom);
@@ -699,7 +702,7 @@ fn run_backward_metered(
                     // bounced like superballs, 7 459 elastic bounces among 16 548.
                     if round && count >= eta[b] && h.energy_budget.is_some() {
                         let remaining = (steps - k) as f64 * dt;
-                        let headroom = cap_headroom(world, &meter, b, dt);
+                        let headroom = cap_headroom(world, &meter, b, (&up, g_abs), dt);
                         let climb =
                             ladder_seconds(speed, alpha[b], g_abs, dt, h.rattle_blend, headroom);
                         if remaining > LADDER_MARGIN * climb {
@@ -786,7 +789,8 @@ fn run_backward_metered(
                 if body.rolling_resistance > 0.0
                     && body.enabled
                     && grants[b] > 0.0
-                    && 0.5 * g * seconds * seconds <= cap_headroom(world, &meter, b, dt)
+                    && 0.5 * g * seconds * seconds
+                        <= cap_headroom(world, &meter, b, (&up, g_abs), dt)
                 {
                     choices.apex_finish.insert(
                         b,
