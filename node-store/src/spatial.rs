@@ -250,6 +250,132 @@ impl Grid {
     }
 }
 
+/// One frustum plane rewritten on a block's grid: the signed distance of the decoded corner
+/// `origin + s · step` is `c + w · s`, and the corner nearest the inside (`near`, indices into a
+/// box's `[lo, hi]` codes) and the one farthest out (`far`) are fixed by the signs of `w`.
+#[derive(Debug, Clone, Copy)]
+struct GridPlane {
+    c: f64,
+    w: [f64; 3],
+    /// Per axis, whether `w ≥ 0`: the near corner is then at the low code.
+    up: [bool; 3],
+    /// `|offset|` of the plane, for [`Aabb::classify`]'s inside margin.
+    offset_abs: f64,
+}
+
+/// [`Aabb::classify`] and the region-box test of one query on one grid's boxes, read straight
+/// from their codes: the planes are moved onto the grid once per query and block (a box is
+/// then 6 conversions and 36 multiply-adds, with no decoding, no branch per plane, and the
+/// region box compared as codes). Boxes with an infinite side take the decoded path.
+///
+/// The sums round differently from the decoded box's, by a few units in the last place of
+/// metres; every stored box is padded by a billionth of its scale beyond its points
+/// ([`Aabb::of_points`]) and the inside margin is a billionth too, so neither answer can
+/// lose a path or wrongly spare a plane.
+struct GridTest<'a> {
+    grid: Grid,
+    planes: &'a [Plane; 6],
+    region: Option<&'a Aabb>,
+    on_grid: [GridPlane; 6],
+    /// The region box as codes, rounded outward ([`i16::MIN`] / [`i16::MAX`]: no bound).
+    region_lo: [i16; 3],
+    region_hi: [i16; 3],
+}
+
+impl<'a> GridTest<'a> {
+    fn new(grid: Grid, planes: &'a [Plane; 6], region: Option<&'a Aabb>) -> Self {
+        let step = pow2(grid.exp);
+        let on_grid = planes.map(|p| {
+            let w = p.normal.map(|n| n * step);
+            GridPlane {
+                c: -p.offset
+                    + p.normal[0] * grid.origin[0]
+                    + p.normal[1] * grid.origin[1]
+                    + p.normal[2] * grid.origin[2],
+                w,
+                up: p.normal.map(|n| n >= 0.0),
+                offset_abs: p.offset.abs(),
+            }
+        });
+        let (mut region_lo, mut region_hi) = ([i16::MIN; 3], [i16::MAX; 3]);
+        if let Some(r) = region {
+            for k in 0..3 {
+                // A box is below the region when its top code is below the first code at or
+                // above the region's bottom; out of reach: no bound on that side.
+                // Out of the grid's reach, every finite box is on one side of the bound.
+                region_lo[k] = grid
+                    .up(k, r.min[k])
+                    .unwrap_or(if r.min[k] > grid.origin[k] {
+                        i16::MAX
+                    } else {
+                        i16::MIN
+                    });
+                region_hi[k] = grid
+                    .down(k, r.max[k])
+                    .unwrap_or(if r.max[k] < grid.origin[k] {
+                        i16::MIN
+                    } else {
+                        i16::MAX
+                    });
+            }
+        }
+        GridTest {
+            grid,
+            planes,
+            region,
+            on_grid,
+            region_lo,
+            region_hi,
+        }
+    }
+
+    /// What `grid.decode(b)` tested against the region box and then [`Aabb::classify`]
+    /// against the planes in `mask` would answer.
+    #[inline]
+    fn classify(&self, b: &GridBox, mask: u8) -> Option<u8> {
+        if b.lo.contains(&i16::MIN) || b.hi.contains(&i16::MAX) {
+            let d = self.grid.decode(b);
+            if self.region.is_some_and(|r| d.disjoint(r)) {
+                return None;
+            }
+            return d.classify(self.planes, mask);
+        }
+        let mut apart = false;
+        for k in 0..3 {
+            apart |= b.hi[k] < self.region_lo[k] || b.lo[k] > self.region_hi[k];
+        }
+        if apart {
+            return None;
+        }
+        let lo = b.lo.map(f64::from);
+        let hi = b.hi.map(f64::from);
+        let mut out = mask;
+        for (k, p) in self.on_grid.iter().enumerate() {
+            if mask & (1 << k) == 0 {
+                continue;
+            }
+            let mut near = p.c;
+            let mut far = p.c;
+            for i in 0..3 {
+                let (a, z) = if p.up[i] {
+                    (lo[i], hi[i])
+                } else {
+                    (hi[i], lo[i])
+                };
+                near += p.w[i] * a;
+                far += p.w[i] * z;
+            }
+            if near > 0.0 {
+                return None;
+            }
+            if far < -1e-9 * (1.0 + p.offset_abs + far.abs()) {
+                out &= !(1 << k);
+            }
+        }
+        Some(out)
+    }
+}
+
 /// A box in steps of its hierarchy's [`Grid`] (12 bytes).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 struct GridBox {
@@ -821,14 +947,8 @@ impl PathBvh {
                 (grid, run, &[][..], None)
             }
         };
-        let planes = frustum.planes();
-        let test = |b: &GridBox, mask: u8| {
-            let b = grid.decode(b);
-            if region_box.is_some_and(|r| b.disjoint(r)) {
-                return None;
-            }
-            b.classify(planes, mask)
-        };
+        let on_grid = GridTest::new(grid, frustum.planes(), region_box);
+        let test = |b: &GridBox, mask: u8| on_grid.classify(b, mask);
         let mut leaf = |entry: &'s Entry, mask: u8| {
             if window
                 .is_some_and(|w| time_to(entry.t1) < w.start() || time_from(entry.t0) > w.end())
@@ -836,7 +956,10 @@ impl PathBvh {
             {
                 return;
             }
-            if let Some(mask) = test(&entry.bounds, mask) {
+            // Below a node inside every plane, every box is too: no test needed.
+            if mask == 0 {
+                visit(Piece { entry, mask });
+            } else if let Some(mask) = test(&entry.bounds, mask) {
                 visit(Piece { entry, mask });
             }
         };
@@ -849,7 +972,11 @@ impl PathBvh {
         let mut stack = vec![(root, ALL_PLANES)];
         while let Some((i, mask)) = stack.pop() {
             let node = &nodes[i];
-            let Some(mask) = test(&node.bounds, mask) else {
+            let mask = if mask == 0 {
+                0
+            } else if let Some(mask) = test(&node.bounds, mask) {
+                mask
+            } else {
                 continue;
             };
             if node.count > 0 {
@@ -1025,6 +1152,92 @@ mod tests {
         );
         assert_boxes_hold_their_pieces(&bvh, &paths);
         keeps_exactly_what_brute_force_keeps(&mut rng, &paths, 10.0, 1000);
+    }
+
+    /// [`GridTest::classify`] answers what decoding the box, testing it against the region box
+    /// and classifying it against the planes answers: over every stored box of paths spread
+    /// across a kilometre (grids of several steps, boxes with infinite sides), against
+    /// oblique frustums (rotated boxes: every normal has all three components) near the paths
+    /// and far out of the grids' reach, under every plane mask.
+    #[test]
+    fn boxes_are_tested_on_their_grid_as_decoded() {
+        let mut rng = WorldRng::new(8, Stream::Scene);
+        let mut paths = spread_paths(&mut rng, 600, 1.0);
+        paths.extend(spread_paths(&mut rng, 600, 500.0));
+        let mut bvh = PathBvh::with_block(300);
+        for (w, path) in paths.iter().enumerate() {
+            bvh.insert(w as u32, path);
+        }
+        let stored = bvh.stored();
+        let (mut outside, mut spared, mut infinite) = (0usize, 0usize, 0usize);
+        for q in 0..60 {
+            // A random orthonormal frame (Gram–Schmidt of two random directions).
+            let mut random_dir = || {
+                let v = [0, 1, 2].map(|_| rng.uniform(-1.0, 1.0));
+                let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt().max(1e-3);
+                v.map(|x| x / n)
+            };
+            let e0 = random_dir();
+            let v = random_dir();
+            let along = e0[0] * v[0] + e0[1] * v[1] + e0[2] * v[2];
+            let e1 = [0, 1, 2].map(|k| v[k] - along * e0[k]);
+            let n1 = (e1[0] * e1[0] + e1[1] * e1[1] + e1[2] * e1[2]).sqrt();
+            let e1 = e1.map(|x| x / n1);
+            let e2 = [
+                e0[1] * e1[2] - e0[2] * e1[1],
+                e0[2] * e1[0] - e0[0] * e1[2],
+                e0[0] * e1[1] - e0[1] * e1[0],
+            ];
+            let reach = if q % 10 == 9 { 1e6 } else { 3.0 };
+            let c = [
+                rng.uniform(-reach, reach),
+                rng.uniform(0.0, 3.0),
+                rng.uniform(-reach, reach),
+            ];
+            let half = [
+                rng.uniform(0.05, 2.0),
+                rng.uniform(0.05, 1.0),
+                rng.uniform(0.05, 2.0),
+            ];
+            let mut planes = [Plane {
+                normal: [0.0; 3],
+                offset: 0.0,
+            }; 6];
+            for (i, u) in [e0, e1, e2].into_iter().enumerate() {
+                let along = u[0] * c[0] + u[1] * c[1] + u[2] * c[2];
+                planes[2 * i] = Plane {
+                    normal: u,
+                    offset: along + half[i],
+                };
+                planes[2 * i + 1] = Plane {
+                    normal: u.map(|x| -x),
+                    offset: -along + half[i],
+                };
+            }
+            let frustum = Frustum::from_planes(planes).unwrap_or_else(|e| panic!("{e}"));
+            let region = region_box(&frustum);
+            for (grid, entry) in &stored {
+                let on_grid = GridTest::new(*grid, frustum.planes(), region.as_ref());
+                let b = &entry.bounds;
+                infinite += usize::from(b.lo.contains(&i16::MIN) || b.hi.contains(&i16::MAX));
+                for mask in [ALL_PLANES, 0b10_1101, 0b00_0110, 0] {
+                    let decoded = grid.decode(b);
+                    let want = if region.as_ref().is_some_and(|r| decoded.disjoint(r)) {
+                        None
+                    } else {
+                        decoded.classify(frustum.planes(), mask)
+                    };
+                    assert_eq!(on_grid.classify(b, mask), want, "query {q}, mask {mask:#b}");
+                    outside += usize::from(want.is_none());
+                    spared += usize::from(want.is_some_and(|m| m != mask));
+                }
+            }
+        }
+        assert!(
+            outside > 1000 && spared > 1000,
+            "{outside} outside, {spared} spared"
+        );
+        assert!(infinite > 0, "boxes with infinite sides are tested");
     }
 
     /// Every stored piece's box, decoded, holds each of its vertices grown by the path's
