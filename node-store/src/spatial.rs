@@ -251,8 +251,8 @@ impl Grid {
 }
 
 /// One frustum plane rewritten on a block's grid: the signed distance of the decoded corner
-/// `origin + s · step` is `c + w · s`, and the corner nearest the inside (`near`, indices into a
-/// box's `[lo, hi]` codes) and the one farthest out (`far`) are fixed by the signs of `w`.
+/// `origin + s · step` is `c + w · s`. The signs of `w` fix, per axis, which of a box's codes
+/// gives its corner nearest the inside and which its corner farthest out.
 #[derive(Debug, Clone, Copy)]
 struct GridPlane {
     c: f64,
@@ -265,8 +265,8 @@ struct GridPlane {
 
 /// [`Aabb::classify`] and the region-box test of one query on one grid's boxes, read straight
 /// from their codes: the planes are moved onto the grid once per query and block (a box is
-/// then 6 conversions and 36 multiply-adds, with no decoding, no branch per plane, and the
-/// region box compared as codes). Boxes with an infinite side take the decoded path.
+/// then 6 conversions and at most 36 multiply-adds, with no decoding, and the region box is
+/// compared as codes). Boxes with an infinite side take the decoded path.
 ///
 /// The sums round differently from the decoded box's, by a few units in the last place of
 /// metres; every stored box is padded by a billionth of its scale beyond its points
@@ -277,7 +277,9 @@ struct GridTest<'a> {
     planes: &'a [Plane; 6],
     region: Option<&'a Aabb>,
     on_grid: [GridPlane; 6],
-    /// The region box as codes, rounded outward ([`i16::MIN`] / [`i16::MAX`]: no bound).
+    /// The region box as codes: a box is apart from it when its top code is below
+    /// `region_lo` or its bottom code above `region_hi`. A bound beyond the grid's reach is
+    /// the extreme code that puts every finite box on the side it is on.
     region_lo: [i16; 3],
     region_hi: [i16; 3],
 }
@@ -300,9 +302,9 @@ impl<'a> GridTest<'a> {
         let (mut region_lo, mut region_hi) = ([i16::MIN; 3], [i16::MAX; 3]);
         if let Some(r) = region {
             for k in 0..3 {
-                // A box is below the region when its top code is below the first code at or
-                // above the region's bottom; out of reach: no bound on that side.
-                // Out of the grid's reach, every finite box is on one side of the bound.
+                // The first code at or above the region's bottom, the last at or below its
+                // top (a decoded box is below the region exactly when its top is below the
+                // first); beyond the grid's reach every finite code is on one side.
                 region_lo[k] = grid
                     .up(k, r.min[k])
                     .unwrap_or(if r.min[k] > grid.origin[k] {
@@ -1158,7 +1160,7 @@ mod tests {
     /// and classifying it against the planes answers: over every stored box of paths spread
     /// across a kilometre (grids of several steps, boxes with infinite sides), against
     /// oblique frustums (rotated boxes: every normal has all three components) near the paths
-    /// and far out of the grids' reach, under every plane mask.
+    /// and far out of the grids' reach, under four plane masks.
     #[test]
     fn boxes_are_tested_on_their_grid_as_decoded() {
         let mut rng = WorldRng::new(8, Stream::Scene);
