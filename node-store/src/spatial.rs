@@ -1190,17 +1190,7 @@ mod tests {
                 e0[2] * e1[0] - e0[0] * e1[2],
                 e0[0] * e1[1] - e0[1] * e1[0],
             ];
-            let reach = if q % 10 == 9 { 1e6 } else { 3.0 };
-            let c = [
-                rng.uniform(-reach, reach),
-                rng.uniform(0.0, 3.0),
-                rng.uniform(-reach, reach),
-            ];
-            let half = [
-                rng.uniform(0.05, 2.0),
-                rng.uniform(0.05, 1.0),
-                rng.uniform(0.05, 2.0),
-            ];
+            let (c, half) = random_box(&mut rng, if q % 10 == 9 { 1e6 } else { 3.0 });
             let mut planes = [Plane {
                 normal: [0.0; 3],
                 offset: 0.0,
@@ -1376,6 +1366,21 @@ mod tests {
 
     /// The random boxes and windows of the brute-force comparison, around paths within
     /// `spread` metres of the origin.
+    /// A random box's centre (within `spread` across, 0–3 m up) and half extents.
+    fn random_box(rng: &mut WorldRng, spread: f64) -> ([f64; 3], [f64; 3]) {
+        let c = [
+            rng.uniform(-spread, spread),
+            rng.uniform(0.0, 3.0),
+            rng.uniform(-spread, spread),
+        ];
+        let h = [
+            rng.uniform(0.01, 3.0),
+            rng.uniform(0.01, 1.0),
+            rng.uniform(0.01, 3.0),
+        ];
+        (c, h)
+    }
+
     fn keeps_exactly_what_brute_force_keeps(
         rng: &mut WorldRng,
         paths: &[IndexedObject],
@@ -1406,16 +1411,7 @@ mod tests {
         assert!(splits[2].len() >= 64);
         let (mut kept, mut windowed) = (0, 0);
         for q in 0..300 {
-            let c = [
-                rng.uniform(-spread, spread),
-                rng.uniform(0.0, 3.0),
-                rng.uniform(-spread, spread),
-            ];
-            let h = [
-                rng.uniform(0.01, 3.0),
-                rng.uniform(0.01, 1.0),
-                rng.uniform(0.01, 3.0),
-            ];
+            let (c, h) = random_box(rng, spread);
             let frustum = Frustum::aabb(
                 [c[0] - h[0], c[1] - h[1], c[2] - h[2]],
                 [c[0] + h[0], c[1] + h[1], c[2] + h[2]],
