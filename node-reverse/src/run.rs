@@ -675,13 +675,21 @@ fn run_backward_metered(
                     let from = eta[b].min(MAX_STATE);
                     let mut to = chain.sample(from, rng.next_f64());
                     let round = world.bodies[b].rolling_resistance > 0.0;
+                    // A round body's bounce ladder, with the energy budget on: the time the run
+                    // has left, and how much the body may still gain under the cap.
+                    let ladder = (round && h.energy_budget.is_some()).then(|| {
+                        (
+                            (steps - k) as f64 * dt,
+                            cap_headroom(world, &meter, b, (&up, g_abs), dt),
+                        )
+                    });
                     // A round body still resting when the run has `LADDER_MARGIN` of its
                     // fastest lift-off's ladder left lifts off everything now, whatever the
                     // chain drew: later, its ladder would be too short to carry it to its last
                     // rung ([`ApexFinish`]), and played forward it would start in its bin.
-                    if to >= from && round && h.energy_budget.is_some() {
-                        let remaining = (steps - k) as f64 * dt;
-                        let headroom = cap_headroom(world, &meter, b, (&up, g_abs), dt);
+                    if to >= from
+                        && let Some((remaining, headroom)) = ladder
+                    {
                         let fastest = eps * s.lift_speed.1;
                         let climb =
                             ladder_seconds(fastest, alpha[b], g_abs, dt, h.rattle_blend, headroom);
@@ -700,9 +708,9 @@ fn run_backward_metered(
                     // cap until the run's first frame ([`ladder_seconds`], [`LADDER_MARGIN`]).
                     // Earlier, the cap took its bounces elastic: played forward, lorem's balls
                     // bounced like superballs, 7 459 elastic bounces among 16 548.
-                    if round && count >= eta[b] && h.energy_budget.is_some() {
-                        let remaining = (steps - k) as f64 * dt;
-                        let headroom = cap_headroom(world, &meter, b, (&up, g_abs), dt);
+                    if count >= eta[b]
+                        && let Some((remaining, headroom)) = ladder
+                    {
                         let climb =
                             ladder_seconds(speed, alpha[b], g_abs, dt, h.rattle_blend, headroom);
                         if remaining > LADDER_MARGIN * climb {
@@ -783,14 +791,14 @@ fn run_backward_metered(
         // left that a flight to its first frame stays under the energy cap, a bounce may send
         // the body to its apex exactly there ([`ApexFinish`]).
         let seconds = (steps - k - 1) as f64 * dt;
+        let fall = 0.5 * g * seconds * seconds;
         let cap = ENERGY_CAP_FRACTION * crate::plausible::MAX_ENERGY_GROWTH_M;
-        if h.energy_budget.is_some() && 0.5 * g * seconds * seconds <= cap {
+        if h.energy_budget.is_some() && fall <= cap {
             for (b, body) in world.bodies.iter().enumerate() {
                 if body.rolling_resistance > 0.0
                     && body.enabled
                     && grants[b] > 0.0
-                    && 0.5 * g * seconds * seconds
-                        <= cap_headroom(world, &meter, b, (&up, g_abs), dt)
+                    && fall <= cap_headroom(world, &meter, b, (&up, g_abs), dt)
                 {
                     choices.apex_finish.insert(
                         b,
