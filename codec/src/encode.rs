@@ -23,7 +23,8 @@ use crate::format::{
 };
 use crate::lowres::LowResPath;
 use crate::params::{
-    EncodeParams, MAX_TRACK_FRAMES, MotionModel, ROT_BOUND_MARGIN, RotationDynamics,
+    ADAPTIVE_MAX_SKIP, EncodeParams, MAX_TRACK_FRAMES, MotionModel, ROT_BOUND_MARGIN,
+    RotationDynamics, Search,
 };
 use crate::rotation::{self, Quat, Vec3};
 use crate::segment::{
@@ -258,6 +259,7 @@ pub fn encode_world_with_dynamics(
                     free: free[object],
                     flight: &flight,
                     lattice: coding.lattice,
+                    search: p.search,
                 },
                 &mut out,
                 &mut stats,
@@ -845,6 +847,37 @@ fn cheapest(candidates: impl Iterator<Item = (u64, u32)>) -> Option<usize> {
     best.map(|(i, _, _)| i)
 }
 
+/// [`Search::Adaptive`]'s memory of one candidate fit (the quadratic rotation curve, anchored or
+/// horizon-corrected): after its `n`-th loss in a row it is passed over at the next `n` segment
+/// starts (at most [`ADAPTIVE_MAX_SKIP`]); a win clears the count. Under [`Search::Exhaustive`]
+/// it is always due. A pure function of the frames, so the stream stays deterministic.
+#[derive(Debug, Default, Clone, Copy)]
+struct Backoff {
+    losses: u32,
+    skip: u32,
+}
+
+impl Backoff {
+    /// Whether the candidate is fitted at this start (`adaptive`: under [`Search::Adaptive`]).
+    fn due(&mut self, adaptive: bool) -> bool {
+        if !adaptive || self.skip == 0 {
+            return true;
+        }
+        self.skip -= 1;
+        false
+    }
+
+    /// After a start at which the candidate was fitted: whether it was the one written.
+    fn outcome(&mut self, won: bool) {
+        if won {
+            self.losses = 0;
+        } else {
+            self.losses = (self.losses + 1).min(ADAPTIVE_MAX_SKIP);
+            self.skip = self.losses;
+        }
+    }
+}
+
 /// A position segment the encoder may write.
 #[derive(Debug, Clone, Copy)]
 enum PositionChoice {
@@ -1093,6 +1126,7 @@ struct RotationCoding<'a> {
     flight: &'a [bool],
     /// The format's lattice for steps and coefficients.
     lattice: Lattice,
+    search: Search,
 }
 
 fn encode_rotations(
@@ -1126,6 +1160,11 @@ fn encode_rotations(
     let mut prev = 0usize;
     let mut before: Option<Quat> = None;
     let mut candidates: Vec<RotationChoice> = Vec::with_capacity(8);
+    // Which quadratic fit (anchored, horizon) each candidate is, and their backoffs (see
+    // `Search::Adaptive`).
+    let mut quadratic_of: Vec<Option<usize>> = Vec::with_capacity(8);
+    let mut quadratic = [Backoff::default(); 2];
+    let adaptive = rc.search == Search::Adaptive;
     let angle_test = AngleTest::new(theta_lim);
     // The object's principal moments are written before its first free-flight segment.
     let mut inertia_written = false;
@@ -1137,9 +1176,12 @@ fn encode_rotations(
     let mut s = 0;
     while s < last {
         candidates.clear();
+        quadratic_of.clear();
+        let mut fitted = [false; 2];
         let rest = rotation_rest_length(q, s, q0, theta_lim) as u32;
         if rest > 0 {
             candidates.push(RotationChoice::Rest(rest));
+            quadratic_of.push(None);
         }
         let pred = rotation_step_prediction(q0, before, predictor.angular_velocity());
         let r = rotation::log(rotation::mul(q[s + 1], rotation::conj(q0)));
@@ -1149,6 +1191,7 @@ fn encode_rotations(
             let w = step_end(pred, v, rot_step, lattice);
             if angle_test.within(&RotationCurve::Linear { w }, q0, 1.0, q[s + 1]) {
                 candidates.push(RotationChoice::Step(v, w));
+                quadratic_of.push(None);
             }
         }
         if s + (rest as usize) < last {
@@ -1158,9 +1201,16 @@ fn encode_rotations(
                     RotationKind::Quadratic => MIN_QUADRATIC_LEN,
                 };
                 let mut anchored_len = 0;
-                for &corr in kind.corrections() {
+                for (i, &corr) in kind.corrections().iter().enumerate() {
                     if !corr.worth_fitting(anchored_len) {
                         continue;
+                    }
+                    let is_quadratic = kind == RotationKind::Quadratic;
+                    if is_quadratic {
+                        if !quadratic[i].due(adaptive) {
+                            continue;
+                        }
+                        fitted[i] = true;
                     }
                     let fit = fit_rotation(
                         q,
@@ -1179,6 +1229,7 @@ fn encode_rotations(
                             anchored_len = f.len;
                         }
                         candidates.push(RotationChoice::Fit(kind, f));
+                        quadratic_of.push(is_quadratic.then_some(i));
                     }
                 }
             }
@@ -1194,10 +1245,10 @@ fn encode_rotations(
                     free_end = s + f.len as usize;
                 }
                 // Shorter flights are contact phases a linear curve covers as well.
-                candidates.extend(
-                    fit.filter(|f| f.len >= MIN_FREE_LEN)
-                        .map(RotationChoice::Free),
-                );
+                if let Some(f) = fit.filter(|f| f.len >= MIN_FREE_LEN) {
+                    candidates.push(RotationChoice::Free(f));
+                    quadratic_of.push(None);
+                }
             }
         }
         let inertia_cost = if inertia_written {
@@ -1237,8 +1288,14 @@ fn encode_rotations(
                 }
             }
         };
-        let chosen =
-            cheapest(candidates.iter().map(|ch| (cost(ch), ch.len()))).map(|i| candidates[i]);
+        let chosen_at = cheapest(candidates.iter().map(|ch| (cost(ch), ch.len())));
+        let won = chosen_at.and_then(|i| quadratic_of[i]);
+        for (i, b) in quadratic.iter_mut().enumerate() {
+            if fitted[i] {
+                b.outcome(won == Some(i));
+            }
+        }
+        let chosen = chosen_at.map(|i| candidates[i]);
         let (len, curve) = match chosen {
             Some(ch) => {
                 let len = ch.len();
@@ -1397,6 +1454,34 @@ mod tests {
         assert_eq!(t.len(), 4097);
         assert_eq!(r.sample_frame(0, 4096).unwrap().1, t.rotations[4096]);
         assert!(t.rotations.iter().all(|q| q.iter().all(|v| v.is_finite())));
+    }
+
+    /// After the n-th loss in a row the candidate sits out n starts (at most
+    /// `ADAPTIVE_MAX_SKIP`); a win brings it back at every start; the exhaustive search never
+    /// skips it.
+    #[test]
+    fn a_losing_candidate_sits_out_one_more_start_per_loss() {
+        // Which of `starts` starts fit the candidate, given its outcome whenever it is fitted.
+        let run = |adaptive: bool, starts: usize, wins: &dyn Fn(usize) -> bool| {
+            let mut b = Backoff::default();
+            let mut fitted = Vec::new();
+            for s in 0..starts {
+                if b.due(adaptive) {
+                    fitted.push(s);
+                    b.outcome(wins(s));
+                }
+            }
+            fitted
+        };
+        assert_eq!(run(true, 15, &|_| false), [0, 2, 5, 9, 14]);
+        assert_eq!(run(false, 15, &|_| false), (0..15).collect::<Vec<_>>());
+        // Winning from start 9 on: fitted at every start again.
+        assert_eq!(run(true, 13, &|s| s >= 9), [0, 2, 5, 9, 10, 11, 12]);
+        // The wait stops growing at the cap.
+        let fitted = run(true, 2000, &|_| false);
+        let gaps: Vec<usize> = fitted.windows(2).map(|w| w[1] - w[0]).collect();
+        assert_eq!(gaps.iter().max(), Some(&(ADAPTIVE_MAX_SKIP as usize + 1)));
+        assert!(gaps.ends_with(&[ADAPTIVE_MAX_SKIP as usize + 1; 8]));
     }
 
     #[test]

@@ -124,6 +124,6 @@ pub use format::FORMAT_VERSION;
 pub use layers::{LayerError, Layered};
 pub use lowres::LowResPath;
 pub use params::{
-    DEFAULT_FRAME_DT, DEFAULT_LOWRES_HZ, EncodeParams, FIT_WINDOW, MAX_TRACK_FRAMES, MIN_THETA_MAX,
-    MotionModel, Quality, RotationDynamics,
+    ADAPTIVE_MAX_SKIP, DEFAULT_FRAME_DT, DEFAULT_LOWRES_HZ, EncodeParams, FIT_WINDOW,
+    MAX_TRACK_FRAMES, MIN_THETA_MAX, MotionModel, Quality, RotationDynamics, Search,
 };

@@ -6,7 +6,7 @@ mod common;
 
 use common::{G, Rng, distance, generate, normalise, rotation_angle, torque_free};
 use mwb_codec::{
-    CodecError, EncodeParams, EncodedWorld, MotionModel, Quality, RotationDynamics, Track,
+    CodecError, EncodeParams, EncodedWorld, MotionModel, Quality, RotationDynamics, Search, Track,
     WorldReader, encode_world, encode_world_with_dynamics,
 };
 use proptest::prelude::*;
@@ -88,6 +88,7 @@ proptest! {
         log_e in -5.0f64..-1.0,
         log_theta in -5.0f64..-1.0,
         free_flight in any::<bool>(),
+        exhaustive in any::<bool>(),
         dt in prop_oneof![Just(1.0 / 120.0), Just(1.0 / 60.0), Just(1.0 / 240.0), 0.001f64..0.05],
     ) {
         let model = if free_flight { MotionModel::FreeFlightGravity { g: G } } else { MotionModel::General };
@@ -97,6 +98,7 @@ proptest! {
             frame_dt: dt,
             model,
             lowres_hz: 4.0,
+            search: if exhaustive { Search::Exhaustive } else { Search::Adaptive },
         };
         let tracks: Vec<Track> =
             objects.iter().map(|&(kind, seed, frames)| generate(kind, seed, frames, dt)).collect();
@@ -120,6 +122,7 @@ proptest! {
         substeps in 1u32..9,
         log_bound in -4.0f64..-2.0,
         others in proptest::collection::vec((0usize..6, any::<u64>()), 0..3),
+        exhaustive in any::<bool>(),
     ) {
         let dt = 1.0 / 120.0;
         let inertia = [inertia.0, inertia.1, inertia.2];
@@ -139,6 +142,7 @@ proptest! {
             frame_dt: dt,
             model: MotionModel::FreeFlightGravity { g: G },
             lowres_hz: 4.0,
+            search: if exhaustive { Search::Exhaustive } else { Search::Adaptive },
         };
         check_world_with(&tracks, &p, Some(&dynamics))?;
     }
@@ -401,6 +405,7 @@ fn extreme_values_fall_back_to_exact_keys() {
         frame_dt: 1.0 / 120.0,
         model: MotionModel::General,
         lowres_hz: 4.0,
+        search: Search::Exhaustive,
     };
     let w = encode_world(std::slice::from_ref(&track), &p).unwrap();
     assert!(w.stats.key_segments > 0, "{:?}", w.stats);

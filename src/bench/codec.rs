@@ -27,7 +27,7 @@ use crate::output::{json_line, number};
 use anyhow::{Context, Result, bail};
 use mwb_codec::{
     BaselineRotation, DEFAULT_LOWRES_HZ, EncodeParams, MotionModel, Quality, RotationDynamics,
-    Track, WorldReader, encode_world_with_dynamics, quantised_baseline, raw_f32_size,
+    Search, Track, WorldReader, encode_world_with_dynamics, quantised_baseline, raw_f32_size,
 };
 use mwb_core::rng::world_seed;
 use mwb_core::scene::SceneTemplate;
@@ -65,6 +65,26 @@ pub struct CodecArgs {
     /// Print one JSON line per (scene, preset) instead of the table.
     #[arg(long)]
     pub json: bool,
+    /// The encoder's search at every preset [default: each preset's own: exhaustive at final,
+    /// adaptive at draft and standard].
+    #[arg(long, value_enum)]
+    pub search: Option<SearchArg>,
+}
+
+/// `--search`: see `mwb_codec::Search`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum SearchArg {
+    Exhaustive,
+    Adaptive,
+}
+
+impl From<SearchArg> for Search {
+    fn from(s: SearchArg) -> Self {
+        match s {
+            SearchArg::Exhaustive => Search::Exhaustive,
+            SearchArg::Adaptive => Search::Adaptive,
+        }
+    }
 }
 
 /// Runs `mwb bench codec`: one line per (scene, preset), printed as soon as it is measured.
@@ -87,7 +107,7 @@ pub fn run(args: CodecArgs) -> Result<()> {
             motion.write_tracks(dir)?;
         }
         for quality in PRESETS {
-            let line = measure(&motion, quality)?;
+            let line = measure(&motion, quality, args.search.map(Search::from))?;
             if args.json {
                 json_line(&line)?;
             } else {
@@ -149,6 +169,8 @@ fn table_row<S: AsRef<str>>(cells: &[S; 10]) -> String {
 pub struct CodecBench {
     pub scene: String,
     pub preset: String,
+    /// The encoder's search (`exhaustive`, `adaptive`).
+    pub search: String,
     pub model: String,
     pub worlds: u32,
     pub bodies: usize,
@@ -327,13 +349,11 @@ impl SceneMotion {
             .collect()
     }
 
-    fn params(&self, e_max: f64, theta_max: f64) -> EncodeParams {
+    /// A preset's parameters for this scene (its bounds and its search).
+    fn params(&self, quality: Quality) -> EncodeParams {
         EncodeParams {
-            e_max,
-            theta_max,
-            frame_dt: self.frame_dt,
-            model: self.model,
             lowres_hz: DEFAULT_LOWRES_HZ,
+            ..EncodeParams::from_quality(quality, self.frame_dt, self.model)
         }
     }
 }
@@ -369,9 +389,12 @@ fn zstd_size(tracks: &[Track], p: &EncodeParams, rotation: BaselineRotation) -> 
 }
 
 /// Measures one scene at one preset.
-pub fn measure(m: &SceneMotion, quality: Quality) -> Result<CodecBench> {
-    let (e_max, theta_max) = quality.bounds();
-    let p = m.params(e_max, theta_max);
+pub fn measure(m: &SceneMotion, quality: Quality, search: Option<Search>) -> Result<CodecBench> {
+    let mut p = m.params(quality);
+    if let Some(search) = search {
+        p.search = search;
+    }
+    let (e_max, theta_max) = (p.e_max, p.theta_max);
     let (mut bytes, mut zstd, mut raw, mut object_frames) = (0usize, 0usize, 0usize, 0u64);
     let mut zstd_rotvec = 0usize;
     let (mut encode_s, mut decode_s) = (0.0f64, 0.0f64);
@@ -432,6 +455,7 @@ pub fn measure(m: &SceneMotion, quality: Quality) -> Result<CodecBench> {
     Ok(CodecBench {
         scene: m.scene.clone(),
         preset: format!("{quality:?}").to_lowercase(),
+        search: format!("{:?}", p.search).to_lowercase(),
         model: match m.model {
             MotionModel::General => "general".into(),
             MotionModel::FreeFlightGravity { .. } => "free-flight-gravity".into(),
@@ -473,7 +497,13 @@ pub fn rate_distortion(m: &SceneMotion) -> Result<Vec<RdPoint>> {
     SWEEP
         .iter()
         .map(|&e| {
-            let s = sizes(m.segments(), &m.params(e, e))?;
+            // As a sampler encodes at Standard, at bound `e`.
+            let p = EncodeParams {
+                e_max: e,
+                theta_max: e,
+                ..m.params(Quality::Standard)
+            };
+            let s = sizes(m.segments(), &p)?;
             let secs = (s.object_frames as f64 * m.frame_dt).max(1e-12);
             Ok(RdPoint {
                 e_max: e,
@@ -623,10 +653,16 @@ mod tests {
     #[test]
     fn a_small_bench_meets_its_bounds() -> Result<()> {
         let m = SceneMotion::sample("tumble", 1)?;
-        let b = measure(&m, Quality::Standard)?;
+        let b = measure(&m, Quality::Standard, None)?;
         assert!(b.max_pos_err <= b.e_max && b.max_rot_err <= b.theta_max * (1.0 + 1e-9));
         assert!(b.ratio_vs_f32 > 1.0 && b.ratio_vs_zstd > 0.0, "{b:?}");
-        assert_eq!(b.preset, "standard");
+        assert_eq!(
+            (b.preset.as_str(), b.search.as_str()),
+            ("standard", "adaptive")
+        );
+        let e = measure(&m, Quality::Standard, Some(Search::Exhaustive))?;
+        assert!(e.max_pos_err <= e.e_max && e.max_rot_err <= e.theta_max * (1.0 + 1e-9));
+        assert_eq!(e.search, "exhaustive");
         Ok(())
     }
 }
