@@ -9,7 +9,12 @@
 //! the table, every stored world (its segments, then its `WorldDone`, under their bus keys),
 //! and every job state the store is about to publish. A world is written only once it is
 //! complete and verified, so reading a journal back stores the same worlds under the same
-//! indices (in order); rejected and partial worlds never reach the disk.
+//! indices (in order); rejected and partial worlds never reach the disk. A world's `WorldDone`
+//! carries the index the store browses it by (`WorldDone.index`: the one its sampler sent, or
+//! the store's own where it built one), so a restart takes it as a sent index — its form
+//! checked, one in [`crate::StoreConfig::verify_index_every`] rebuilt and compared — instead of
+//! decoding and indexing every world again. The store holds the summary without it, as it
+//! holds every summary.
 //!
 //! **Acknowledged, and when it is durable.** A world is *acknowledged* when a job state that
 //! counts it is published (`job/<id>/state`: samplers stop at it, `mwb job submit --wait`
@@ -43,7 +48,7 @@
 
 use crate::assembly::Assembler;
 use mwb_core::keys::Keys;
-use mwb_proto::v1::{Job, JobState, Message, MotionSegment, Scene, WorldDone};
+use mwb_proto::v1::{Job, JobState, Message, MotionSegment, Scene, WorldDone, WorldIndex};
 use mwb_record::reader::Damage;
 use mwb_record::{
     BusMessage, Family, RecordingInfo, RecordingReader, RecordingWriter, WriteError, WriterOptions,
@@ -329,14 +334,17 @@ impl Journal {
         self.pending.len()
     }
 
-    /// Queues a stored world: its segments, then its summary (nothing if the world's own
-    /// encoding does not decode, which only a bug can cause).
+    /// Queues a stored world: its segments, then its summary carrying `index`, the paths and
+    /// metrics the store browses it by (nothing if the world's own encoding does not decode,
+    /// which only a bug can cause).
     pub fn append_world(
         &mut self,
         keys: &Keys,
         w: &crate::StoredWorld,
+        index: Option<WorldIndex>,
     ) -> Result<(), crate::assembly::StoredDecodeError> {
-        let (d, segments) = w.decode()?;
+        let (mut d, segments) = w.decode()?;
+        d.index = index;
         for s in &segments {
             let key = keys.segment(&s.job_id, &s.node_id, s.world_counter, s.seq);
             self.append(key, s.encode_to_vec());

@@ -522,6 +522,10 @@ struct Applier {
     rest: HashMap<String, JobScene>,
     keys: Keys,
     journal: Option<Journal>,
+    /// What [`Applier::take`] has for the journal, in order, held until the worlds among it
+    /// are indexed ([`Applier::index`]), so that each world is journaled with the index this
+    /// store keeps for it (read back, it is taken like a sent one instead of built again).
+    journal_queue: Vec<Journaled>,
     /// Jobs whose count this shard publishes after the next commit.
     counts_due: BTreeSet<String>,
     /// When the counts the authority lacks were last sent again.
@@ -540,6 +544,15 @@ struct Applier {
 /// A stored world and the index its sampler sent with it, if any.
 type StoredSent = (Arc<crate::StoredWorld>, Option<Box<WorldIndex>>);
 
+/// A record waiting for the journal ([`Applier::journal_queue`]).
+#[derive(Debug)]
+enum Journaled {
+    /// A job, scene or job state: key and encoded message.
+    Record(String, Vec<u8>),
+    /// A stored world, journaled with its index once it has one.
+    World(Arc<crate::StoredWorld>),
+}
+
 /// Worlds loaded at start are indexed this many at a time.
 const LOAD_INDEX_BATCH: usize = 256;
 
@@ -554,6 +567,7 @@ impl Applier {
             rest: HashMap::new(),
             keys,
             journal: None,
+            journal_queue: Vec::new(),
             counts_due: BTreeSet::new(),
             last_resend: Instant::now(),
             index_threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
@@ -724,9 +738,9 @@ impl Applier {
                 // Read back at start like jobs (and revisions also come back with the jobs
                 // that carry them).
                 if self.shared.offer_put_scene(scene) == Some(Offered::New)
-                    && let (Some(journal), Some((key, bytes))) = (self.journal.as_mut(), record)
+                    && let Some((key, bytes)) = record
                 {
-                    journal.append(key, bytes);
+                    self.journal_queue.push(Journaled::Record(key, bytes));
                 }
             }
             Incoming::Job(j) => {
@@ -746,8 +760,9 @@ impl Applier {
                     self.journal.is_some().then(|| j.encode_to_vec()),
                 );
                 if let Some(st) = t.submit_job(j) {
-                    if let (Some(journal), Some(bytes)) = (self.journal.as_mut(), bytes) {
-                        journal.append(self.keys.job(&id), bytes);
+                    if let Some(bytes) = bytes {
+                        self.journal_queue
+                            .push(Journaled::Record(self.keys.job(&id), bytes));
                     }
                     states.push(st);
                     // Worlds that completed before their job arrived.
@@ -807,15 +822,14 @@ impl Applier {
         }
         self.counts_due
             .extend(stored.iter().map(|(w, _): &StoredSent| w.job_id.clone()));
-        if let Some(journal) = self.journal.as_mut() {
-            for (w, _) in &stored {
-                if let Err(e) = journal.append_world(&self.keys, w) {
-                    error!(error = %e, "not journalled");
-                }
-            }
-            for st in &states {
-                journal.append(self.keys.job_state(&st.job_id), st.encode_to_vec());
-            }
+        if self.journal.is_some() {
+            self.journal_queue
+                .extend(stored.iter().map(|(w, _)| Journaled::World(w.clone())));
+            self.journal_queue.extend(
+                states.iter().map(|st| {
+                    Journaled::Record(self.keys.job_state(&st.job_id), st.encode_to_vec())
+                }),
+            );
         }
         (states, stored)
     }
@@ -860,6 +874,34 @@ impl Applier {
     /// refined differences, reverse nodes' worlds, a refused sent index — is indexed here, all
     /// of them together on every core ([`index_stored`]).
     fn index(&mut self, mut worlds: Vec<StoredSent>) {
+        let mut wires = HashMap::new();
+        self.index_worlds(&mut worlds, &mut wires);
+        self.flush_journal(wires);
+    }
+
+    /// Appends what [`Applier::take`] queued for the journal, in order, each world with its
+    /// index from `wires` (by world number) if it has one.
+    fn flush_journal(&mut self, mut wires: HashMap<u32, WorldIndex>) {
+        let queue = std::mem::take(&mut self.journal_queue);
+        let Some(journal) = self.journal.as_mut() else {
+            return;
+        };
+        for q in queue {
+            match q {
+                Journaled::Record(key, bytes) => journal.append(key, bytes),
+                Journaled::World(w) => {
+                    if let Err(e) = journal.append_world(&self.keys, &w, wires.remove(&w.index)) {
+                        error!(error = %e, "not journalled");
+                    }
+                }
+            }
+        }
+    }
+
+    /// Indexes `worlds` (taking their sent indexes where they pass) and inserts them; with a
+    /// journal, puts the index each world is browsed by into `wires` (not for a refined
+    /// difference, which is composed and indexed at load).
+    fn index_worlds(&mut self, worlds: &mut [StoredSent], wires: &mut HashMap<u32, WorldIndex>) {
         if worlds.is_empty() {
             return;
         }
@@ -904,7 +946,12 @@ impl Applier {
             let (index_bytes, growth) = {
                 let mut b = self.shared.browse();
                 match r {
-                    Ok(indexed) => b.insert(indexed),
+                    Ok(indexed) => {
+                        if self.journal.is_some() && !w.is_layered() {
+                            wires.insert(w.index, indexed.to_wire(self.path_tolerance_m));
+                        }
+                        b.insert(indexed)
+                    }
                     Err(e) => {
                         self.shared.index_failures.fetch_add(1, Ordering::Relaxed);
                         warn!(world = w.index, error = %e, "world stored but not browsable");

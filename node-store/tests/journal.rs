@@ -386,3 +386,92 @@ async fn a_refined_world_comes_back_from_the_journal_composed_over_its_parent() 
     st.stop();
     close(s).await;
 }
+
+/// Each world is journaled with the index the store browses it by — the one its sampler sent,
+/// or the store's own where none came — so a restart takes every index from the journal
+/// instead of building it again; and each is the one the store would build (the restarted
+/// store here rebuilds and compares every one).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_restart_takes_each_worlds_index_from_the_journal() {
+    use mwb_proto::v1::JobKind;
+    use mwb_sampler::{RunOptions, attach_index, run_world, segment_message, world_done};
+    use std::ops::ControlFlow;
+    let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
+    let journal = dir.path().join("journal");
+    let keys = Keys::new(SPACE).unwrap_or_else(|e| panic!("{e}"));
+    let template = common::template();
+    let worlds: Vec<(Vec<MotionSegment>, WorldDone)> = (1..=4u64)
+        .map(|seed| {
+            let mut segs = Vec::new();
+            let summary = run_world(&template, seed, RunOptions::default(), &mut |s| {
+                segs.push(segment_message("s", "n", seed, seed, s));
+                ControlFlow::Continue(())
+            })
+            .unwrap_or_else(|e| panic!("{e}"));
+            let mut done = world_done("s", "n", seed, &summary);
+            // Two come with their sampler's index; the store builds the other two.
+            if seed % 2 == 0 {
+                attach_index(&mut done, &segs, &template);
+                assert!(done.index.is_some());
+            }
+            (segs, done)
+        })
+        .collect();
+    let messages = worlds.iter().map(|w| w.0.len() as u64 + 1).sum::<u64>() + 1;
+
+    let s = session().await;
+    let st = store(&s, Some(&journal), vec![]).await;
+    let j = common::job("s", JobKind::Sample, None);
+    put(&s, keys.job(&j.id), j.encode_to_vec()).await;
+    until("the job", || st.job_state("s").is_some()).await;
+    for w in &worlds {
+        put_world(&s, &keys, w).await;
+    }
+    until("every world indexed", || st.indexed_count() == 4).await;
+    until("the journal's commits", || {
+        st.journal_counters()
+            .is_some_and(|c| c.messages >= messages)
+    })
+    .await;
+    assert_eq!(st.stats().indexes_sent, 2);
+    let held = |st: &StoreHandle| -> Vec<Vec<u8>> {
+        (0..4)
+            .map(|i| {
+                let w = st.world(i).unwrap_or_else(|| panic!("world {i}"));
+                w.message()
+                    .unwrap_or_else(|e| panic!("{e}"))
+                    .encode_to_vec()
+            })
+            .collect()
+    };
+    let before = held(&st);
+    st.stop();
+    close(s).await;
+
+    let s = session().await;
+    let st = common::start_store(
+        &s,
+        StoreConfig {
+            space: SPACE.into(),
+            journal: Some(journal.clone()),
+            verify_index_every: 1,
+            ..Default::default()
+        },
+    )
+    .await;
+    assert_eq!((st.world_count(), st.indexed_count()), (4, 4));
+    let stats = st.stats();
+    assert_eq!(
+        (
+            stats.indexes_sent,
+            stats.indexes_checked,
+            stats.index_mismatches
+        ),
+        (4, 4, 0),
+        "every index taken from the journal, each the one this store builds"
+    );
+    // The store holds each summary without its index, as before the restart.
+    assert_eq!(held(&st), before);
+    st.stop();
+    close(s).await;
+}

@@ -14,8 +14,9 @@
 //! * journal: the recording is replayed into a store with `--journal`, which stops once its
 //!   journal has committed every world; a store restarted on that journal is timed from
 //!   reading the journal to holding every world (`journal_restart_s_per_10k_worlds`, scaled
-//!   linearly from the run's worlds; it includes indexing each world for browsing, not
-//!   opening the zenoh session). `bytes_per_world_on_disk` is the journal directory's size
+//!   linearly from the run's worlds; it includes making each world browsable — taking the
+//!   index journaled with it, one in 256 rebuilt and compared — not opening the zenoh
+//!   session). `bytes_per_world_on_disk` is the journal directory's size
 //!   per world, `store_bytes_per_world` the store's in-memory bytes (worlds + browsing index)
 //!   per world.
 
