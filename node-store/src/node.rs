@@ -721,7 +721,8 @@ impl Applier {
     }
 
     /// Applies one message to the table: the job states to publish (in order) and the worlds
-    /// it stored; both are appended to the journal, if there is one, after the job.
+    /// it stored; both are queued for the journal, if there is one, after the job (and
+    /// appended by [`Applier::index`], once the worlds are indexed).
     fn take(&mut self, msg: Incoming) -> (Vec<JobState>, Vec<StoredSent>) {
         let now = now_ms();
         let mut t = self.shared.lock();
@@ -872,7 +873,8 @@ impl Applier {
     /// [`StoreConfig::verify_index_every`] of those is also indexed here and compared (a
     /// difference is counted and warned, and this store's own index kept). Every other world —
     /// refined differences, reverse nodes' worlds, a refused sent index — is indexed here, all
-    /// of them together on every core ([`index_stored`]).
+    /// of them together on every core ([`index_stored`]). Then what [`Applier::take`] queued
+    /// for the journal is appended, each world with the index it was inserted with.
     fn index(&mut self, mut worlds: Vec<StoredSent>) {
         let mut wires = HashMap::new();
         self.index_worlds(&mut worlds, &mut wires);
