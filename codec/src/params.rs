@@ -117,8 +117,9 @@ pub enum Search {
     /// Fewer fits for about the same size (what [`Quality::Draft`] and [`Quality::Standard`]
     /// use). A quadratic rotation curve (a fit that mostly fails: on pachinko at Standard,
     /// 82 % of them end shorter than the shortest quadratic segment written) that lost at one
-    /// segment start is not fitted at the next one; after its n-th loss in a row, not at the next n (at most
-    /// [`ADAPTIVE_MAX_SKIP`]); from its first win on it is fitted at every start again.
+    /// segment start is not fitted at the next one; after its n-th loss in a row, not at the
+    /// next n (at most [`ADAPTIVE_MAX_SKIP`]); from its first win on it is fitted at every
+    /// start again.
     /// Measured at Standard on the shipped scenes (`mwb bench codec --search`, medians of three
     /// alternated runs): the encoder 10–16 % faster; streams the same size on tumble, 0.9 %
     /// smaller on tower, 0.9 % larger on pachinko and 5.7 % on chute (one rolling body, whose

@@ -26,8 +26,8 @@ use crate::client;
 use crate::output::{json_line, number};
 use anyhow::{Context, Result, bail};
 use mwb_codec::{
-    BaselineRotation, DEFAULT_LOWRES_HZ, EncodeParams, MotionModel, Quality, RotationDynamics,
-    Search, Track, WorldReader, encode_world_with_dynamics, quantised_baseline, raw_f32_size,
+    BaselineRotation, EncodeParams, MotionModel, Quality, RotationDynamics, Search, Track,
+    WorldReader, encode_world_with_dynamics, quantised_baseline, raw_f32_size,
 };
 use mwb_core::rng::world_seed;
 use mwb_core::scene::SceneTemplate;
@@ -351,10 +351,7 @@ impl SceneMotion {
 
     /// A preset's parameters for this scene (its bounds and its search).
     fn params(&self, quality: Quality) -> EncodeParams {
-        EncodeParams {
-            lowres_hz: DEFAULT_LOWRES_HZ,
-            ..EncodeParams::from_quality(quality, self.frame_dt, self.model)
-        }
+        EncodeParams::from_quality(quality, self.frame_dt, self.model)
     }
 }
 
