@@ -1160,9 +1160,7 @@ fn encode_rotations(
     let mut prev = 0usize;
     let mut before: Option<Quat> = None;
     let mut candidates: Vec<RotationChoice> = Vec::with_capacity(8);
-    // Which quadratic fit (anchored, horizon) each candidate is, and their backoffs (see
-    // `Search::Adaptive`).
-    let mut quadratic_of: Vec<Option<usize>> = Vec::with_capacity(8);
+    // The quadratic fits' (anchored, horizon) backoffs (see `Search::Adaptive`).
     let mut quadratic = [Backoff::default(); 2];
     let adaptive = rc.search == Search::Adaptive;
     let angle_test = AngleTest::new(theta_lim);
@@ -1176,12 +1174,12 @@ fn encode_rotations(
     let mut s = 0;
     while s < last {
         candidates.clear();
-        quadratic_of.clear();
+        // Per quadratic fit: whether it was fitted, and where among the candidates it is.
         let mut fitted = [false; 2];
+        let mut quadratic_at = [None; 2];
         let rest = rotation_rest_length(q, s, q0, theta_lim) as u32;
         if rest > 0 {
             candidates.push(RotationChoice::Rest(rest));
-            quadratic_of.push(None);
         }
         let pred = rotation_step_prediction(q0, before, predictor.angular_velocity());
         let r = rotation::log(rotation::mul(q[s + 1], rotation::conj(q0)));
@@ -1191,7 +1189,6 @@ fn encode_rotations(
             let w = step_end(pred, v, rot_step, lattice);
             if angle_test.within(&RotationCurve::Linear { w }, q0, 1.0, q[s + 1]) {
                 candidates.push(RotationChoice::Step(v, w));
-                quadratic_of.push(None);
             }
         }
         if s + (rest as usize) < last {
@@ -1228,8 +1225,10 @@ fn encode_rotations(
                         if corr == StartCorrection::Anchored {
                             anchored_len = f.len;
                         }
+                        if is_quadratic {
+                            quadratic_at[i] = Some(candidates.len());
+                        }
                         candidates.push(RotationChoice::Fit(kind, f));
-                        quadratic_of.push(is_quadratic.then_some(i));
                     }
                 }
             }
@@ -1245,10 +1244,10 @@ fn encode_rotations(
                     free_end = s + f.len as usize;
                 }
                 // Shorter flights are contact phases a linear curve covers as well.
-                if let Some(f) = fit.filter(|f| f.len >= MIN_FREE_LEN) {
-                    candidates.push(RotationChoice::Free(f));
-                    quadratic_of.push(None);
-                }
+                candidates.extend(
+                    fit.filter(|f| f.len >= MIN_FREE_LEN)
+                        .map(RotationChoice::Free),
+                );
             }
         }
         let inertia_cost = if inertia_written {
@@ -1289,10 +1288,9 @@ fn encode_rotations(
             }
         };
         let chosen_at = cheapest(candidates.iter().map(|ch| (cost(ch), ch.len())));
-        let won = chosen_at.and_then(|i| quadratic_of[i]);
         for (i, b) in quadratic.iter_mut().enumerate() {
             if fitted[i] {
-                b.outcome(won == Some(i));
+                b.outcome(chosen_at.is_some() && quadratic_at[i] == chosen_at);
             }
         }
         let chosen = chosen_at.map(|i| candidates[i]);
