@@ -563,6 +563,16 @@ async fn recorder_certificate_records_and_replays_a_client_cannot() {
     .unwrap_or_else(|_| panic!("spy start timed out"))
     .unwrap_or_else(|e| panic!("spy: {e}"));
 
+    // The recorder's subscription has reached the router once it has received something (the
+    // store's statistics, published every second): a job put before that could pass it by.
+    // (The client's recorder is routed none of them, so there is nothing to wait for.)
+    tokio::time::timeout(STEP, async {
+        while rec.received() == 0 {
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    })
+    .await
+    .unwrap_or_else(|_| panic!("the recorder received nothing"));
     let state = tumble_job(&client, &keys, 2, "recorded").await;
     assert!(state.closed && state.worlds_done == 2, "{state:?}");
     // The store closed the job after both summaries: they have reached every subscriber.
@@ -581,7 +591,10 @@ async fn recorder_certificate_records_and_replays_a_client_cannot() {
             .filter(|m| m.family == family)
             .count()
     };
-    assert_eq!(count(&lab, Family::Done), 2, "the recorder's summaries");
+    // Both summaries, and sometimes a third: the sampler may finish one world past the target
+    // before it hears that the job closed (the store keeps two; the recording has every one).
+    let recorded = count(&lab, Family::Done);
+    assert!(recorded >= 2, "the recorder's summaries: {recorded}");
     assert!(count(&lab, Family::Segment) >= 2, "the recorder's segments");
     assert!(count(&lab, Family::Job) >= 1, "the recorder's job");
     assert_eq!(
@@ -658,7 +671,7 @@ async fn recorder_certificate_records_and_replays_a_client_cannot() {
     );
     assert_eq!(
         received(&by_recorder, "/done/"),
-        2,
+        recorded,
         "the recorder's replayed summaries"
     );
     assert_eq!(

@@ -329,6 +329,49 @@ fn the_live_viewer_browses_a_running_cluster() {
     assert_eq!(list["worlds"].as_u64(), Some(WORLDS as u64));
     assert_eq!(list["constraints"].as_array().map(Vec::len), Some(1));
 
+    // A second viewer on the same session that holds at most 8 worlds' paths: exactly the
+    // sample — the worlds in the context of 4 (the stores filter them), and the 4 survivors
+    // with the smallest sampling hashes (fetched by index) — and says so.
+    {
+        use mwb_core::browse::sample::{bottom_k, context_threshold, in_context};
+        let link = LiveLink::start(
+            session.clone(),
+            LiveConfig {
+                space: space.clone(),
+                session: "viewer".into(),
+                endpoint: endpoint.clone(),
+                poll: Duration::from_millis(200),
+                max_worlds: 8,
+                ..LiveConfig::default()
+            },
+            rt.handle(),
+            Arc::new(|| {}),
+        )
+        .unwrap_or_else(|e| panic!("{e}"));
+        let mut small = ViewerApp::live(ViewerState::live(endpoint.clone()), link);
+        let ok = rt.block_on(small.pump_until(Duration::from_secs(60), |a| {
+            a.state.holds_worlds(WORLDS as u64)
+                && a.state.survivor_count() == survivors.len() as u64
+        }));
+        assert!(ok, "the sampled viewer caught up: {:?}", small.state.link());
+        let t = context_threshold(4, WORLDS as u64);
+        let mut want: Vec<u32> = (0..WORLDS as u32).filter(|&w| in_context(w, t)).collect();
+        want.extend(bottom_k(&survivors, 4));
+        want.sort_unstable();
+        want.dedup();
+        let held: Vec<u32> = small.state.worlds().iter().map(|w| w.index).collect();
+        assert_eq!(held, want);
+        assert!(held.len() < WORLDS, "a sample: {held:?}");
+        let drawn = want.iter().filter(|w| survivors.contains(w)).count();
+        assert!(drawn >= survivors.len().min(4));
+        assert_eq!(small.state.held_survivors(), drawn);
+        let link = small.state.link().cloned().unwrap_or_default();
+        assert_eq!(
+            (link.max_worlds, link.held, link.indexed),
+            (8, want.len() as u64, WORLDS as u64)
+        );
+    }
+
     // Rank the survivors by spin: only survivors, most first.
     h.state_mut().set_sort(SortBy::Spin);
     settle(&rt, &mut h, "the ranking", |a| a.state.ranking().is_some());

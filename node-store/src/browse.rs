@@ -9,6 +9,7 @@ use mwb_core::browse::api::{
     ConstraintStatus, Reply, Request, SceneBodies, SessionStatus, ShardReply, ShardRequest,
     WorldSummary, merge_bodies,
 };
+use mwb_core::browse::sample::in_context;
 use mwb_core::browse::{
     BrowseError, Constraint, ConstraintId, ConstraintSet, PackedMetrics, Quantifier, RankKey,
     RegionCache, Scope, WorldSet, top_k_counted,
@@ -225,8 +226,9 @@ impl Shard {
 
     /// The indexed paths of local slots `seen..` (at most `max` worlds), for drawing: what a
     /// `q/paths` query gets from this shard. Slots whose world could not be indexed are
-    /// skipped; `next_local` is where the asker continues.
-    pub fn path_batch(&self, seen: u32, max: usize) -> PathBatch {
+    /// skipped, and so are worlds outside the sample `sample_below` names
+    /// ([`in_context`]; 0: every world); `next_local` is where the asker continues.
+    pub fn path_batch(&self, seen: u32, max: usize, sample_below: u32) -> PathBatch {
         let first = (seen as usize).min(self.worlds.len());
         let mut worlds = Vec::new();
         let mut next = first;
@@ -235,7 +237,7 @@ impl Shard {
                 break;
             }
             next += 1;
-            if let Some(w) = slot {
+            if let Some(w) = slot.filter(|w| in_context(w.world, sample_below)) {
                 worlds.push(w.paths_message());
             }
         }
@@ -245,6 +247,25 @@ impl Shard {
             first_local: first as u32,
             next_local: next as u32,
             worlds,
+            indexed: self.indexed,
+        }
+    }
+
+    /// The indexed paths of the worlds of `ids` (global indices) this shard holds, at most
+    /// `max` of them, in the order asked: what a `q/paths` query naming worlds gets (a viewer
+    /// fetching the survivors it draws). The cursor fields are 0.
+    pub fn paths_of(&self, ids: &[u32], max: usize) -> PathBatch {
+        PathBatch {
+            shard_index: self.spec.index,
+            shard_count: self.spec.count,
+            first_local: 0,
+            next_local: 0,
+            worlds: ids
+                .iter()
+                .filter_map(|&w| self.world(w))
+                .take(max)
+                .map(IndexedWorld::paths_message)
+                .collect(),
             indexed: self.indexed,
         }
     }
@@ -927,6 +948,39 @@ mod tests {
             }
             other => panic!("{other:?}"),
         }
+    }
+
+    #[test]
+    fn path_batches_follow_the_sample_and_the_named_worlds() {
+        use mwb_core::browse::sample::{context_threshold, in_context};
+        let mut shard = Shard::new(ShardSpec::default(), "a");
+        for i in 0..2_000u32 {
+            shard.insert(world(i, 0.0, 1.0));
+        }
+        let ids = |b: &PathBatch| b.worlds.iter().map(|w| w.world).collect::<Vec<u32>>();
+        // No sample: every world, in slot order, the cursor past the last one sent.
+        let b = shard.path_batch(0, 300, 0);
+        assert_eq!(ids(&b), (0..300).collect::<Vec<_>>());
+        assert_eq!((b.first_local, b.next_local), (0, 300));
+        // A sample of about 200: batch after batch, exactly the worlds in it.
+        let t = context_threshold(200, 2_000);
+        let (mut seen, mut got) = (0, Vec::new());
+        loop {
+            let b = shard.path_batch(seen, 64, t);
+            got.extend(ids(&b));
+            if b.next_local == seen {
+                break;
+            }
+            seen = b.next_local;
+        }
+        let want: Vec<u32> = (0..2_000).filter(|&w| in_context(w, t)).collect();
+        assert_eq!(got, want);
+        assert!((150..250).contains(&got.len()), "{}", got.len());
+        // Named worlds: those held, in the order asked, at most `max`; no cursor.
+        let b = shard.paths_of(&[7, 5_000, 3, 1_999], 10);
+        assert_eq!(ids(&b), vec![7, 3, 1_999]);
+        assert_eq!((b.first_local, b.next_local), (0, 0));
+        assert_eq!(ids(&shard.paths_of(&[7, 3, 1_999], 2)), vec![7, 3]);
     }
 
     fn through_origin(id: u64, polarity: Polarity) -> Constraint {

@@ -1139,8 +1139,9 @@ async fn serve_worlds(shared: Arc<Shared>, queries: Queries) {
 }
 
 /// The browsing index's paths from the asker's cursor for this shard (`PathsRequest` →
-/// `PathBatch`), for viewers drawing worlds as they arrive. A malformed request is answered
-/// with an error and counted.
+/// `PathBatch`), for viewers drawing worlds as they arrive (all of them, or the sample the
+/// request names), or of the worlds the request names. A malformed request is answered with an
+/// error and counted.
 async fn serve_paths(shared: Arc<Shared>, queries: Queries) {
     let node = &shared.node;
     while let Ok(q) = queries.recv_async().await {
@@ -1164,7 +1165,11 @@ async fn serve_paths(shared: Arc<Shared>, queries: Queries) {
                 0 => DEFAULT_PATH_BATCH,
                 n => (n as usize).min(4 * DEFAULT_PATH_BATCH),
             };
-            b.path_batch(seen, max)
+            if req.worlds.is_empty() {
+                b.path_batch(seen, max, req.sample_below)
+            } else {
+                b.paths_of(&req.worlds, max)
+            }
         };
         node.reply(&q, &node.keys().paths(), batch.encode_to_vec())
             .await;

@@ -5,7 +5,12 @@
 //!
 //! Every poll (twice a second by default) it asks
 //! * the stores' `q/paths` for worlds indexed since last time (one cursor per shard), and the
-//!   scene of each new job (`q/job/<job>`);
+//!   scene of each new job (`q/job/<job>`). When the stores hold more worlds than the viewer
+//!   draws well ([`LiveConfig::max_worlds`]), it holds a sample of them
+//!   ([`mwb_core::browse::sample`]): half its budget a uniform sample of every world, which the
+//!   stores filter for it, half the survivors with the smallest sampling hashes, which it asks
+//!   for by index whenever the survivors change; worlds that leave the sample are let go
+//!   ([`Msg::Evict`]);
 //! * node-query for the session's status and survivors (`browse/<session>`);
 //! * liveliness, store statistics and job states, for the status bar.
 //!
@@ -13,11 +18,12 @@
 //! kept, in order, and sent when it answers again; if node-query lost the session (it
 //! restarted), the edits it lacks are sent again, so nothing the user drew is lost.
 
-use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use mwb_core::browse::api::{Reply, Request};
+use mwb_core::browse::sample::{bottom_k, context_threshold, in_context};
 use mwb_core::keys::{Keys, role};
 use mwb_core::scene::SceneTemplate;
 use mwb_proto::v1::{Job, JobState, Message, NodeStats, PathBatch, PathsRequest, Quality, World};
@@ -32,6 +38,9 @@ use crate::world::{Motion, WorldData};
 pub const COMMAND_QUEUE: usize = 256;
 /// Messages the bus task may queue for the UI before it waits for the UI to take them.
 pub const EVENT_QUEUE: usize = 256;
+
+/// The default of [`LiveConfig::max_worlds`].
+pub const DEFAULT_MAX_WORLDS: usize = 20_000;
 
 /// Settings of the bus task.
 #[derive(Debug, Clone)]
@@ -49,6 +58,13 @@ pub struct LiveConfig {
     pub timeout: Duration,
     /// Worlds per shard asked in one `q/paths` request; default 512.
     pub path_batch: u32,
+    /// The most worlds whose paths the viewer holds and draws (0: every world); default
+    /// 20 000. Past it the viewer holds a sample: about half of it a uniform sample of all the
+    /// stores' worlds (drawn dim when rejected), the other half the survivors with the smallest
+    /// sampling hashes, so that a narrow result is drawn whole and a wide one as a uniform
+    /// sample. 10 000 worlds of one object's path draw in about 10 ms a frame
+    /// (docs/performance.md).
+    pub max_worlds: usize,
 }
 
 impl Default for LiveConfig {
@@ -60,6 +76,7 @@ impl Default for LiveConfig {
             poll: Duration::from_millis(500),
             timeout: Duration::from_secs(5),
             path_batch: 512,
+            max_worlds: DEFAULT_MAX_WORLDS,
         }
     }
 }
@@ -98,6 +115,10 @@ impl LiveLink {
             events: etx,
             wake,
             seen: Vec::new(),
+            indexed: Vec::new(),
+            held: HashSet::new(),
+            survivor_sample: Vec::new(),
+            survivors_fetched: true,
             scenes: Arc::new(Mutex::new(HashMap::new())),
             scene_sent: false,
             log: Vec::new(),
@@ -161,6 +182,14 @@ struct Bus {
     wake: Arc<dyn Fn() + Send + Sync>,
     /// Per shard index, local world slots seen.
     seen: Vec<u32>,
+    /// Per shard index, the worlds it has indexed, as its last path batch said.
+    indexed: Vec<u64>,
+    /// The worlds whose paths were handed to the UI and not let go since.
+    held: HashSet<u32>,
+    /// The survivors held as such ([`bottom_k`] of the last survivor list), ascending.
+    survivor_sample: Vec<u32>,
+    /// The last fetch of the sampled survivors' paths succeeded.
+    survivors_fetched: bool,
     /// Job id → its scene (or why it has none).
     scenes: SceneCache,
     scene_sent: bool,
@@ -242,6 +271,14 @@ impl Bus {
             } => {
                 let notice = self.refine(world, &objects, *frustum, worlds).await;
                 self.emit(Msg::JobNotice(notice)).await;
+            }
+            Command::FetchPaths(worlds) => {
+                let mut link = LinkStatus::default();
+                self.fetch_paths(&worlds, &mut link).await;
+                if let Some(e) = link.error {
+                    self.emit(Msg::Problem(format!("fetching paths: {e}")))
+                        .await;
+                }
             }
             Command::FetchMotion { world, job } => {
                 let session = self.session.clone();
@@ -458,19 +495,43 @@ impl Bus {
             Ok(Reply::Worlds { worlds, .. }) => worlds,
             _ => return false,
         };
-        self.last_session = Some(key);
+        // The survivors to hold: all of them while they fit half the budget, else the ones
+        // with the smallest sampling hashes (a uniform sample that keeps its members as
+        // constraints narrow it).
+        let sample =
+            (self.cfg.max_worlds > 0).then(|| bottom_k(&survivors, self.cfg.max_worlds / 2));
         self.emit(Msg::Session {
             status,
             survivors,
             handled_edits: self.handled,
         })
         .await;
+        match sample {
+            Some(sample) => {
+                let mut link = LinkStatus::default();
+                self.fetch_paths(&sample, &mut link).await;
+                self.survivor_sample = sample;
+                let fetched = link.error.is_none();
+                if let (Some(e), true) = (link.error, self.survivors_fetched) {
+                    self.emit(Msg::Problem(format!("fetching survivors' paths: {e}")))
+                        .await;
+                }
+                self.survivors_fetched = fetched;
+                // Asked again next poll until it works.
+                if fetched {
+                    self.last_session = Some(key);
+                }
+                self.evict().await;
+            }
+            None => self.last_session = Some(key),
+        }
         true
     }
 
     async fn poll(&mut self) {
         let mut link = LinkStatus {
             endpoint: self.cfg.endpoint.clone(),
+            max_worlds: self.cfg.max_worlds,
             ..LinkStatus::default()
         };
         self.poll_paths(&mut link).await;
@@ -478,6 +539,9 @@ impl Bus {
             self.deliver().await;
         }
         let session_ok = self.refresh_session().await;
+        link.synced &= session_ok && self.survivors_fetched;
+        link.indexed = self.total();
+        link.held = self.held.len() as u64;
         self.poll_cluster(&mut link).await;
         link.connected = session_ok;
         if !session_ok && link.error.is_none() {
@@ -491,12 +555,61 @@ impl Bus {
         self.emit(Msg::Link(link)).await;
     }
 
-    /// New worlds from every shard, batch after batch while shards have more.
-    async fn poll_paths(&mut self, link: &mut LinkStatus) {
-        for _ in 0..64 {
+    /// Worlds the stores hold, as their last path batches said.
+    fn total(&self) -> u64 {
+        self.indexed.iter().sum()
+    }
+
+    /// The context's sampling threshold now ([`context_threshold`] of half the budget; 0:
+    /// every world).
+    fn threshold(&self) -> u32 {
+        match self.cfg.max_worlds {
+            0 => 0,
+            max => context_threshold(max as u64 / 2, self.total()),
+        }
+    }
+
+    /// Lets go of the held worlds that are neither in the context nor among the sampled
+    /// survivors (the threshold fell as worlds arrived, or the survivors changed).
+    async fn evict(&mut self) {
+        let t = self.threshold();
+        let gone: Vec<u32> = self
+            .held
+            .iter()
+            .copied()
+            .filter(|&w| !in_context(w, t) && self.survivor_sample.binary_search(&w).is_err())
+            .collect();
+        if gone.is_empty() {
+            return;
+        }
+        for w in &gone {
+            self.held.remove(w);
+        }
+        self.emit(Msg::Evict(gone)).await;
+    }
+
+    /// Hands paths to the UI (and announces their jobs' scenes), noting them held.
+    async fn hand_over(&mut self, worlds: Vec<WorldData>) {
+        if worlds.is_empty() {
+            return;
+        }
+        self.held.extend(worlds.iter().map(|w| w.index));
+        self.announce_scenes(&worlds).await;
+        self.emit(Msg::Worlds(worlds)).await;
+    }
+
+    /// The paths of `worlds` that are not held, asked of every store by index.
+    async fn fetch_paths(&mut self, worlds: &[u32], link: &mut LinkStatus) {
+        let missing: Vec<u32> = worlds
+            .iter()
+            .copied()
+            .filter(|w| !self.held.contains(w))
+            .collect();
+        for chunk in missing.chunks(self.cfg.path_batch.max(1) as usize) {
             let req = PathsRequest {
-                seen: self.seen.clone(),
-                max_worlds: self.cfg.path_batch,
+                max_worlds: chunk.len() as u32,
+                worlds: chunk.to_vec(),
+                ..PathsRequest::default()
             };
             let batches = match self
                 .get_all(&self.keys.paths(), Some(req.encode_to_vec()))
@@ -506,6 +619,54 @@ impl Bus {
                 Err(e) => {
                     link.error = Some(e);
                     return;
+                }
+            };
+            let mut got = Vec::new();
+            for bytes in batches {
+                let Ok(b) = PathBatch::decode(bytes.as_slice()) else {
+                    self.emit(Msg::Problem("a store sent a malformed path batch".into()))
+                        .await;
+                    continue;
+                };
+                for p in &b.worlds {
+                    match WorldData::from_paths(p) {
+                        Ok(w) => got.push(w),
+                        Err(e) => {
+                            self.emit(Msg::Problem(format!("world {}: {e}", p.world)))
+                                .await
+                        }
+                    }
+                }
+            }
+            self.hand_over(got).await;
+        }
+    }
+
+    /// New worlds from every shard (those in the context: every world while the stores hold
+    /// no more than half the budget), batch after batch while shards have more; then lets go
+    /// of the worlds the falling threshold left out.
+    async fn poll_paths(&mut self, link: &mut LinkStatus) {
+        link.synced = self.poll_new_paths(link).await && link.error.is_none();
+        self.evict().await;
+    }
+
+    /// Whether it read every shard to the end.
+    async fn poll_new_paths(&mut self, link: &mut LinkStatus) -> bool {
+        for _ in 0..64 {
+            let req = PathsRequest {
+                seen: self.seen.clone(),
+                max_worlds: self.cfg.path_batch,
+                sample_below: self.threshold(),
+                ..PathsRequest::default()
+            };
+            let batches = match self
+                .get_all(&self.keys.paths(), Some(req.encode_to_vec()))
+                .await
+            {
+                Ok(b) => b,
+                Err(e) => {
+                    link.error = Some(e);
+                    return false;
                 }
             };
             let mut more = false;
@@ -520,9 +681,16 @@ impl Bus {
                 if self.seen.len() <= shard {
                     self.seen.resize(shard + 1, 0);
                 }
+                if self.indexed.len() <= shard {
+                    self.indexed.resize(shard + 1, 0);
+                }
+                self.indexed[shard] = b.indexed;
                 if b.next_local < self.seen[shard] {
                     // The shard holds fewer worlds than we saw: it restarted without them.
                     self.seen[shard] = 0;
+                    let count = b.shard_count;
+                    self.held
+                        .retain(|&w| !(count > 0 && w % count == b.shard_index));
                     self.emit(Msg::ForgetShard {
                         shard: b.shard_index,
                         count: b.shard_count,
@@ -544,14 +712,12 @@ impl Bus {
                     }
                 }
             }
-            if !worlds.is_empty() {
-                self.announce_scenes(&worlds).await;
-                self.emit(Msg::Worlds(worlds)).await;
-            }
+            self.hand_over(worlds).await;
             if !more {
-                return;
+                return true;
             }
         }
+        false
     }
 
     /// Fetches the scenes of jobs not seen before; the first one becomes the view's scene.

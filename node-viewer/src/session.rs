@@ -28,6 +28,10 @@ pub enum Command {
     Rank(RankSpec),
     /// Fetch world `world` (of `job`) from the store and decode its motion.
     FetchMotion { world: u32, job: String },
+    /// Fetch the indexed paths of these worlds, which the viewer does not hold (it holds a
+    /// sample of a large store, `live::LiveConfig::max_worlds`): a world picked from the
+    /// ranking, say.
+    FetchPaths(Vec<u32>),
     /// Read the scene (a file, or a shipped scene's name), write `sim` into it (`auto`
     /// calibrated), check it for what the simulator cannot do faithfully (a refusal is the
     /// notice), announce a sampling job of `worlds` worlds at `quality`, and wait for a store to

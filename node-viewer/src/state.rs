@@ -7,7 +7,7 @@
 //! and mirrors node-query's answer when it comes back as a message. The same holds for
 //! rankings (§4.4.3) and for a world's motion, which a live viewer fetches when it is shown.
 
-use std::collections::VecDeque;
+use std::collections::{HashSet, VecDeque};
 use std::sync::Arc;
 
 use mwb_core::browse::api::{Reply, Request, SessionStatus};
@@ -114,6 +114,17 @@ pub struct Ranking {
 pub struct LinkStatus {
     /// Where the viewer connects, as the user gave it.
     pub endpoint: String,
+    /// The most worlds the viewer holds the paths of (0: no limit); when the stores hold more,
+    /// it holds a sample of them (`live::LiveConfig::max_worlds`).
+    pub max_worlds: usize,
+    /// Worlds the stores have indexed, as their path batches said.
+    pub indexed: u64,
+    /// Worlds the bus task has handed over and not let go since (all of them, or its sample).
+    pub held: u64,
+    /// The last poll read every shard's new worlds to the end and fetched the sampled
+    /// survivors without an error: what the viewer holds is what it will hold until more
+    /// worlds arrive or the survivors change.
+    pub synced: bool,
     /// The last round trip to the bus succeeded.
     pub connected: bool,
     pub stores: u32,
@@ -210,8 +221,13 @@ pub enum Msg {
         statics: Vec<StaticBody>,
         initial: Vec<Body>,
     },
-    /// Worlds that arrived (their indexed paths).
+    /// Worlds that arrived (their indexed paths). Live, a world already held is kept as it is
+    /// (the bus task may send a world again that the state kept past an [`Msg::Evict`]).
     Worlds(Vec<WorldData>),
+    /// Live: the bus task no longer holds these worlds in its sample (`live::LiveConfig::
+    /// max_worlds`); the state lets them go, except the world shown or picked and those whose
+    /// motion is loaded or on its way.
+    Evict(Vec<u32>),
     /// A shard's worlds are gone (it restarted without them): forget worlds `index ≡ shard
     /// (mod count)`.
     ForgetShard {
@@ -295,6 +311,9 @@ pub struct ViewerState {
     fetching: Vec<u32>,
     /// Live: worlds whose motion is loaded, least recently loaded first.
     loaded: VecDeque<u32>,
+    /// Live: a world picked whose paths were asked for ([`Command::FetchPaths`]); picked when
+    /// they arrive.
+    wanted_selection: Option<u32>,
     link: Option<LinkStatus>,
     /// The last browsing error (shown until the next successful answer).
     browse_error: Option<String>,
@@ -376,6 +395,7 @@ impl ViewerState {
             outbox: Vec::new(),
             fetching: Vec::new(),
             loaded: VecDeque::new(),
+            wanted_selection: None,
             link: None,
             browse_error: None,
             job_notice: None,
@@ -524,11 +544,36 @@ impl ViewerState {
     }
 
     /// Worlds browsed: loaded here (offline), or held by the stores (live).
+    /// The survivors whose paths are held here (live, a sample of them when the stores hold
+    /// more worlds than the viewer does).
+    pub fn held_survivors(&self) -> usize {
+        let survivors = self.session.survivors();
+        self.worlds
+            .iter()
+            .filter(|w| survivors.contains(w.index))
+            .count()
+    }
+
     pub fn world_total(&self) -> u64 {
         match &self.session {
             Session::Local(_) => self.worlds.len() as u64,
             Session::Remote(r) => r.status.worlds.max(self.worlds.len() as u64),
         }
+    }
+
+    /// Live: whether the viewer holds all it will hold of the stores' first `target` worlds
+    /// (every one of them, or its sample when they are more than it holds, see
+    /// [`LinkStatus::max_worlds`]): the stores have indexed `target`, the bus task's last poll
+    /// was [`synced`](LinkStatus::synced) and every world it holds has arrived here. Always
+    /// false offline and for a `target` of 0.
+    pub fn holds_worlds(&self, target: u64) -> bool {
+        self.link.as_ref().is_some_and(|l| {
+            l.connected
+                && l.synced
+                && target > 0
+                && l.indexed >= target
+                && self.worlds.len() as u64 >= l.held.min(target)
+        })
     }
 
     /// Live: edits sent whose answer has not come back.
@@ -883,10 +928,7 @@ impl ViewerState {
                 }
             }
             Msg::SetWindow(w) => self.window = w,
-            Msg::SelectWorld(w) => {
-                self.selected = w.filter(|&w| self.world(w).is_some());
-                self.playback.time = self.playback.time.clamp(0.0, self.duration());
-            }
+            Msg::SelectWorld(w) => self.select(w),
             Msg::Play => {
                 if self.playback.time >= self.duration() {
                     self.playback.time = 0.0;
@@ -967,13 +1009,41 @@ impl ViewerState {
                 self.set_initial(initial);
             }
             Msg::Worlds(worlds) => {
+                let live = self.is_live();
                 for w in worlds {
                     let i = w.index;
+                    if live && self.world(i).is_some() {
+                        continue;
+                    }
                     if let Err(e) = self.add_world(w) {
                         self.problems.push(format!("world {i}: {e}"));
                     }
+                    if self.wanted_selection == Some(i) {
+                        self.wanted_selection = None;
+                        self.select(Some(i));
+                    }
                 }
                 self.rerank_local();
+            }
+            Msg::Evict(gone) => {
+                let gone: HashSet<u32> = gone.into_iter().collect();
+                let shown = self.shown_world().map(|w| w.index);
+                let keep = |w: &WorldData| {
+                    !gone.contains(&w.index)
+                        || Some(w.index) == self.selected
+                        || Some(w.index) == shown
+                        || w.motion.is_some()
+                        || self.fetching.contains(&w.index)
+                };
+                let before = self.worlds.len();
+                let kept: Vec<WorldData> = std::mem::take(&mut self.worlds)
+                    .into_iter()
+                    .filter(keep)
+                    .collect();
+                self.worlds = kept;
+                if self.worlds.len() != before {
+                    self.recompute_extent();
+                }
             }
             Msg::ForgetShard { shard, count } => {
                 let gone = |w: u32| count > 0 && w % count == shard;
@@ -1217,6 +1287,18 @@ impl ViewerState {
             }
             Err(e) => self.problems.push(format!("world {world}: {e}")),
         }
+    }
+
+    /// Picks world `w` (or none). Live, a world whose paths the viewer does not hold (it holds
+    /// a sample of a large store) is asked for, and picked when it arrives.
+    fn select(&mut self, w: Option<u32>) {
+        self.wanted_selection = None;
+        if let Some(w) = w.filter(|&w| self.is_live() && self.world(w).is_none()) {
+            self.wanted_selection = Some(w);
+            self.outbox.push(Command::FetchPaths(vec![w]));
+        }
+        self.selected = w.filter(|&w| self.world(w).is_some());
+        self.playback.time = self.playback.time.clamp(0.0, self.duration());
     }
 
     /// Live: asks for the shown world's motion when it is not loaded or on its way.
@@ -2012,5 +2094,60 @@ mod tests {
         })
         .expect("error");
         assert!(s.problems().iter().any(|p| p.contains("CRC")));
+    }
+
+    #[test]
+    fn a_live_viewer_lets_sampled_worlds_go_but_keeps_what_it_shows() {
+        let mut s = ViewerState::live("tcp/127.0.0.1:7447");
+        let mut arriving: Vec<WorldData> = (0..6).map(|i| world(i, 0.0)).collect();
+        for w in &mut arriving {
+            w.motion = None;
+        }
+        s.update(Msg::Worlds(arriving.clone())).expect("worlds");
+        // World 2 is picked (its motion on its way), world 5's motion is loaded.
+        s.update(Msg::SelectWorld(Some(2))).expect("select");
+        s.take_commands();
+        let motion = world(5, 0.0).motion.expect("exact worlds have motion");
+        s.update(Msg::MotionLoaded {
+            world: 5,
+            motion: Ok(motion),
+        })
+        .expect("loaded");
+        // The bus task lets 1, 2, 4 and 5 go: the picked world and the one with motion stay.
+        s.update(Msg::Evict(vec![1, 2, 4, 5])).expect("evict");
+        let held: Vec<u32> = s.worlds().iter().map(|w| w.index).collect();
+        assert_eq!(held, vec![0, 2, 3, 5]);
+        // A world sent again while still held is no problem (the bus task forgot it was kept).
+        s.update(Msg::Worlds(vec![arriving[2].clone()]))
+            .expect("again");
+        assert!(s.problems().is_empty(), "{:?}", s.problems());
+        assert_eq!(s.worlds().len(), 4);
+    }
+
+    #[test]
+    fn picking_a_world_the_live_viewer_does_not_hold_fetches_its_paths_first() {
+        let mut s = ViewerState::live("tcp/127.0.0.1:7447");
+        let mut w7 = world(7, 0.0);
+        w7.motion = None;
+        s.update(Msg::SelectWorld(Some(7))).expect("select");
+        assert_eq!(s.selected(), None, "not held yet");
+        assert_eq!(s.take_commands(), vec![Command::FetchPaths(vec![7])]);
+        s.update(Msg::Worlds(vec![w7])).expect("arrives");
+        assert_eq!(s.selected(), Some(7), "picked when it arrives");
+        // Picking it asked for its motion, as picking a held world does.
+        assert_eq!(
+            s.take_commands(),
+            vec![Command::FetchMotion {
+                world: 7,
+                job: String::new(),
+            }]
+        );
+        // Picking another world meanwhile wins over a pick still waiting.
+        s.update(Msg::SelectWorld(Some(9))).expect("select");
+        s.update(Msg::SelectWorld(None)).expect("none");
+        let mut w9 = world(9, 0.0);
+        w9.motion = None;
+        s.update(Msg::Worlds(vec![w9])).expect("arrives");
+        assert_eq!(s.selected(), None);
     }
 }

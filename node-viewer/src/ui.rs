@@ -474,6 +474,14 @@ impl ViewerApp {
                 } else {
                     "worlds that satisfy every constraint"
                 });
+                let drawn = self.state.held_survivors() as u64;
+                if self.state.is_live() && drawn < s {
+                    ui.label(RichText::new(format!("({drawn} drawn)")).weak())
+                        .on_hover_text(
+                            "the stores hold more worlds than this viewer draws: it holds a \
+                             uniform sample of the survivors (viewer --max-worlds)",
+                        );
+                }
                 if !self.state.problems().is_empty() {
                     ui.separator();
                     let problems = self.state.problems();
@@ -570,12 +578,27 @@ impl ViewerApp {
             if link.samplers == 1 { "" } else { "s" }
         ));
         ui.separator();
+        let held = self.state.worlds().len();
+        let sampled = link.max_worlds > 0 && link.held < link.indexed;
         ui.label(format!(
-            "{} stored · {} loaded here · {:.1} worlds/s",
+            "{} stored · {held} {} · {:.1} worlds/s",
             link.store_worlds,
-            self.state.worlds().len(),
+            if sampled {
+                "drawn (a sample)"
+            } else {
+                "loaded here"
+            },
             link.worlds_per_s
-        ));
+        ))
+        .on_hover_text(if sampled {
+            format!(
+                "this viewer holds the paths of at most {} worlds (--max-worlds): half a \
+                 uniform sample of every world, half the survivors",
+                link.max_worlds
+            )
+        } else {
+            "every stored world's paths are here".to_owned()
+        });
         if link.memory_cap_bytes > 0 {
             ui.separator();
             ui.label(format!(

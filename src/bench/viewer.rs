@@ -176,6 +176,9 @@ pub struct ViewerArgs {
     /// Frame size, WIDTHxHEIGHT.
     #[arg(long, default_value = "1280x720")]
     pub size: String,
+    /// The viewer's `--max-worlds`: the most worlds whose paths it holds (0: every world).
+    #[arg(long, default_value_t = mwb_viewer::live::DEFAULT_MAX_WORLDS)]
+    pub max_worlds: usize,
     /// Print the result as one JSON line.
     #[arg(long)]
     pub json: bool,
@@ -186,7 +189,11 @@ pub struct ViewerBench {
     pub scene: String,
     pub worlds: usize,
     pub bodies: usize,
-    /// Vertices of the drawn paths (one object, every world).
+    /// The viewer's `--max-worlds` (0: every world).
+    pub max_worlds: usize,
+    /// Worlds whose paths the viewer held when it had loaded (all of them, or its sample).
+    pub held_worlds: usize,
+    /// Vertices of the drawn paths (one object, every world held).
     pub path_vertices: usize,
     /// CPU time of a frame (the thread's clock).
     pub frame_ms_p50: f64,
@@ -198,7 +205,7 @@ pub struct ViewerBench {
     pub constraint_roundtrip_ms_p95: f64,
     pub world_open_ms_p50: f64,
     pub world_open_ms_p95: f64,
-    /// Seconds from the viewer's start until every world's paths were loaded.
+    /// Seconds from the viewer's start until every world's paths (or its sample) were loaded.
     pub load_s: f64,
     pub fill_s: f64,
 }
@@ -306,6 +313,7 @@ pub async fn bench_viewer(args: &ViewerArgs) -> Result<ViewerBench> {
             space: space.clone(),
             session: "bench".into(),
             endpoint,
+            max_worlds: args.max_worlds,
             ..LiveConfig::default()
         },
         &tokio::runtime::Handle::current(),
@@ -315,12 +323,14 @@ pub async fn bench_viewer(args: &ViewerArgs) -> Result<ViewerBench> {
     let want = state.worlds_done as usize;
     let t = Instant::now();
     let loaded = app
-        .pump_until(Duration::from_secs(600), |a| a.state.worlds().len() >= want)
+        .pump_until(Duration::from_secs(600), |a| {
+            a.state.holds_worlds(want as u64)
+        })
         .await;
     let load_s = t.elapsed().as_secs_f64();
     if !loaded {
         bail!(
-            "the viewer loaded {} of {want} worlds in {load_s:.0} s",
+            "the viewer held {} worlds of {want} in {load_s:.0} s, and had not caught up",
             app.state.worlds().len()
         );
     }
@@ -328,6 +338,7 @@ pub async fn bench_viewer(args: &ViewerArgs) -> Result<ViewerBench> {
     app.state
         .update(Msg::ChooseObjects(vec![0]))
         .map_err(|e| anyhow::anyhow!("{e}"))?;
+    let held_worlds = app.state.worlds().len();
     let path_vertices = app
         .state
         .worlds()
@@ -402,6 +413,8 @@ pub async fn bench_viewer(args: &ViewerArgs) -> Result<ViewerBench> {
         scene: file,
         worlds: want,
         bodies,
+        max_worlds: args.max_worlds,
+        held_worlds,
         path_vertices,
         frame_ms_p50: percentile(&mut frame_cpu, 0.5),
         frame_ms_p95: percentile(&mut frame_cpu, 0.95),

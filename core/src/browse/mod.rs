@@ -80,6 +80,7 @@ mod frustum;
 mod geom;
 mod metrics;
 mod path;
+pub mod sample;
 mod session;
 
 pub use bitset::{WorldSet, WorldSetIter};
