@@ -275,7 +275,9 @@ fn start_choices(app: &mut ViewerApp, args: &ViewerArgs) -> Result<()> {
         app.set_sort(r.into());
     }
     if let Some(w) = args.select {
-        if app.state.world(w).is_none() {
+        // Live, a world not held yet (still arriving, or outside the sample of a large store)
+        // is fetched and picked when it arrives.
+        if !app.state.is_live() && app.state.world(w).is_none() {
             bail!(
                 "--select {w}: no such world (there are {})",
                 app.state.worlds().len()
@@ -340,8 +342,16 @@ async fn shoot(
                     && a.unsent() == 0
                     && !a.state.shown_loading()
                     && (a.state.rank_spec().is_none() || a.state.ranking().is_some())
+                    && args.select.is_none_or(|w| a.state.selected() == Some(w))
             })
             .await;
+        if let Some(w) = args.select.filter(|&w| app.state.selected() != Some(w)) {
+            bail!(
+                "--select {w}: no store sent world {w} within {:.0} s (the stores hold {})",
+                wait.as_secs_f64(),
+                app.state.world_total()
+            );
+        }
         if !settled {
             bail!(
                 "no answer from the cluster within {:.0} s: {}",

@@ -564,5 +564,43 @@ fn the_live_viewer_browses_a_running_cluster() {
         out.contains(&format!("{} survive", shot["result"])),
         "{out} vs {shot}"
     );
+
+    // A viewer holding a sample of 4 is asked to show the world with the largest sampling hash
+    // (outside any sample this small): it fetches it and shows it. A world no store holds is an
+    // error that names it.
+    let total = (WORLDS + MORE + REFINED) as u32;
+    let far = (0..total)
+        .max_by_key(|&w| mwb_core::browse::sample::sample_hash(w))
+        .unwrap_or(0)
+        .to_string();
+    let shot_args = |select: &str, wait: &str| {
+        vec![
+            "viewer".to_owned(),
+            "--connect".into(),
+            endpoint.clone(),
+            "--space".into(),
+            space.clone(),
+            "--session".into(),
+            "sampled".into(),
+            "--max-worlds".into(),
+            "4".into(),
+            "--select".into(),
+            select.to_owned(),
+            "--wait-s".into(),
+            wait.to_owned(),
+            "--screenshot".into(),
+            png_arg.clone(),
+        ]
+    };
+    let args = shot_args(&far, "60");
+    let out = ok(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(out.contains(&format!("{total} worlds")), "{out}");
+    let args = shot_args("999999", "3");
+    let refused = mwb(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert!(
+        !refused.status.success() && err.contains("--select 999999: no store sent world 999999"),
+        "{err}"
+    );
     drop(procs);
 }

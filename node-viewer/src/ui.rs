@@ -1088,7 +1088,9 @@ impl ViewerApp {
                 for &w in &survivors[range] {
                     let label = match self.state.world(w) {
                         Some(d) => format!("world {w}  (seed {:#x})", d.seed),
-                        None => format!("world {w}  (not loaded yet)"),
+                        // Not arrived yet, or outside the sample a viewer of a large store
+                        // holds: picking it fetches it.
+                        None => format!("world {w}  (not drawn; pick to fetch)"),
                     };
                     if ui.selectable_label(selected == Some(w), label).clicked() {
                         pick = Some(if selected == Some(w) { None } else { Some(w) });
