@@ -175,19 +175,24 @@ fn the_live_viewer_browses_a_running_cluster() {
             zenoh::open(c).await
         })
         .unwrap_or_else(|e| panic!("{e}"));
-    let link = LiveLink::start(
-        session.clone(),
-        LiveConfig {
-            space: space.clone(),
-            session: "viewer".into(),
-            endpoint: endpoint.clone(),
-            poll: Duration::from_millis(200),
-            ..LiveConfig::default()
-        },
-        rt.handle(),
-        Arc::new(|| {}),
-    )
-    .unwrap_or_else(|e| panic!("{e}"));
+    // A viewer's bus task in browsing session `viewer`, holding at most `max_worlds` worlds.
+    let start_link = |max_worlds: usize| {
+        LiveLink::start(
+            session.clone(),
+            LiveConfig {
+                space: space.clone(),
+                session: "viewer".into(),
+                endpoint: endpoint.clone(),
+                poll: Duration::from_millis(200),
+                max_worlds,
+                ..LiveConfig::default()
+            },
+            rt.handle(),
+            Arc::new(|| {}),
+        )
+        .unwrap_or_else(|e| panic!("{e}"))
+    };
+    let link = start_link(mwb_viewer::live::DEFAULT_MAX_WORLDS);
     // node-query publishes every edit it applies (what a recorder keeps of the session).
     let keys = mwb_core::keys::Keys::new(&space).unwrap_or_else(|e| panic!("{e}"));
     let edits = rt
@@ -334,21 +339,7 @@ fn the_live_viewer_browses_a_running_cluster() {
     // with the smallest sampling hashes (fetched by index) — and says so.
     {
         use mwb_core::browse::sample::{bottom_k, context_threshold, in_context};
-        let link = LiveLink::start(
-            session.clone(),
-            LiveConfig {
-                space: space.clone(),
-                session: "viewer".into(),
-                endpoint: endpoint.clone(),
-                poll: Duration::from_millis(200),
-                max_worlds: 8,
-                ..LiveConfig::default()
-            },
-            rt.handle(),
-            Arc::new(|| {}),
-        )
-        .unwrap_or_else(|e| panic!("{e}"));
-        let mut small = ViewerApp::live(ViewerState::live(endpoint.clone()), link);
+        let mut small = ViewerApp::live(ViewerState::live(endpoint.clone()), start_link(8));
         let ok = rt.block_on(small.pump_until(Duration::from_secs(60), |a| {
             a.state.holds_worlds(WORLDS as u64)
                 && a.state.survivor_count() == survivors.len() as u64

@@ -598,6 +598,39 @@ impl Bus {
         self.emit(Msg::Worlds(worlds)).await;
     }
 
+    /// Every shard's answer to `req` on `q/paths`, decoded (a malformed one is reported and
+    /// passed over).
+    async fn path_batches(&self, req: &PathsRequest) -> Result<Vec<PathBatch>, String> {
+        let replies = self
+            .get_all(&self.keys.paths(), Some(req.encode_to_vec()))
+            .await?;
+        let mut out = Vec::with_capacity(replies.len());
+        for bytes in replies {
+            match PathBatch::decode(bytes.as_slice()) {
+                Ok(b) => out.push(b),
+                Err(_) => {
+                    self.emit(Msg::Problem("a store sent a malformed path batch".into()))
+                        .await
+                }
+            }
+        }
+        Ok(out)
+    }
+
+    /// A batch's worlds as the viewer holds them, into `into` (a world whose paths do not
+    /// check is reported and passed over).
+    async fn worlds_of(&self, b: &PathBatch, into: &mut Vec<WorldData>) {
+        for p in &b.worlds {
+            match WorldData::from_paths(p) {
+                Ok(w) => into.push(w),
+                Err(e) => {
+                    self.emit(Msg::Problem(format!("world {}: {e}", p.world)))
+                        .await
+                }
+            }
+        }
+    }
+
     /// The paths of `worlds` that are not held, asked of every store by index.
     async fn fetch_paths(&mut self, worlds: &[u32], link: &mut LinkStatus) {
         let missing: Vec<u32> = worlds
@@ -611,10 +644,7 @@ impl Bus {
                 worlds: chunk.to_vec(),
                 ..PathsRequest::default()
             };
-            let batches = match self
-                .get_all(&self.keys.paths(), Some(req.encode_to_vec()))
-                .await
-            {
+            let batches = match self.path_batches(&req).await {
                 Ok(b) => b,
                 Err(e) => {
                     link.error = Some(e);
@@ -622,21 +652,8 @@ impl Bus {
                 }
             };
             let mut got = Vec::new();
-            for bytes in batches {
-                let Ok(b) = PathBatch::decode(bytes.as_slice()) else {
-                    self.emit(Msg::Problem("a store sent a malformed path batch".into()))
-                        .await;
-                    continue;
-                };
-                for p in &b.worlds {
-                    match WorldData::from_paths(p) {
-                        Ok(w) => got.push(w),
-                        Err(e) => {
-                            self.emit(Msg::Problem(format!("world {}: {e}", p.world)))
-                                .await
-                        }
-                    }
-                }
+            for b in &batches {
+                self.worlds_of(b, &mut got).await;
             }
             self.hand_over(got).await;
         }
@@ -659,10 +676,7 @@ impl Bus {
                 sample_below: self.threshold(),
                 ..PathsRequest::default()
             };
-            let batches = match self
-                .get_all(&self.keys.paths(), Some(req.encode_to_vec()))
-                .await
-            {
+            let batches = match self.path_batches(&req).await {
                 Ok(b) => b,
                 Err(e) => {
                     link.error = Some(e);
@@ -671,12 +685,7 @@ impl Bus {
             };
             let mut more = false;
             let mut worlds = Vec::new();
-            for bytes in batches {
-                let Ok(b) = PathBatch::decode(bytes.as_slice()) else {
-                    self.emit(Msg::Problem("a store sent a malformed path batch".into()))
-                        .await;
-                    continue;
-                };
+            for b in batches {
                 let shard = b.shard_index as usize;
                 if self.seen.len() <= shard {
                     self.seen.resize(shard + 1, 0);
@@ -702,15 +711,7 @@ impl Bus {
                 more |= b.next_local > self.seen[shard]
                     && b.worlds.len() >= self.cfg.path_batch as usize;
                 self.seen[shard] = b.next_local;
-                for p in &b.worlds {
-                    match WorldData::from_paths(p) {
-                        Ok(w) => worlds.push(w),
-                        Err(e) => {
-                            self.emit(Msg::Problem(format!("world {}: {e}", p.world)))
-                                .await
-                        }
-                    }
-                }
+                self.worlds_of(&b, &mut worlds).await;
             }
             self.hand_over(worlds).await;
             if !more {
