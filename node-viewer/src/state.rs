@@ -543,7 +543,6 @@ impl ViewerState {
         self.session.survivor_count()
     }
 
-    /// Worlds browsed: loaded here (offline), or held by the stores (live).
     /// The survivors whose paths are held here (live, a sample of them when the stores hold
     /// more worlds than the viewer does).
     pub fn held_survivors(&self) -> usize {
@@ -554,6 +553,7 @@ impl ViewerState {
             .count()
     }
 
+    /// Worlds browsed: loaded here (offline), or held by the stores (live).
     pub fn world_total(&self) -> u64 {
         match &self.session {
             Session::Local(_) => self.worlds.len() as u64,
