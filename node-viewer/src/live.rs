@@ -273,9 +273,7 @@ impl Bus {
                 self.emit(Msg::JobNotice(notice)).await;
             }
             Command::FetchPaths(worlds) => {
-                let mut link = LinkStatus::default();
-                self.fetch_paths(&worlds, &mut link).await;
-                if let Some(e) = link.error {
+                if let Err(e) = self.fetch_paths(&worlds).await {
                     self.emit(Msg::Problem(format!("fetching paths: {e}")))
                         .await;
                 }
@@ -508,11 +506,10 @@ impl Bus {
         .await;
         match sample {
             Some(sample) => {
-                let mut link = LinkStatus::default();
-                self.fetch_paths(&sample, &mut link).await;
+                let result = self.fetch_paths(&sample).await;
                 self.survivor_sample = sample;
-                let fetched = link.error.is_none();
-                if let (Some(e), true) = (link.error, self.survivors_fetched) {
+                let fetched = result.is_ok();
+                if let (Err(e), true) = (result, self.survivors_fetched) {
                     self.emit(Msg::Problem(format!("fetching survivors' paths: {e}")))
                         .await;
                 }
@@ -632,7 +629,7 @@ impl Bus {
     }
 
     /// The paths of `worlds` that are not held, asked of every store by index.
-    async fn fetch_paths(&mut self, worlds: &[u32], link: &mut LinkStatus) {
+    async fn fetch_paths(&mut self, worlds: &[u32]) -> Result<(), String> {
         let missing: Vec<u32> = worlds
             .iter()
             .copied()
@@ -644,19 +641,14 @@ impl Bus {
                 worlds: chunk.to_vec(),
                 ..PathsRequest::default()
             };
-            let batches = match self.path_batches(&req).await {
-                Ok(b) => b,
-                Err(e) => {
-                    link.error = Some(e);
-                    return;
-                }
-            };
+            let batches = self.path_batches(&req).await?;
             let mut got = Vec::new();
             for b in &batches {
                 self.worlds_of(b, &mut got).await;
             }
             self.hand_over(got).await;
         }
+        Ok(())
     }
 
     /// New worlds from every shard (those in the context: every world while the stores hold

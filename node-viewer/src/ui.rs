@@ -474,8 +474,13 @@ impl ViewerApp {
                 } else {
                     "worlds that satisfy every constraint"
                 });
-                let drawn = self.state.held_survivors() as u64;
-                if self.state.is_live() && drawn < s {
+                // Offline every world is here: no count to make each frame.
+                let drawn = if self.state.is_live() {
+                    self.state.held_survivors() as u64
+                } else {
+                    s
+                };
+                if drawn < s {
                     ui.label(RichText::new(format!("({drawn} drawn)")).weak())
                         .on_hover_text(
                             "the stores hold more worlds than this viewer draws: it holds a \
